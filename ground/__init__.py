@@ -1,0 +1,1 @@
+"""Ground station CLI and flight-log analysis."""

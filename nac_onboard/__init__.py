@@ -1,0 +1,1 @@
+"""Companion-computer software: MAVLink client, agent, flight logs, link model, MPI compute."""

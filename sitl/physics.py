@@ -1,0 +1,166 @@
+"""Quadrotor point-mass physics, vectorised over vehicles (pure: no sockets, files or clocks).
+
+`step(state, cmd, params, dt_s) -> state` advances every vehicle at once with array operations; the flight
+logic above it decides goals and motions, the MAVLink layer only reads the result.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from enum import IntEnum
+
+import numpy as np
+
+GRAVITY_MPS2 = 9.80665
+
+
+class Motion(IntEnum):
+    IDLE = 0  # on the ground (motors off or spinning): holds still
+    GOTO = 1  # position controller toward goal_m
+    LAND = 2  # horizontal controller toward goal_m, descend at land speed until touchdown
+
+
+@dataclass(frozen=True)
+class PhysicsParams:
+    """Per-vehicle arrays (shape (N,)) in SI units."""
+
+    k_xy: np.ndarray  # 1/s, gain of desired velocity on horizontal position error
+    k_z: np.ndarray  # 1/s, gain on vertical position error
+    speed_xy_max_mps: np.ndarray
+    speed_up_max_mps: np.ndarray
+    speed_down_max_mps: np.ndarray
+    land_speed_mps: np.ndarray
+    vel_tau_s: np.ndarray  # first-order velocity response time constant
+    batt_capacity_mah: np.ndarray
+    batt_cells: np.ndarray
+    hover_current_a: np.ndarray
+    current_per_mps_a: np.ndarray  # extra draw per m/s of horizontal speed
+    idle_current_a: np.ndarray  # avionics draw, armed or not
+
+    @staticmethod
+    def defaults(n: int) -> PhysicsParams:
+        def full(value: float) -> np.ndarray:
+            return np.full(n, value, dtype=float)
+
+        return PhysicsParams(
+            k_xy=full(0.15), k_z=full(1.0), speed_xy_max_mps=full(5.0), speed_up_max_mps=full(2.5),
+            speed_down_max_mps=full(1.5), land_speed_mps=full(0.5), vel_tau_s=full(0.3),
+            batt_capacity_mah=full(5000.0), batt_cells=full(4.0), hover_current_a=full(15.0),
+            current_per_mps_a=full(0.8), idle_current_a=full(0.3),
+        )
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """True state of every vehicle; positions are local ENU metres about each vehicle's own home."""
+
+    pos_m: np.ndarray  # (N, 3) east, north, up
+    vel_mps: np.ndarray  # (N, 3)
+    accel_mps2: np.ndarray  # (N, 3) last step's acceleration (drives attitude)
+    yaw_rad: np.ndarray  # (N,) heading, 0 = north, clockwise positive
+    on_ground: np.ndarray  # (N,) bool
+    soc: np.ndarray  # (N,) battery state of charge 0..1
+    current_a: np.ndarray  # (N,)
+    voltage_v: np.ndarray  # (N,)
+    consumed_mah: np.ndarray  # (N,)
+
+    @staticmethod
+    def at_rest(n: int, params: PhysicsParams) -> VehicleState:
+        zeros3 = np.zeros((n, 3))
+        soc = np.ones(n)
+        return VehicleState(
+            pos_m=zeros3.copy(), vel_mps=zeros3.copy(), accel_mps2=zeros3.copy(), yaw_rad=np.zeros(n),
+            on_ground=np.ones(n, dtype=bool), soc=soc, current_a=params.idle_current_a.copy(),
+            voltage_v=battery_voltage_v(soc, params.idle_current_a, params.batt_cells),
+            consumed_mah=np.zeros(n),
+        )
+
+
+@dataclass(frozen=True)
+class Command:
+    motion: np.ndarray  # (N,) Motion values
+    goal_m: np.ndarray  # (N, 3) ENU goal
+    armed: np.ndarray  # (N,) bool
+    speed_xy_mps: np.ndarray  # (N,) current horizontal speed limit (mission DO_CHANGE_SPEED may lower it)
+
+
+def battery_voltage_v(soc: np.ndarray, current_a: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """LiPo pack: 3.3 V per cell empty, 4.2 V full, linear between, 10 mOhm per cell internal resistance."""
+    open_circuit_v = cells * (3.3 + 0.9 * np.clip(soc, 0.0, 1.0))
+    return open_circuit_v - current_a * 0.010 * cells
+
+
+def desired_velocity_mps(pos_m, goal_m, params: PhysicsParams, speed_xy_mps) -> np.ndarray:
+    """The research's proportional position controller with speed clamps.
+
+    The paper prints v = k (x - x_g); with positive gains that drives the vehicle away from its goal, so the
+    converging sign v = k (x_g - x) is used here.
+    """
+    error = goal_m - pos_m
+    v_des = np.empty_like(error)
+    v_des[:, 0] = params.k_xy * error[:, 0]
+    v_des[:, 1] = params.k_xy * error[:, 1]
+    v_des[:, 2] = params.k_z * error[:, 2]
+    horizontal = np.hypot(v_des[:, 0], v_des[:, 1])
+    limit = np.minimum(speed_xy_mps, params.speed_xy_max_mps)
+    scale = np.where(horizontal > limit, limit / np.maximum(horizontal, 1e-12), 1.0)
+    v_des[:, :2] *= scale[:, None]
+    v_des[:, 2] = np.clip(v_des[:, 2], -params.speed_down_max_mps, params.speed_up_max_mps)
+    return v_des
+
+
+def step(state: VehicleState, cmd: Command, params: PhysicsParams, dt_s: float) -> VehicleState:
+    v_des = desired_velocity_mps(state.pos_m, cmd.goal_m, params, cmd.speed_xy_mps)
+    landing = cmd.motion == Motion.LAND
+    v_des[:, 2] = np.where(landing, -params.land_speed_mps, v_des[:, 2])
+    idle = (cmd.motion == Motion.IDLE) | ~cmd.armed
+    v_des[idle] = 0.0
+
+    alpha = 1.0 - np.exp(-dt_s / params.vel_tau_s)
+    vel = state.vel_mps + alpha[:, None] * (v_des - state.vel_mps)
+    pos = state.pos_m + vel * dt_s
+
+    # The ground stops descent; a vehicle idling on the ground does not slide.
+    touching = pos[:, 2] <= 0.0
+    pos[:, 2] = np.maximum(pos[:, 2], 0.0)
+    vel[:, 2] = np.where(touching, np.maximum(vel[:, 2], 0.0), vel[:, 2])
+    on_ground = touching & (landing | idle | (v_des[:, 2] <= 0.0))
+    vel[on_ground] = 0.0
+    pos[on_ground] = np.where(idle[on_ground, None], state.pos_m[on_ground], pos[on_ground])
+    pos[on_ground, 2] = 0.0
+
+    accel = (vel - state.vel_mps) / dt_s
+    speed_xy = np.hypot(vel[:, 0], vel[:, 1])
+    moving = speed_xy > 0.3
+    yaw = np.where(moving, np.arctan2(vel[:, 0], vel[:, 1]), state.yaw_rad)
+
+    flying = cmd.armed & ~on_ground
+    current_a = params.idle_current_a + np.where(
+        flying, params.hover_current_a + params.current_per_mps_a * speed_xy, 0.0)
+    used_mah = current_a * dt_s / 3.6
+    consumed = state.consumed_mah + used_mah
+    soc = np.clip(state.soc - used_mah / params.batt_capacity_mah, 0.0, 1.0)
+    return replace(
+        state, pos_m=pos, vel_mps=vel, accel_mps2=accel, yaw_rad=yaw, on_ground=on_ground, soc=soc,
+        current_a=current_a, voltage_v=battery_voltage_v(soc, current_a, params.batt_cells), consumed_mah=consumed,
+    )
+
+
+def attitude_rad(state: VehicleState) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Roll and pitch a multirotor needs for its acceleration, and its yaw (small-angle point-mass model)."""
+    cos_y, sin_y = np.cos(state.yaw_rad), np.sin(state.yaw_rad)
+    a_forward = state.accel_mps2[:, 1] * cos_y + state.accel_mps2[:, 0] * sin_y
+    a_right = state.accel_mps2[:, 0] * cos_y - state.accel_mps2[:, 1] * sin_y
+    pitch = -np.arctan2(a_forward, GRAVITY_MPS2)
+    roll = np.arctan2(a_right, GRAVITY_MPS2)
+    return roll, pitch, state.yaw_rad
+
+
+def gps_noise_m(rng: np.random.Generator, n: int, sigma_xy_m: float, sigma_z_m: float) -> np.ndarray:
+    """Independent Gaussian position error per vehicle; deterministic for a seeded generator."""
+    if sigma_xy_m <= 0 and sigma_z_m <= 0:
+        return np.zeros((n, 3))
+    noise = rng.standard_normal((n, 3))
+    noise[:, :2] *= sigma_xy_m
+    noise[:, 2] *= sigma_z_m
+    return noise
