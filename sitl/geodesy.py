@@ -51,20 +51,31 @@ def ecef_to_lla(xyz):
     return np.degrees(lat), np.degrees(lon), alt
 
 
-def _enu_basis(home: Home) -> np.ndarray:
-    lat, lon = np.radians(home.lat_deg), np.radians(home.lon_deg)
-    east = np.array([-np.sin(lon), np.cos(lon), 0.0])
-    north = np.array([-np.sin(lat) * np.cos(lon), -np.sin(lat) * np.sin(lon), np.cos(lat)])
-    return np.stack([east, north])
+def _enu_basis(lat_deg, lon_deg) -> np.ndarray:
+    """East and north unit vectors in ECEF, shape (..., 2, 3)."""
+    lat, lon = np.radians(lat_deg), np.radians(lon_deg)
+    zero = np.zeros_like(lat)
+    east = np.stack([-np.sin(lon), np.cos(lon), zero], axis=-1)
+    north = np.stack([-np.sin(lat) * np.cos(lon), -np.sin(lat) * np.sin(lon), np.cos(lat)], axis=-1)
+    return np.stack([east, north], axis=-2)
+
+
+def enu_to_lla_many(enu_m, lat0_deg, lon0_deg, alt0_m):
+    """ENU metres (N, 3), each about its own home (arrays of N) -> (lat_deg, lon_deg, alt_m)."""
+    enu_m = np.asarray(enu_m, dtype=float)
+    lat0_deg, lon0_deg, alt0_m = (np.asarray(v, dtype=float) for v in (lat0_deg, lon0_deg, alt0_m))
+    origin = lla_to_ecef(lat0_deg, lon0_deg, alt0_m)
+    plane_point = origin + np.einsum("...k,...kj->...j", enu_m[..., :2], _enu_basis(lat0_deg, lon0_deg))
+    lat, lon, _ = ecef_to_lla(plane_point)
+    return lat, lon, alt0_m + enu_m[..., 2]
 
 
 def enu_to_lla(enu_m, home: Home):
-    """ENU metres (..., 3) -> (lat_deg, lon_deg, alt_m) arrays."""
+    """ENU metres (..., 3) about one home -> (lat_deg, lon_deg, alt_m) arrays."""
     enu_m = np.asarray(enu_m, dtype=float)
-    origin = lla_to_ecef(home.lat_deg, home.lon_deg, home.alt_m)
-    plane_point = origin + enu_m[..., :2] @ _enu_basis(home)
-    lat, lon, _ = ecef_to_lla(plane_point)
-    return lat, lon, home.alt_m + enu_m[..., 2]
+    shape = enu_m.shape[:-1]
+    return enu_to_lla_many(enu_m, np.full(shape, home.lat_deg), np.full(shape, home.lon_deg),
+                           np.full(shape, home.alt_m))
 
 
 def lla_to_enu(lat_deg, lon_deg, alt_m, home: Home):
@@ -72,7 +83,7 @@ def lla_to_enu(lat_deg, lon_deg, alt_m, home: Home):
     alt_m = np.asarray(alt_m, dtype=float)
     origin = lla_to_ecef(home.lat_deg, home.lon_deg, home.alt_m)
     at_home_height = lla_to_ecef(lat_deg, lon_deg, np.full_like(alt_m, home.alt_m))
-    east_north = (at_home_height - origin) @ _enu_basis(home).T
+    east_north = (at_home_height - origin) @ _enu_basis(home.lat_deg, home.lon_deg).T
     return np.concatenate([east_north, (alt_m - home.alt_m)[..., None]], axis=-1)
 
 
