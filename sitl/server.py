@@ -160,6 +160,7 @@ class Sitl:
         self._selector = selectors.DefaultSelector()
         self._sockets: list[socket.socket] = []
         self.endpoints: list[dict[str, str]] = []
+        self.step_observers: list = []  # callables (t_s, state) run after every step, under the lock
         self._apply_param_side_effects()
         self._open_sockets()
 
@@ -200,7 +201,7 @@ class Sitl:
                     server.setblocking(False)
                     self._selector.register(server, selectors.EVENT_READ, ("listen", i))
                     self._sockets.append(server)
-                    ends["tcp"] = f"tcp 0.0.0.0:{port}"
+                    ends["tcp"] = f"0.0.0.0:{port}"
                 self.endpoints.append(ends)
         except Exception:
             self._close_sockets()
@@ -379,6 +380,8 @@ class Sitl:
         self.t_s += dt
         self.stats["steps"] += 1
         self.fleet.update(self.state, self.t_s)
+        for observe in self.step_observers:
+            observe(self.t_s, self.state)
         if self.fleet.events:
             events, self.fleet.events = self.fleet.events, []
             for vehicle, kind, value in events:

@@ -1,0 +1,131 @@
+"""`nac-sitl`: run the multi-vehicle MAVLink simulator.
+
+    nac-sitl run --vehicles 4 --speedup 5
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from pathlib import Path
+
+from sitl.geodesy import Home
+from sitl.params import ParamError, parse_param_file
+from sitl.server import Sitl, SitlConfig, SitlError
+
+log = logging.getLogger(__name__)
+
+
+class UsageError(ValueError):
+    pass
+
+
+def _home(text: str) -> Home:
+    parts = text.split(",")
+    try:
+        lat, lon, alt = (float(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected LAT,LON,ALT_M (e.g. 47.397742,8.545594,488), got {text!r}") from None
+    if not (-90 <= lat <= 90 and -180 <= lon <= 180):
+        raise argparse.ArgumentTypeError(f"{text!r}: latitude must be within ±90 and longitude within ±180")
+    return Home(lat, lon, alt)
+
+
+def _host_port(text: str) -> tuple[str, int]:
+    host, _, port = text.rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}")
+    return host, int(port)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="nac-sitl", description="NAC multi-vehicle MAVLink SITL")
+    sub = parser.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="serve N simulated vehicles until interrupted")
+    run.add_argument("--vehicles", type=int, default=1, help="number of vehicles (sysid 1..N)")
+    run.add_argument("--speedup", type=float, default=1.0, help="simulated seconds per wall-clock second")
+    run.add_argument("--home", type=_home, default=Home(47.397742, 8.545594, 488.0), help="LAT,LON,ALT_M")
+    run.add_argument("--spacing-m", type=float, default=5.0, help="vehicle i starts i*D metres east of home")
+    run.add_argument("--seed", type=int, default=0, help="seed for GPS noise and injected packet loss")
+    run.add_argument("--params", type=Path, help="parameter file (NAME VALUE per line) applied to every vehicle")
+    run.add_argument("--host", default="127.0.0.1", help="where the UDP links are sent")
+    run.add_argument("--gcs-base-port", type=int, default=14550, help="ground link of vehicle i: base + step*i")
+    run.add_argument("--companion-base-port", type=int, default=14551, help="companion link: base + step*i")
+    run.add_argument("--tcp-base-port", type=int, default=5760, help="TCP server: base + step*i (0 = off)")
+    run.add_argument("--port-step", type=int, default=10, help="port increment between vehicles")
+    run.add_argument("--out", type=_host_port, action="append", default=[],
+                     help="extra ground link HOST:PORT (port + step*i per vehicle); repeatable")
+    run.add_argument("-v", "--verbose", action="store_true")
+    return parser
+
+
+def config_from_args(args: argparse.Namespace) -> SitlConfig:
+    if not 1 <= args.vehicles <= 250:
+        raise UsageError(f"--vehicles must be 1..250, got {args.vehicles}")
+    if not 0.1 <= args.speedup <= 1000:
+        raise UsageError(f"--speedup must be 0.1..1000, got {args.speedup}")
+    params = {}
+    if args.params is not None:
+        try:
+            params = parse_param_file(args.params.read_text(), str(args.params))
+        except OSError as err:
+            raise UsageError(f"cannot read parameter file {args.params}: {err.strerror}") from None
+        except ParamError as err:
+            raise UsageError(str(err)) from None
+    return SitlConfig(
+        vehicles=args.vehicles, speedup=args.speedup, home=args.home, spacing_m=args.spacing_m, seed=args.seed,
+        params=params, host=args.host, gcs_base_port=args.gcs_base_port,
+        companion_base_port=args.companion_base_port, tcp_base_port=args.tcp_base_port,
+        port_step=args.port_step, extra_outs=tuple(args.out),
+    )
+
+
+def run(config: SitlConfig, stop: threading.Event | None = None, out=sys.stdout) -> None:
+    """Serve until `stop` is set (or SIGINT/SIGTERM when run from the command line)."""
+    sim = Sitl(config)
+    for i, ends in enumerate(sim.endpoints):
+        home = sim.homes[i]
+        listed = ", ".join(f"{name} {where}" for name, where in ends.items())
+        print(f"vehicle {i + 1} sysid {i + 1} home {home.lat_deg:.7f},{home.lon_deg:.7f},{home.alt_m:.1f}: "
+              f"{listed}", file=out)
+    print(f"nac-sitl ready: {config.vehicles} vehicles, speedup {config.speedup:g}x "
+          f"(clients listen: udpin:0.0.0.0:{config.gcs_base_port})", file=out, flush=True)
+    sim.start()
+    try:
+        if stop is not None:
+            stop.wait()
+        else:
+            _wait_forever()
+    finally:
+        sim.stop()
+        print(f"nac-sitl stopped at t={sim.t_s:.1f} s simulated", file=out, flush=True)
+
+
+def _wait_forever() -> None:
+    done = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: done.set())
+    while not done.wait(0.5):
+        pass
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        run(config_from_args(args))
+    except (UsageError, ParamError) as err:
+        print(f"nac-sitl: {err}", file=sys.stderr)
+        return 2
+    except SitlError as err:
+        print(f"nac-sitl: {err}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
