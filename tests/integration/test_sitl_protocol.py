@@ -1,0 +1,187 @@
+"""The SITL's MAVLink services as ground stations use them: missions under loss, commands, params, streams."""
+
+import math
+import time
+
+from missions.model import Frame, MavCmd, MissionItem
+from tests.integration.gcs import M, waypoint_mission
+
+
+def long_mission(sim, n_items: int) -> list[MissionItem]:
+    home = sim.homes[0]
+    offsets = [(10 * math.cos(k / 3), 10 * math.sin(k / 3)) for k in range(n_items - 3)]
+    return waypoint_mission(home.lat_deg, home.lon_deg, offsets)
+
+
+def same_items(a, b):
+    return len(a) == len(b) and all(x.same_as(y) for x, y in zip(a[1:], b[1:], strict=True))
+
+
+def test_upload_of_50_items_completes_under_30_percent_loss(start_sitl, gcs_for):
+    sim = start_sitl(speedup=5.0, seed=3)
+    gcs = gcs_for(sim)
+    sim.set_loss(0, "ground", 30.0)
+    items = long_mission(sim, 50)
+    assert gcs.upload(items, timeout_s=120) == M.MAV_MISSION_ACCEPTED
+    sim.set_loss(0, "ground", 0.0)
+    downloaded = gcs.download()
+    assert same_items(downloaded, items)
+    assert sim.links[0].receiver.requests_sent_total >= 50
+
+
+def test_aborted_or_refused_upload_leaves_the_old_mission_intact(start_sitl, gcs_for):
+    sim = start_sitl(speedup=5.0)
+    gcs = gcs_for(sim)
+    original = long_mission(sim, 8)
+    assert gcs.upload(original) == M.MAV_MISSION_ACCEPTED
+    before = gcs.download()
+
+    # The ground station gives up midway: it cancels after item 4.
+    replacement = long_mission(sim, 12)
+    gcs.conn.mav.mission_count_send(1, 1, len(replacement), 0)
+    for _ in range(5):
+        req = gcs.recv("MISSION_REQUEST_INT", 3.0)
+        gcs._send_item(replacement[req.seq], 0)
+    gcs.conn.mav.mission_ack_send(1, 1, M.MAV_MISSION_OPERATION_CANCELLED, 0)
+    assert same_items(gcs.download(), before)
+
+    # An item the vehicle cannot fly is refused by name and the upload is cancelled.
+    bad = list(replacement)
+    bad[5] = MissionItem(5, 5001, Frame.GLOBAL_RELATIVE_ALT_INT, lat_deg=1, lon_deg=1)  # a fence vertex
+    assert gcs.upload(bad) == M.MAV_MISSION_UNSUPPORTED
+    assert same_items(gcs.download(), before)
+    assert not sim.fleet.transfer_busy[0]
+
+
+def test_item_zero_reads_back_as_home_and_clear_empties_the_mission(start_sitl, gcs_for):
+    sim = start_sitl(speedup=5.0)
+    gcs = gcs_for(sim)
+    items = long_mission(sim, 6)
+    assert gcs.upload(items) == M.MAV_MISSION_ACCEPTED
+    got = gcs.download()
+    home = sim.homes[0]
+    assert abs(got[0].lat_deg - home.lat_deg) < 1e-7 and abs(got[0].alt_m - home.alt_m) < 1e-3
+    gcs.conn.mav.mission_clear_all_send(1, 1, 0)
+    ack = gcs.recv("MISSION_ACK", 3.0)
+    assert ack.type == M.MAV_MISSION_ACCEPTED
+    assert len(gcs.download()) == 1  # only home remains, as on ArduPilot
+
+
+def test_fence_and_rally_lists_are_stored_separately(start_sitl, gcs_for):
+    sim = start_sitl(speedup=5.0)
+    gcs = gcs_for(sim)
+    home = sim.homes[0]
+    fence = [MissionItem(k, 5001, Frame.GLOBAL, p1=4, lat_deg=home.lat_deg + dy, lon_deg=home.lon_deg + dx,
+                         mission_type=1) for k, (dx, dy) in enumerate([(0, 0), (1e-3, 0), (1e-3, 1e-3), (0, 1e-3)])]
+    rally = [MissionItem(0, 5100, Frame.GLOBAL_RELATIVE_ALT, lat_deg=home.lat_deg, lon_deg=home.lon_deg, alt_m=20,
+                         mission_type=2)]
+    assert gcs.download(1) == [] and gcs.download(2) == []
+    assert gcs.upload(fence, mission_type=1) == M.MAV_MISSION_ACCEPTED
+    assert gcs.upload(rally, mission_type=2) == M.MAV_MISSION_ACCEPTED
+    assert all(a.same_as(b) for a, b in zip(gcs.download(1), fence, strict=True))
+    assert gcs.download(2)[0].same_as(rally[0])
+    assert len(gcs.download(0)) == 1
+    # a waypoint is not a fence item
+    assert gcs.upload([MissionItem(0, 16, mission_type=1)], mission_type=1) == M.MAV_MISSION_UNSUPPORTED
+
+
+def test_legacy_mission_request_is_answered_with_mission_item_int(start_sitl, gcs_for):
+    sim = start_sitl(speedup=5.0)
+    gcs = gcs_for(sim)
+    items = long_mission(sim, 5)
+    assert gcs.upload(items) == M.MAV_MISSION_ACCEPTED
+    gcs.conn.mav.mission_request_send(1, 1, 2, 0)
+    msg = gcs.recv("MISSION_ITEM_INT", 3.0)
+    assert msg.seq == 2 and abs(msg.x / 1e7 - items[2].lat_deg) < 1e-7
+
+
+def test_commands_answer_with_the_right_result(start_sitl, gcs_for):
+    sim = start_sitl(speedup=10.0)
+    gcs = gcs_for(sim)
+    assert gcs.command(MavCmd.NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 10) == M.MAV_RESULT_TEMPORARILY_REJECTED  # disarmed
+    assert gcs.command(12345) == M.MAV_RESULT_UNSUPPORTED
+    assert gcs.command(MavCmd.MISSION_START) == M.MAV_RESULT_FAILED  # no mission
+    assert gcs.command(MavCmd.COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+    assert gcs.command(MavCmd.NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, -5) == M.MAV_RESULT_DENIED
+    assert gcs.command(MavCmd.NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 8) == M.MAV_RESULT_ACCEPTED
+    hb = gcs.recv("HEARTBEAT", 3.0, lambda m: m.custom_mode == 4)
+    assert hb is not None and gcs.conn.flightmode == "GUIDED"  # pymavlink names ArduCopter modes
+    assert gcs.recv("STATUSTEXT", 10.0, lambda m: "Takeoff complete" in m.text) is not None
+    assert abs(sim.truth(0)["rel_alt_m"] - 8) < 0.5
+    assert gcs.command(MavCmd.COMPONENT_ARM_DISARM, 0) == M.MAV_RESULT_DENIED  # flying
+    assert gcs.set_mode("LOITER") == M.MAV_RESULT_ACCEPTED
+    assert gcs.command(MavCmd.DO_SET_MODE, 1, 99) == M.MAV_RESULT_DENIED  # no such mode
+    assert gcs.command(MavCmd.NAV_LAND) == M.MAV_RESULT_ACCEPTED
+    assert gcs.recv("EXTENDED_SYS_STATE", 30.0, lambda m: m.landed_state == M.MAV_LANDED_STATE_ON_GROUND)
+    assert gcs.recv("HEARTBEAT", 10.0, lambda m: not m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
+
+
+def test_arm_is_refused_while_a_mission_is_uploading(start_sitl, gcs_for):
+    sim = start_sitl(speedup=5.0)
+    gcs = gcs_for(sim)
+    gcs.conn.mav.mission_count_send(1, 1, 5, 0)
+    assert gcs.recv("MISSION_REQUEST_INT", 3.0) is not None
+    assert gcs.command(MavCmd.COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_TEMPORARILY_REJECTED
+    gcs.conn.mav.mission_ack_send(1, 1, M.MAV_MISSION_OPERATION_CANCELLED, 0)
+    assert gcs.command(MavCmd.COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+
+
+def test_connect_sequence_of_a_ground_station(start_sitl, gcs_for):
+    sim = start_sitl(speedup=2.0)
+    gcs = gcs_for(sim)
+    assert gcs.command(MavCmd.REQUEST_MESSAGE, M.MAVLINK_MSG_ID_AUTOPILOT_VERSION) == M.MAV_RESULT_ACCEPTED
+    version = gcs.recv("AUTOPILOT_VERSION", 3.0)
+    for flag in ("MISSION_INT", "COMMAND_INT", "MAVLINK2", "SET_POSITION_TARGET_GLOBAL_INT"):
+        assert version.capabilities & getattr(M, f"MAV_PROTOCOL_CAPABILITY_{flag}")
+    gcs.conn.mav.param_request_list_send(1, 1)
+    first = gcs.recv("PARAM_VALUE", 3.0)
+    names = {first.param_id}
+    while len(names) < first.param_count:
+        msg = gcs.recv("PARAM_VALUE", 3.0)
+        assert msg is not None, f"got {len(names)} of {first.param_count} parameters"
+        names.add(msg.param_id)
+    assert {"NAC_KP_XY", "NAC_KP_Z", "WPNAV_SPEED", "WPNAV_SPEED_UP", "WPNAV_SPEED_DN"} <= names
+    for mission_type in (0, 1, 2):
+        gcs.conn.mav.mission_request_list_send(1, 1, mission_type)
+        assert gcs.recv("MISSION_COUNT", 3.0, lambda m, t=mission_type: m.mission_type == t) is not None
+    home = gcs.command(MavCmd.REQUEST_MESSAGE, M.MAVLINK_MSG_ID_HOME_POSITION)
+    assert home == M.MAV_RESULT_ACCEPTED and gcs.recv("HOME_POSITION", 3.0) is not None
+
+
+def test_param_set_echoes_and_out_of_range_keeps_the_old_value(start_sitl, gcs_for):
+    sim = start_sitl(speedup=2.0)
+    gcs = gcs_for(sim)
+    gcs.conn.mav.param_set_send(1, 1, b"NAC_KP_XY", 0.3, M.MAV_PARAM_TYPE_REAL32)
+    msg = gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "NAC_KP_XY")
+    assert abs(msg.param_value - 0.3) < 1e-6 and abs(sim.physics.k_xy[0] - 0.3) < 1e-6
+    gcs.conn.mav.param_set_send(1, 1, b"WPNAV_SPEED", -100, M.MAV_PARAM_TYPE_REAL32)
+    msg = gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "WPNAV_SPEED")
+    assert msg.param_value == 500
+    gcs.conn.mav.param_request_read_send(1, 1, b"NAC_KP_Z", -1)
+    assert gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "NAC_KP_Z").param_value == 1.0
+
+
+def test_message_interval_sets_the_stream_rate_in_simulated_time(start_sitl, gcs_for):
+    sim = start_sitl(speedup=4.0)
+    gcs = gcs_for(sim)
+    assert gcs.command(MavCmd.SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 100_000) == 0
+    first = gcs.recv("GLOBAL_POSITION_INT", 2.0)
+    stamps = [first.time_boot_ms]
+    while stamps[-1] - stamps[0] < 5000:
+        stamps.append(gcs.recv("GLOBAL_POSITION_INT", 2.0).time_boot_ms)
+    rate_hz = (len(stamps) - 1) / ((stamps[-1] - stamps[0]) / 1000)
+    assert 9.0 <= rate_hz <= 11.0
+    assert gcs.command(MavCmd.SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, -1) == 0
+    gcs.recv("HEARTBEAT", 2.0)
+    assert gcs.recv("GLOBAL_POSITION_INT", 1.5) is None
+    assert gcs.command(MavCmd.SET_MESSAGE_INTERVAL, 9999, 100_000) == M.MAV_RESULT_UNSUPPORTED
+
+
+def test_messages_for_another_system_are_ignored(start_sitl, gcs_for):
+    sim = start_sitl(speedup=2.0)
+    gcs = gcs_for(sim)
+    gcs.conn.mav.command_long_send(7, 1, MavCmd.COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+    assert gcs.recv("COMMAND_ACK", 1.0) is None
+    assert not sim.truth(0)["armed"]
+    start = time.monotonic()
+    assert gcs.command(MavCmd.COMPONENT_ARM_DISARM, 1) == 0 and time.monotonic() - start < 3
