@@ -1,0 +1,119 @@
+"""Acceptance 2: MAVSDK (native binding, no server) flies a mission on the SITL as a real client."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+mavsdk = pytest.importorskip("mavsdk")
+from mavsdk import ComponentType, Configuration, ConnectionResult, Mavsdk, log_subscribe  # noqa: E402
+from mavsdk.plugins.action import Action, ActionResult  # noqa: E402
+from mavsdk.plugins.mission_raw import MissionItem, MissionRaw, MissionRawResult  # noqa: E402
+from mavsdk.plugins.telemetry import LandedState, Telemetry  # noqa: E402
+
+from sitl.geodesy import enu_to_lla  # noqa: E402
+
+
+def call(start_async, timeout_s: float):
+    """Run a MAVSDK *_async call and wait for its result, bounded."""
+    done, box = threading.Event(), {}
+
+    def on_result(result, _user_data):
+        box["result"] = result
+        done.set()
+
+    start_async(on_result)
+    assert done.wait(timeout_s), "MAVSDK call did not complete"
+    return box["result"]
+
+
+@pytest.fixture
+def mavsdk_client():
+    log_subscribe(lambda level, message, file, line: True)  # keep MAVSDK's log lines off the test output
+    config = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
+    client = Mavsdk(config)
+    yield client
+    client.destroy()
+    config.destroy()
+
+
+def wait_for_system(client, sysid: int, timeout_s: float):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for system in client.get_systems():
+            if system.get_system_id() == sysid and system.has_autopilot() and system.is_connected():
+                return system
+        time.sleep(0.05)
+    return None
+
+
+def test_mavsdk_uploads_arms_flies_and_sees_the_vehicle_land(start_sitl, mavsdk_client):
+    sim = start_sitl(speedup=8.0)
+    port = sim.config.companion_base_port
+    assert mavsdk_client.add_any_connection(f"udpin://0.0.0.0:{port}") == ConnectionResult.SUCCESS
+    system = wait_for_system(mavsdk_client, 1, 10.0)
+    assert system is not None, "MAVSDK did not discover the SITL vehicle"
+
+    telemetry, mission, action = Telemetry(system), MissionRaw(system), Action(system)
+    seen = {"progress": [], "landed": [], "errors_m": []}
+    finished = threading.Event()
+
+    def on_progress(p, _ud):
+        seen["progress"].append((p.current, p.total))
+
+    def on_landed(state, _ud):
+        seen["landed"].append(state)
+        airborne = LandedState.IN_AIR in seen["landed"]
+        if airborne and state == LandedState.ON_GROUND:
+            finished.set()
+
+    def on_position(pos, _ud):
+        truth = sim.truth(0)
+        north_m = (pos.latitude_deg - truth["lat_deg"]) * 111_195.0
+        east_m = (pos.longitude_deg - truth["lon_deg"]) * 111_195.0 * np.cos(np.radians(truth["lat_deg"]))
+        seen["errors_m"].append((np.hypot(north_m, east_m), abs(pos.relative_altitude_m - truth["rel_alt_m"])))
+
+    mission.subscribe_mission_progress(on_progress)
+    telemetry.subscribe_landed_state(on_landed)
+    telemetry.subscribe_position(on_position)
+
+    home = sim.homes[0]
+    waypoints = [enu_to_lla(np.array(p), home) for p in ([0, 0, 0], [15, 10, 8], [0, 20, 8], [0, 20, 0])]
+
+    def item(seq, frame, command, lat_lon_alt):
+        lat, lon, alt = lat_lon_alt
+        return MissionItem(seq=seq, frame=frame, command=command, current=int(seq == 0), autocontinue=1,
+                           param1=0.0, param2=0.0, param3=0.0, param4=0.0, x=int(round(float(lat) * 1e7)),
+                           y=int(round(float(lon) * 1e7)), z=float(alt) - home.alt_m if frame else float(alt),
+                           mission_type=0)
+
+    items = [
+        item(0, 0, 16, (home.lat_deg, home.lon_deg, home.alt_m)),  # ArduPilot's home slot
+        item(1, 3, 22, (0.0, 0.0, home.alt_m + 8)),
+        item(2, 3, 16, waypoints[1]),
+        item(3, 3, 16, waypoints[2]),
+        item(4, 3, 21, waypoints[3]),
+    ]
+    assert call(lambda cb: mission.upload_mission_async(items, cb), 10.0) == MissionRawResult.SUCCESS
+    assert call(action.arm_async, 10.0) == ActionResult.SUCCESS
+    assert call(mission.start_mission_async, 10.0) == MissionRawResult.SUCCESS
+
+    assert finished.wait(60.0), f"vehicle did not land; landed states seen: {seen['landed'][-5:]}"
+    deadline = time.monotonic() + 10
+    while not mission.is_mission_finished() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert mission.is_mission_finished()  # MISSION_CURRENT.mission_state == COMPLETE
+    progress = mission.mission_progress()
+    assert progress.current == progress.total == 5  # MAVSDK counts the raw items, home slot included
+    currents = [c for c, _ in seen["progress"]]
+    assert currents == sorted(currents) and {1, 2, 3, 4} <= set(currents)
+    assert LandedState.TAKING_OFF in seen["landed"] and LandedState.LANDING in seen["landed"]
+
+    # Telemetry position agrees with the simulator's truth (mid-flight within the send-to-callback latency).
+    horizontal, vertical = np.array(seen["errors_m"]).T
+    assert len(horizontal) > 20 and horizontal.max() < 1.5 and vertical.max() < 1.5
+    truth = sim.truth(0)
+    final = telemetry.position()
+    assert abs(final.latitude_deg - truth["lat_deg"]) < 2e-7 and abs(final.longitude_deg - truth["lon_deg"]) < 2e-7
+    assert abs(final.absolute_altitude_m - truth["alt_m"]) < 0.05
