@@ -14,7 +14,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import all as mavlink  # noqa: E402
 from pymavlink.generator.mavcrc import x25crc  # noqa: E402
 
-__all__ = ["FrameEncoder", "mavlink", "new_parser"]
+__all__ = ["FrameEncoder", "mavlink", "new_parser", "parse_datagram"]
 
 _HEADER = struct.Struct("<BBBBBBBHB")
 
@@ -24,6 +24,17 @@ def new_parser() -> mavlink.MAVLink:
     parser = mavlink.MAVLink(None)
     parser.robust_parsing = True
     return parser
+
+
+def parse_datagram(parser: mavlink.MAVLink, data: bytes) -> list:
+    """Parse one UDP datagram. Frames never span datagrams, so a partial frame left over (garbage that looked
+    like a header) is discarded instead of swallowing the start of the next datagram."""
+    messages = parser.parse_buffer(data) or []
+    if parser.buf_len():
+        parser.buf = bytearray()
+        parser.buf_index = 0
+        parser.expected_length = mavlink.HEADER_LEN_V1 + 2
+    return messages
 
 
 class _Layout:

@@ -19,7 +19,7 @@ import numpy as np
 
 from sitl.flight import Check, CopterMode, Fleet
 from sitl.geodesy import Home, enu_to_lla, enu_to_lla_many, lla_to_enu, offset_home
-from sitl.mavlink_codec import new_parser
+from sitl.mavlink_codec import new_parser, parse_datagram
 from sitl.params import ParamTable
 from sitl.physics import Motion, VehicleState, attitude_rad, gps_noise_m, step
 from sitl.vehicle_link import DEFAULT_INTERVALS_S, STREAM_IDS, VehicleLink
@@ -87,7 +87,10 @@ class Channel:
         if not self.sim.link_passes(self.vehicle, self.kind):
             return
         try:
-            messages = self.parser.parse_buffer(data) or []
+            if self.tcp:
+                messages = self.parser.parse_buffer(data) or []
+            else:
+                messages = parse_datagram(self.parser, data)
         except Exception as err:  # pymavlink raises on some malformed input even in robust mode
             self.sim.stats["bad_frames"] += 1
             log.debug("vehicle %d: unparseable input: %s", self.vehicle + 1, err)

@@ -41,6 +41,7 @@ DEFAULT_INTERVALS_S: dict[int, float] = {
 }
 STREAM_IDS = tuple(DEFAULT_INTERVALS_S)
 STREAM_COLUMN = {msgid: column for column, msgid in enumerate(STREAM_IDS)}
+MIN_STREAM_INTERVAL_S = 0.02  # 50 Hz per message, like ArduPilot's stream-rate ceiling
 CAPABILITIES = (
     M.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT | M.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
     | M.MAV_PROTOCOL_CAPABILITY_MISSION_INT | M.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
@@ -177,7 +178,7 @@ class VehicleLink:
         elif interval_us == 0:
             interval_s = DEFAULT_INTERVALS_S[msgid]
         else:
-            interval_s = max(interval_us / 1e6, 0.001)
+            interval_s = max(interval_us / 1e6, MIN_STREAM_INTERVAL_S)
         self.sim.stream_interval_s[self.i, column] = interval_s
         self.sim.stream_next_due_s[self.i, column] = self.sim.t_s
         return Outcome(Result.ACCEPTED)
@@ -288,13 +289,25 @@ class VehicleLink:
             items = [home_item] + items[1:]
         return items
 
+    def _known_type(self, msg, channel: Channel) -> bool:
+        """Answer a request for a mission type that does not exist with MAV_MISSION_UNSUPPORTED."""
+        if msg.mission_type in (MissionType.MISSION, MissionType.FENCE, MissionType.RALLY):
+            return True
+        self.send_msg(M.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(),
+                                                    M.MAV_MISSION_UNSUPPORTED, msg.mission_type), channel)
+        return False
+
     def _on_mission_request_list(self, msg, channel: Channel) -> None:
+        if not self._known_type(msg, channel):
+            return
         count = len(self.download_items(msg.mission_type))
         self.send_msg(M.MAVLink_mission_count_message(msg.get_srcSystem(), msg.get_srcComponent(), count,
                                                       msg.mission_type), channel)
 
     def _on_mission_request(self, msg, channel: Channel) -> None:
         self.mission_requests_received += 1
+        if not self._known_type(msg, channel):
+            return
         items = self.download_items(msg.mission_type)
         if not 0 <= msg.seq < len(items):
             self.send_msg(M.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(),
@@ -311,10 +324,14 @@ class VehicleLink:
         self._mission_actions(self.receiver.on_ack(self._partner(msg, channel)), msg, channel)
 
     def _on_mission_clear_all(self, msg, channel: Channel) -> None:
+        everything = msg.mission_type == M.MAV_MISSION_TYPE_ALL
+        if not everything and not self._known_type(msg, channel):
+            return
         if self.receiver.busy:
             result = M.MAV_MISSION_DENIED
         else:
-            self.fleet.replace_mission(self.i, msg.mission_type, [])
+            for mission_type in (MissionType if everything else [msg.mission_type]):
+                self.fleet.replace_mission(self.i, mission_type, [])
             result = M.MAV_MISSION_ACCEPTED
         self.send_msg(M.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(), result,
                                                     msg.mission_type), channel)
