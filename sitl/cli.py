@@ -95,21 +95,20 @@ def run(config: SitlConfig, stop: threading.Event | None = None, out=sys.stdout)
           f"(clients listen: udpin:0.0.0.0:{config.gcs_base_port})", file=out, flush=True)
     sim.start()
     try:
-        if stop is not None:
-            stop.wait()
-        else:
-            _wait_forever()
+        _wait(sim, stop)
     finally:
         sim.stop()
         print(f"nac-sitl stopped at t={sim.t_s:.1f} s simulated", file=out, flush=True)
 
 
-def _wait_forever() -> None:
-    done = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: done.set())
-    while not done.wait(0.5):
-        pass
+def _wait(sim: Sitl, stop: threading.Event | None) -> None:
+    if stop is None:
+        stop = threading.Event()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+    while not stop.wait(0.5):
+        if not sim.alive:
+            raise SitlError("the simulation loop stopped on an internal error (see the log above)")
 
 
 def main(argv: list[str] | None = None) -> int:

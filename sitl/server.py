@@ -151,7 +151,7 @@ class Sitl:
         self.rng = np.random.default_rng(config.seed)
         self.t_s = 0.0
         self.epoch_unix_s = time.time()
-        self.stats = {"bad_frames": 0, "handler_errors": 0, "steps": 0, "overruns": 0}
+        self.stats = {"bad_frames": 0, "handler_errors": 0, "io_errors": 0, "steps": 0, "overruns": 0}
         self.stream_interval_s = np.tile(np.array([DEFAULT_INTERVALS_S[m] for m in STREAM_IDS]), (n, 1))
         self.links = [VehicleLink(i, self.fleet, self) for i in range(n)]
         self.stream_next_due_s = np.zeros((n, len(STREAM_IDS)))
@@ -202,7 +202,7 @@ class Sitl:
                                         f"choose another --tcp-base-port") from None
                     server.listen(4)
                     server.setblocking(False)
-                    self._selector.register(server, selectors.EVENT_READ, ("listen", i))
+                    self._selector.register(server, selectors.EVENT_READ, ("listen", (server, i)))
                     self._sockets.append(server)
                     ends["tcp"] = f"0.0.0.0:{port}"
                 self.endpoints.append(ends)
@@ -424,7 +424,11 @@ class Sitl:
             wait_s = min(max((self.t_s + dt - target) / speedup, 0.0), 0.02)
             for key, _ in self._selector.select(wait_s):
                 with self._lock:
-                    self._read(*key.data)
+                    try:
+                        self._read(*key.data)
+                    except Exception:  # one bad socket event must not stop every vehicle
+                        self.stats["io_errors"] += 1
+                        log.exception("error reading %s", key.data[0])
 
     def start(self) -> Sitl:
         """Run in a background thread (in-process use, tests)."""
@@ -438,6 +442,10 @@ class Sitl:
         except Exception:
             log.exception("SITL loop stopped by an error")
             raise
+
+    @property
+    def alive(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
 
     def stop(self, timeout_s: float = 5.0) -> None:
         self._stop.set()
