@@ -28,7 +28,7 @@ def _home(text: str) -> Home:
     try:
         lat, lon, alt = (float(p) for p in parts)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected LAT,LON,ALT_M (e.g. 47.397742,8.545594,488), got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected LAT,LON,ALT_M (e.g. 47.39,8.54,488), got {text!r}") from None
     if not (-90 <= lat <= 90 and -180 <= lon <= 180):
         raise argparse.ArgumentTypeError(f"{text!r}: latitude must be within ±90 and longitude within ±180")
     return Home(lat, lon, alt)

@@ -55,7 +55,7 @@ def test_garbage_and_nonsense_do_not_stop_the_vehicles(start_sitl, gcs_for):
     target = vehicle_socket_address(sim)
     rng = random.Random(42)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
-        for batch in range(10):
+        for _batch in range(10):
             for _ in range(1000):
                 size = rng.randrange(1, 300)
                 data = bytes(rng.getrandbits(8) for _ in range(size))
@@ -65,7 +65,7 @@ def test_garbage_and_nonsense_do_not_stop_the_vehicles(start_sitl, gcs_for):
             assert_still_answering(gcs)  # each batch processed before the next: the vehicle keeps up
 
         encoder = mavlink.MAVLink(None, srcSystem=200, srcComponent=1)
-        for batch in range(10):
+        for _batch in range(10):
             for _ in range(100):
                 msg = random_message(rng)
                 try:
