@@ -41,7 +41,7 @@ def test_aborted_or_refused_upload_leaves_the_old_mission_intact(start_sitl, gcs
     gcs.conn.mav.mission_count_send(1, 1, len(replacement), 0)
     for _ in range(5):
         req = gcs.recv("MISSION_REQUEST_INT", 3.0)
-        gcs._send_item(replacement[req.seq], 0)
+        gcs.send_item(replacement[req.seq], 0)
     gcs.conn.mav.mission_ack_send(1, 1, M.MAV_MISSION_OPERATION_CANCELLED, 0)
     assert same_items(gcs.download(), before)
 
