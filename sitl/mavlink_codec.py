@@ -14,9 +14,21 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import all as mavlink  # noqa: E402
 from pymavlink.generator.mavcrc import x25crc  # noqa: E402
 
+try:  # pymavlink's own optional accelerator; the pure-Python CRC is the fallback
+    from fastcrc.crc16 import mcrf4xx as _mcrf4xx
+except ImportError:  # pragma: no cover
+    _mcrf4xx = None
+
+
+def _crc(data: bytes) -> int:
+    if _mcrf4xx is not None:
+        return _mcrf4xx(data, 0xFFFF)
+    return x25crc(data).crc
+
 __all__ = ["FrameEncoder", "mavlink", "new_parser", "parse_datagram"]
 
 _HEADER = struct.Struct("<BBBBBBBHB")
+_CRC = struct.Struct("<H")
 
 
 def new_parser() -> mavlink.MAVLink:
@@ -38,14 +50,14 @@ def parse_datagram(parser: mavlink.MAVLink, data: bytes) -> list:
 
 
 class _Layout:
-    __slots__ = ("msgid", "crc_extra", "packer", "order", "scalar")
+    __slots__ = ("msgid", "crc_extra", "packer", "order")
 
     def __init__(self, cls):
         self.msgid = cls.id
-        self.crc_extra = cls.crc_extra
+        self.crc_extra = bytes((cls.crc_extra,))
         self.packer = cls.unpacker
-        self.order = [cls.fieldnames.index(name) for name in cls.ordered_fieldnames]
-        self.scalar = all(length == 0 for length in cls.array_lengths) and "char" not in cls.fieldtypes
+        order = [cls.fieldnames.index(name) for name in cls.ordered_fieldnames]
+        self.order = None if order == sorted(order) else order
 
 
 _LAYOUTS: dict[type, _Layout] = {}
@@ -75,7 +87,8 @@ class FrameEncoder:
         if cached is not None and cached[0] == values:
             payload = cached[1]
         else:
-            payload = layout.packer.pack(*[values[k] for k in layout.order])
+            ordered = values if layout.order is None else [values[k] for k in layout.order]
+            payload = layout.packer.pack(*ordered)
             end = len(payload)
             while end > 1 and payload[end - 1] == 0:  # MAVLink 2 trims trailing zeros
                 end -= 1
@@ -84,9 +97,8 @@ class FrameEncoder:
         header = _HEADER.pack(0xFD, len(payload), 0, 0, self.seq, self.sysid, self.compid,
                               layout.msgid & 0xFFFF, layout.msgid >> 16)
         self.seq = (self.seq + 1) & 0xFF
-        crc = x25crc(header[1:] + payload)
-        crc.accumulate(bytes((layout.crc_extra,)))
-        return header + payload + struct.pack("<H", crc.crc)
+        body = header + payload
+        return body + _CRC.pack(_crc(body[1:] + layout.crc_extra))
 
     def message(self, msg) -> bytes:
         """Encode any pymavlink message object (arrays, strings, extensions)."""

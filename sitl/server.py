@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import errno
 import logging
-import math
 import selectors
 import socket
 import threading
@@ -27,6 +26,7 @@ from sitl.vehicle_link import DEFAULT_INTERVALS_S, STREAM_IDS, VehicleLink
 log = logging.getLogger(__name__)
 
 GROUND, COMPANION = "ground", "companion"
+MAX_DATAGRAM_BYTES = 1200  # below a typical MTU once IP/UDP headers are added
 LINK_BITS = {GROUND: 1, COMPANION: 2}
 
 
@@ -60,6 +60,8 @@ class Channel:
         self.parser = new_parser()
         self.closed = False
         self.bytes_out = 0
+        self.pending: list[bytes] = []
+        self.pending_bytes = 0
 
     def describe(self) -> str:
         if self.tcp:
@@ -67,14 +69,29 @@ class Channel:
         return f"udp {self.peer[0]}:{self.peer[1]}"
 
     def write(self, frame: bytes) -> None:
+        """Queue a frame; frames queued within one step leave together in one datagram, as ArduPilot's
+        UDP links pack them, which saves a system call per message."""
         if self.closed or not self.sim.link_passes(self.vehicle, self.kind):
             return
+        self.pending.append(frame)
+        self.pending_bytes += len(frame)
+        if self.pending_bytes >= MAX_DATAGRAM_BYTES:
+            self.flush()
+        else:
+            self.sim.dirty.add(self)
+
+    def flush(self) -> None:
+        if not self.pending:
+            return
+        data = b"".join(self.pending)
+        self.pending.clear()
+        self.pending_bytes = 0
         try:
             if self.tcp:
-                self.sock.send(frame)
+                self.sock.send(data)
             else:
-                self.sock.sendto(frame, self.peer)
-            self.bytes_out += len(frame)
+                self.sock.sendto(data, self.peer)
+            self.bytes_out += len(data)
         except BlockingIOError:
             pass  # a slow TCP reader loses telemetry, as over a real radio
         except OSError as err:
@@ -163,6 +180,7 @@ class Sitl:
         self._selector = selectors.DefaultSelector()
         self._sockets: list[socket.socket] = []
         self.endpoints: list[dict[str, str]] = []
+        self.dirty: set[Channel] = set()  # channels with frames queued
         self.step_observers: list = []  # callables (t_s, state) run after every step, under the lock
         self._apply_param_side_effects()
         self._open_sockets()
@@ -271,17 +289,25 @@ class Sitl:
 
     # ---- faults and links ---------------------------------------------------------------------------
     def link_passes(self, vehicle: int, kind: str) -> bool:
+        if not self._faults_active:
+            return True
         values = self.params.values[vehicle]
         if int(values[self._col_down]) & LINK_BITS[kind]:
             return False
         loss_pct = values[self._col_loss_gcs if kind == GROUND else self._col_loss_cc]
         return loss_pct <= 0 or self.rng.random() * 100.0 >= loss_pct
 
+    def flush(self) -> None:
+        """Send everything queued on every channel."""
+        while self.dirty:
+            self.dirty.pop().flush()
+
     def _apply_param_side_effects(self) -> None:
         p = self.params
         self._col_down = p.index("SIM_LINK_DOWN")
         self._col_loss_gcs = p.index("SIM_LOSS_GCS")
         self._col_loss_cc = p.index("SIM_LOSS_CC")
+        self._faults_active = bool(p.values[:, [self._col_down, self._col_loss_gcs, self._col_loss_cc]].any())
         self.physics = p.physics()
         self.fleet.gps_ok = p.column("SIM_GPS_DISABLE") < 0.5
         self.fleet.on_params_changed()
@@ -392,14 +418,10 @@ class Sitl:
         due = self.stream_next_due_s <= self.t_s
         if due.any():
             telemetry = self.telemetry()
-            interval = self.stream_interval_s
-            for vehicle, column in zip(*np.nonzero(due), strict=True):
-                gap = interval[vehicle, column]
-                if not gap > 0:
-                    self.stream_next_due_s[vehicle, column] = math.inf
-                    continue
-                self.stream_next_due_s[vehicle, column] = max(
-                    self.stream_next_due_s[vehicle, column] + gap, self.t_s)
+            interval = self.stream_interval_s[due]
+            self.stream_next_due_s[due] = np.maximum(self.stream_next_due_s[due] + interval, self.t_s)
+            rows, columns = np.nonzero(due)
+            for vehicle, column in zip(rows.tolist(), columns.tolist(), strict=True):
                 link = self.links[vehicle]
                 link.send(link.build(STREAM_IDS[column], telemetry))
 
@@ -415,6 +437,7 @@ class Sitl:
                 while self.t_s + dt <= target and steps < 20:
                     self.step_once()
                     steps += 1
+                self.flush()
                 if target - self.t_s > 0.5 * speedup:  # fell behind by half a second: slip, don't spiral
                     self.stats["overruns"] += 1
                     wall0, sim0 = time.monotonic(), self.t_s
@@ -429,6 +452,7 @@ class Sitl:
                     except Exception:  # one bad socket event must not stop every vehicle
                         self.stats["io_errors"] += 1
                         log.exception("error reading %s", key.data[0])
+                    self.flush()
 
     def start(self) -> Sitl:
         """Run in a background thread (in-process use, tests)."""

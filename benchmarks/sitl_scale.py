@@ -1,0 +1,120 @@
+"""Real-time factor of the SITL for 1, 10, 50 and 100 vehicles, every vehicle streaming its default telemetry
+on both links to a client that reads all of it.
+
+The simulator runs as `nac-sitl run --speedup 1000` (as fast as it can) pinned to one core; the client runs in
+this process pinned to the other core, receives every datagram, counts frames per message id and reads the
+simulated clock from SYSTEM_TIME. Real-time factor = simulated seconds / wall seconds over the window.
+
+    python benchmarks/sitl_scale.py [--vehicles 1 10 50 100] [--seconds 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import selectors
+import socket
+import struct
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from sitl.process import SitlProcess  # noqa: E402
+from sitl.server import SitlConfig  # noqa: E402
+
+SYSTEM_TIME_ID = 2
+
+
+def free_base(vehicles: int) -> int:
+    for base in range(30000, 60000 - 10 * vehicles, 10 * vehicles + 10):
+        try:
+            probes = []
+            for i in range(vehicles):
+                for k in (0, 1):
+                    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                    probes.append(s)
+                    s.bind(("127.0.0.1", base + 10 * i + k))
+            for s in probes:
+                s.close()
+            return base
+        except OSError:
+            for s in probes:
+                s.close()
+    raise RuntimeError("no free port range")
+
+
+def measure(vehicles: int, seconds: float, warmup_s: float = 2.0) -> dict:
+    base = free_base(vehicles)
+    sel = selectors.DefaultSelector()
+    sockets = []
+    for i in range(vehicles):
+        for k in (0, 1):
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+            s.bind(("127.0.0.1", base + 10 * i + k))
+            s.setblocking(False)
+            sel.register(s, selectors.EVENT_READ)
+            sockets.append(s)
+    config = SitlConfig(vehicles=vehicles, speedup=1000.0, gcs_base_port=base, companion_base_port=base + 1,
+                        tcp_base_port=0)
+    proc = SitlProcess(config)
+    proc.start()
+    os.sched_setaffinity(proc.proc.pid, {0})
+    frames = 0
+    bytes_in = 0
+    sim_ms = None
+    first = None
+    start = time.monotonic()
+    try:
+        while time.monotonic() - start < warmup_s + seconds:
+            for key, _ in sel.select(0.1):
+                sock = key.fileobj
+                while True:
+                    try:
+                        data = sock.recv(2048)
+                    except BlockingIOError:
+                        break
+                    counting = time.monotonic() - start >= warmup_s
+                    offset = 0
+                    while offset + 12 <= len(data) and data[offset] == 0xFD:  # frames packed in a datagram
+                        length = data[offset + 1]
+                        msgid = data[offset + 7] | data[offset + 8] << 8 | data[offset + 9] << 16
+                        if msgid == SYSTEM_TIME_ID and data[offset + 5] == 1:
+                            payload = data[offset + 10:offset + 10 + length] + bytes(12)
+                            sim_ms = struct.unpack_from("<QI", payload)[1]
+                        offset += 12 + length
+                        if counting:
+                            frames += 1
+                    if counting:
+                        if first is None and sim_ms is not None:
+                            first = (time.monotonic(), sim_ms, frames)
+                        bytes_in += len(data)
+        end = (time.monotonic(), sim_ms, frames)
+    finally:
+        proc.stop()
+        for s in sockets:
+            s.close()
+    wall = end[0] - first[0]
+    sim = (end[1] - first[1]) / 1000.0
+    return {"vehicles": vehicles, "rtf": sim / wall, "frames_per_s": (end[2] - first[2]) / wall,
+            "mbit_per_s": bytes_in * 8 / wall / 1e6}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--vehicles", type=int, nargs="+", default=[1, 10, 50, 100])
+    parser.add_argument("--seconds", type=float, default=10.0)
+    args = parser.parse_args()
+    os.sched_setaffinity(0, {1 % os.cpu_count()})
+    print("| vehicles | real-time factor | frames/s read by the client | Mbit/s |")
+    print("| ---: | ---: | ---: | ---: |")
+    for n in args.vehicles:
+        r = measure(n, args.seconds)
+        print(f"| {r['vehicles']} | {r['rtf']:.1f}x | {r['frames_per_s']:,.0f} | {r['mbit_per_s']:.1f} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
