@@ -76,6 +76,7 @@ class VehicleLink:
         self.receiver = MissionReceiver(validate_item)
         self.mission_requests_received = 0
         self._after_ack: list = []
+        self._command_alt_amsl = False
         self._pending_transfer = None
 
     # ---- output -------------------------------------------------------------------------------------
@@ -115,8 +116,10 @@ class VehicleLink:
         params = [msg.param1, msg.param2, msg.param3, msg.param4]
         if is_int:
             x, y, z = msg.x / 1e7, msg.y / 1e7, float(msg.z)
+            self._command_alt_amsl = msg.frame in (M.MAV_FRAME_GLOBAL, M.MAV_FRAME_GLOBAL_INT)
         else:
             x, y, z = msg.param5, msg.param6, msg.param7
+            self._command_alt_amsl = False  # COMMAND_LONG carries no frame: altitude relative to home
         outcome = self.command(msg.command, params, x, y, z, channel)
         if outcome.text:
             self.statustext(6 if outcome.result == Result.ACCEPTED else 4, outcome.text)
@@ -166,7 +169,7 @@ class VehicleLink:
             self._after_ack.append(lambda: self.send_msg(M.MAVLink_message_interval_message(msgid, us), channel))
             return Outcome(Result.ACCEPTED)
         if command == M.MAV_CMD_DO_REPOSITION:
-            return f.goto(i, self.sim.global_to_enu(i, x, y, z))
+            return f.goto(i, self.sim.global_to_enu(i, x, y, z, relative=not self._command_alt_amsl))
         return Outcome(Result.UNSUPPORTED)
 
     def set_interval(self, msgid: int, interval_us: float) -> Outcome:

@@ -35,6 +35,7 @@ def test_aborted_or_refused_upload_leaves_the_old_mission_intact(start_sitl, gcs
     original = long_mission(sim, 8)
     assert gcs.upload(original) == M.MAV_MISSION_ACCEPTED
     before = gcs.download()
+    assert same_items(before, original)
 
     # The ground station gives up midway: it cancels after item 4.
     replacement = long_mission(sim, 12)
@@ -185,3 +186,22 @@ def test_messages_for_another_system_are_ignored(start_sitl, gcs_for):
     assert not sim.truth(0)["armed"]
     start = time.monotonic()
     assert gcs.command(MavCmd.COMPONENT_ARM_DISARM, 1) == 0 and time.monotonic() - start < 3
+
+
+def test_guided_goto_by_position_target_and_reposition(start_sitl, gcs_for):
+    from sitl.geodesy import offset_home
+    from tests.integration.gcs import take_off
+
+    sim = start_sitl(speedup=20.0)
+    gcs = gcs_for(sim)
+    take_off(gcs, 6)
+    home = sim.homes[0]
+    target = offset_home(home, 12.0, -8.0)
+    gcs.conn.mav.set_position_target_global_int_send(
+        0, 1, 1, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, 0b0000111111111000, int(target.lat_deg * 1e7),
+        int(target.lon_deg * 1e7), 9.0, 0, 0, 0, 0, 0, 0, 0, 0)
+    arrived = gcs.recv("LOCAL_POSITION_NED", 60.0, lambda m: abs(m.y - 12) < 0.3 and abs(m.x + 8) < 0.3)
+    assert arrived is not None and abs(-arrived.z - 9.0) < 0.3
+    target = offset_home(home, -5.0, 5.0)
+    assert gcs.command(M.MAV_CMD_DO_REPOSITION, -1, 0, 0, float("nan"), target.lat_deg, target.lon_deg, 4.0) == 0
+    assert gcs.recv("LOCAL_POSITION_NED", 60.0, lambda m: abs(m.y + 5) < 0.3 and abs(m.x - 5) < 0.3)

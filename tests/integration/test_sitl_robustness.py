@@ -5,7 +5,7 @@ import socket
 
 from missions.model import MavCmd
 from sitl.mavlink_codec import mavlink
-from tests.integration.gcs import M
+from tests.integration.gcs import M, take_off
 
 INT_RANGES = {"int8_t": (-128, 127), "uint8_t": (0, 255), "int16_t": (-32768, 32767), "uint16_t": (0, 65535),
               "int32_t": (-2**31, 2**31 - 1), "uint32_t": (0, 2**32 - 1), "int64_t": (-2**63, 2**63 - 1),
@@ -107,9 +107,7 @@ def test_link_down_then_up(start_sitl, gcs_for):
 def test_gps_loss_in_flight_makes_the_vehicle_land(start_sitl, gcs_for):
     sim = start_sitl(speedup=10.0)
     gcs = gcs_for(sim)
-    assert gcs.command(MavCmd.COMPONENT_ARM_DISARM, 1) == 0
-    assert gcs.command(MavCmd.NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 10) == 0
-    assert gcs.recv("STATUSTEXT", 10.0, lambda m: "Takeoff complete" in m.text)
+    take_off(gcs, 10)
     sim.set_gps_lost(0, True)
     raw = gcs.recv("GPS_RAW_INT", 3.0, lambda m: m.fix_type < 2)
     assert raw is not None and raw.satellites_visible == 0
@@ -122,9 +120,7 @@ def test_gps_loss_in_flight_makes_the_vehicle_land(start_sitl, gcs_for):
 def test_low_battery_triggers_return_to_launch(start_sitl, gcs_for):
     sim = start_sitl(speedup=10.0)
     gcs = gcs_for(sim)
-    assert gcs.command(MavCmd.COMPONENT_ARM_DISARM, 1) == 0
-    assert gcs.command(MavCmd.NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 5) == 0
-    assert gcs.recv("STATUSTEXT", 10.0, lambda m: "Takeoff complete" in m.text)
+    take_off(gcs, 5)
     gcs.conn.mav.param_set_send(1, 1, b"SIM_BATT_PCT", 10, M.MAV_PARAM_TYPE_REAL32)  # the fault as a parameter
     assert gcs.recv("HEARTBEAT", 3.0, lambda m: m.custom_mode == 6 and m.system_status == M.MAV_STATE_CRITICAL)
     status = gcs.recv("SYS_STATUS", 3.0)
