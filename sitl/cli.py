@@ -15,6 +15,7 @@ from pathlib import Path
 from sitl.geodesy import Home
 from sitl.params import ParamError, parse_param_file
 from sitl.server import Sitl, SitlConfig, SitlError
+from sitl.signing import SigningKeyError, load_signing_key
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +59,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--port-step", type=int, default=10, help="port increment between vehicles")
     run.add_argument("--out", type=_host_port, action="append", default=[],
                      help="extra ground link HOST:PORT (port + step*i per vehicle); repeatable")
+    run.add_argument("--signing-key-file", type=Path,
+                     help="MAVLink 2 signing: 64 hex characters or a passphrase; unsigned input is refused")
     run.add_argument("-v", "--verbose", action="store_true")
     return parser
 
@@ -75,11 +78,17 @@ def config_from_args(args: argparse.Namespace) -> SitlConfig:
             raise UsageError(f"cannot read parameter file {args.params}: {err.strerror}") from None
         except ParamError as err:
             raise UsageError(str(err)) from None
+    signing_key = None
+    if args.signing_key_file is not None:
+        try:
+            signing_key = load_signing_key(args.signing_key_file)
+        except SigningKeyError as err:
+            raise UsageError(str(err)) from None
     return SitlConfig(
         vehicles=args.vehicles, speedup=args.speedup, home=args.home, spacing_m=args.spacing_m, seed=args.seed,
         params=params, host=args.host, gcs_base_port=args.gcs_base_port,
         companion_base_port=args.companion_base_port, tcp_base_port=args.tcp_base_port,
-        port_step=args.port_step, extra_outs=tuple(args.out),
+        port_step=args.port_step, extra_outs=tuple(args.out), signing_key=signing_key,
     )
 
 

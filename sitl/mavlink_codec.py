@@ -14,6 +14,8 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import all as mavlink  # noqa: E402
 from pymavlink.generator.mavcrc import x25crc  # noqa: E402
 
+from sitl.signing import INCOMPAT_SIGNED, initial_timestamp, signature_block  # noqa: E402
+
 try:  # pymavlink's own optional accelerator; the pure-Python CRC is the fallback
     from fastcrc.crc16 import mcrf4xx as _mcrf4xx
 except ImportError:  # pragma: no cover
@@ -31,10 +33,16 @@ _HEADER = struct.Struct("<BBBBBBBHB")
 _CRC = struct.Struct("<H")
 
 
-def new_parser() -> mavlink.MAVLink:
-    """A parser that turns garbage into BAD_DATA messages instead of raising."""
+def new_parser(signing_key: bytes | None = None) -> mavlink.MAVLink:
+    """A parser that turns garbage into BAD_DATA messages instead of raising. With a signing key, unsigned or
+    wrongly signed frames become BAD_DATA too (RADIO_STATUS excepted, as on ArduPilot: radios cannot sign)."""
     parser = mavlink.MAVLink(None)
     parser.robust_parsing = True
+    if signing_key is not None:
+        parser.signing.secret_key = signing_key
+        parser.signing.sign_outgoing = False
+        parser.signing.allow_unsigned_callback = (
+            lambda _mav, msgid: msgid == mavlink.MAVLINK_MSG_ID_RADIO_STATUS)
     return parser
 
 
@@ -73,12 +81,19 @@ def _layout(cls) -> _Layout:
 class FrameEncoder:
     """Encodes frames for one source (sysid/compid) with its own sequence counter."""
 
-    def __init__(self, sysid: int, compid: int = 1):
+    def __init__(self, sysid: int, compid: int = 1, signing_key: bytes | None = None, link_id: int = 0):
         self.sysid = sysid
         self.compid = compid
         self.seq = 0
         self._mav = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
         self._cache: dict[int, tuple[tuple, bytes]] = {}
+        self.signing_key = signing_key
+        self.link_id = link_id
+        self.sign_timestamp = initial_timestamp()
+        if signing_key is not None:
+            self._mav.signing.secret_key = signing_key
+            self._mav.signing.sign_outgoing = True
+            self._mav.signing.link_id = link_id
 
     def fields(self, cls, *values) -> bytes:
         """Encode a message given its field values in declaration order (scalar-only messages)."""
@@ -94,15 +109,22 @@ class FrameEncoder:
                 end -= 1
             payload = payload[:end]
             self._cache[layout.msgid] = (values, payload)
-        header = _HEADER.pack(0xFD, len(payload), 0, 0, self.seq, self.sysid, self.compid,
-                              layout.msgid & 0xFFFF, layout.msgid >> 16)
+        signed = self.signing_key is not None
+        header = _HEADER.pack(0xFD, len(payload), INCOMPAT_SIGNED if signed else 0, 0, self.seq, self.sysid,
+                              self.compid, layout.msgid & 0xFFFF, layout.msgid >> 16)
         self.seq = (self.seq + 1) & 0xFF
         body = header + payload
-        return body + _CRC.pack(_crc(body[1:] + layout.crc_extra))
+        frame = body + _CRC.pack(_crc(body[1:] + layout.crc_extra))
+        if signed:
+            frame += signature_block(self.signing_key, frame, self.link_id, self.sign_timestamp)
+            self.sign_timestamp += 1
+        return frame
 
     def message(self, msg) -> bytes:
         """Encode any pymavlink message object (arrays, strings, extensions)."""
         self._mav.seq = self.seq
+        self._mav.signing.timestamp = self.sign_timestamp
         frame = msg.pack(self._mav)
+        self.sign_timestamp = self._mav.signing.timestamp
         self.seq = (self.seq + 1) & 0xFF
         return frame

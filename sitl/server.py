@@ -49,6 +49,7 @@ class SitlConfig:
     port_step: int = 10
     extra_outs: tuple = ()  # ((host, base_port), ...): more ground links, port + port_step * i
     dt_s: float = 0.01
+    signing_key: bytes | None = None  # MAVLink 2 signing: sign everything sent, refuse unsigned input
 
 
 class Channel:
@@ -57,7 +58,7 @@ class Channel:
     def __init__(self, sim: Sitl, vehicle: int, kind: str, sock: socket.socket, peer=None, tcp: bool = False):
         self.sim, self.vehicle, self.kind = sim, vehicle, kind
         self.sock, self.peer, self.tcp = sock, peer, tcp
-        self.parser = new_parser()
+        self.parser = new_parser(sim.config.signing_key)
         self.closed = False
         self.bytes_out = 0
         self.pending: list[bytes] = []
@@ -111,7 +112,7 @@ class Channel:
         except Exception as err:  # pymavlink raises on some malformed input even in robust mode
             self.sim.stats["bad_frames"] += 1
             log.debug("vehicle %d: unparseable input: %s", self.vehicle + 1, err)
-            self.parser = new_parser()
+            self.parser = new_parser(self.sim.config.signing_key)
             return
         link = self.sim.links[self.vehicle]
         for msg in messages:

@@ -71,7 +71,7 @@ class VehicleLink:
         self.sysid = index + 1
         self.fleet = fleet
         self.sim = sim  # the server: clock, channels, parameters, telemetry snapshot
-        self.encoder = FrameEncoder(self.sysid, 1)
+        self.encoder = FrameEncoder(self.sysid, 1, signing_key=sim.config.signing_key)
         self.channels: list[Channel] = []
         self.receiver = MissionReceiver(validate_item)
         self.mission_requests_received = 0

@@ -61,6 +61,10 @@ def test_bad_arguments_are_exit_2(tmp_path):
     assert result.returncode == 2 and "--vehicles" in result.stderr
     result = run_cli("run", "--params", str(tmp_path / "missing.parm"))
     assert result.returncode == 2 and "missing.parm" in result.stderr
+    empty_key = tmp_path / "empty.key"
+    empty_key.write_text("\n")
+    result = run_cli("run", "--signing-key-file", str(empty_key))
+    assert result.returncode == 2 and "empty.key is empty" in result.stderr
 
 
 def test_taken_tcp_port_is_a_clear_error(base_port):
