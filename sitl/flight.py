@@ -445,10 +445,10 @@ class Fleet:
         return OK
 
     def on_params_changed(self) -> None:
+        """A new WPNAV_SPEED applies at once; a mission's DO_CHANGE_SPEED below it stays while in AUTO."""
         limits = self.params.column("WPNAV_SPEED") / 100.0
-        self.speed_xy_mps = np.minimum(self.speed_xy_mps, limits)
-        if not (self.mode == CopterMode.AUTO).any():
-            self.speed_xy_mps = limits.copy()
+        in_auto = self.mode == CopterMode.AUTO
+        self.speed_xy_mps = np.where(in_auto, np.minimum(self.speed_xy_mps, limits), limits)
 
 
 def validate_item(item: MissionItem, mission_type: int) -> str | None:

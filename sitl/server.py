@@ -12,7 +12,7 @@ import selectors
 import socket
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -317,7 +317,7 @@ class Sitl:
         if override.any():
             soc = self.state.soc.copy()
             soc[override] = batt[override] / 100.0
-            self.state = VehicleState(**{**self.state.__dict__, "soc": soc})
+            self.state = replace(self.state, soc=soc)
             p.values[override, p.index("SIM_BATT_PCT")] = -1  # applied once, like a battery swap
 
     def set_param(self, vehicle: int, name: str, value: float) -> None:
