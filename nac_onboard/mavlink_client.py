@@ -1,14 +1,18 @@
 """MAVLink client used by the ground station, the agent and the demo (the one module here importing pymavlink).
 
 Endpoints are URIs: udpin:HOST:PORT (listen, as QGroundControl does), udpout:HOST:PORT (send first),
-tcp:HOST:PORT, serial:DEVICE:BAUD. The environment variable NAC_MAVLINK_URI overrides the default.
+tcp:HOST:PORT, serial:DEVICE:BAUD. The environment variable NAC_MAVLINK_URI overrides the default. One client
+holds one or more links and tracks every vehicle heard on them, by system id.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import select
+from collections import deque
 import time
+from dataclasses import dataclass, field
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
@@ -19,6 +23,9 @@ log = logging.getLogger(__name__)
 M = mavutil.mavlink
 DEFAULT_URI = "udpin:0.0.0.0:14550"
 COPTER_MODES = {name: number for number, name in mavutil.mode_mapping_acm.items()}
+LANDED_STATES = {0: "unknown", 1: "on ground", 2: "in air", 3: "taking off", 4: "landing"}
+MISSION_STATE_COMPLETE = 5
+HEARTBEAT_PERIOD_S = 1.0
 
 
 class LinkError(RuntimeError):
@@ -26,18 +33,24 @@ class LinkError(RuntimeError):
 
 
 class CommandError(RuntimeError):
-    def __init__(self, command: int, result: int):
+    def __init__(self, command: int, result: int, sysid: int):
         self.command, self.result = command, result
-        name = M.enums["MAV_RESULT"][result].name if result in M.enums["MAV_RESULT"] else str(result)
-        super().__init__(f"command {command} refused by the vehicle: {name}")
+        name = _enum_name("MAV_RESULT", result)
+        cmd = _enum_name("MAV_CMD", command)
+        super().__init__(f"vehicle {sysid} refused {cmd}: {name}")
 
 
 class MissionError(RuntimeError):
     def __init__(self, what: str, result: int | None = None):
         self.result = result
-        if result is not None and result in M.enums["MAV_MISSION_RESULT"]:
-            what += f": {M.enums['MAV_MISSION_RESULT'][result].name}"
+        if result is not None:
+            what += f": {_enum_name('MAV_MISSION_RESULT', result)}"
         super().__init__(what)
+
+
+def _enum_name(enum: str, value: int) -> str:
+    entry = M.enums.get(enum, {}).get(value)
+    return entry.name if entry is not None else str(value)
 
 
 def mavutil_device(uri: str) -> tuple[str, dict]:
@@ -53,112 +66,339 @@ def mavutil_device(uri: str) -> tuple[str, dict]:
                     f"tcp:HOST:PORT or serial:DEVICE:BAUD")
 
 
-class VehicleClient:
-    """Talks to one vehicle (by sysid) over one link."""
+@dataclass
+class VehicleState:
+    """What a vehicle last told us about itself."""
 
-    def __init__(self, uri: str | None = None, sysid: int = 1, source_system: int = 255,
-                 source_component: int = M.MAV_COMP_ID_MISSIONPLANNER):
-        self.uri = uri or os.environ.get("NAC_MAVLINK_URI", DEFAULT_URI)
-        device, options = mavutil_device(self.uri)
+    sysid: int
+    link: int = 0  # index of the link it was heard on
+    autopilot: int = 0
+    mode: str = "?"
+    armed: bool = False
+    lat_deg: float = float("nan")
+    lon_deg: float = float("nan")
+    alt_m: float = float("nan")
+    rel_alt_m: float = float("nan")
+    vel_ned_mps: tuple = (0.0, 0.0, 0.0)
+    roll_deg: float = 0.0
+    pitch_deg: float = 0.0
+    yaw_deg: float = 0.0
+    battery_pct: int = -1
+    voltage_v: float = float("nan")
+    landed: str = "unknown"
+    mission_seq: int = 0
+    mission_total: int = 0
+    mission_state: int = 0
+    last_heartbeat_s: float = 0.0
+    reached: list = field(default_factory=list)
+
+    @property
+    def ground_speed_mps(self) -> float:
+        return (self.vel_ned_mps[0] ** 2 + self.vel_ned_mps[1] ** 2) ** 0.5
+
+    def link_age_s(self, now_s: float | None = None) -> float:
+        return (time.monotonic() if now_s is None else now_s) - self.last_heartbeat_s
+
+    def apply(self, msg, now_s: float) -> None:
+        kind = msg.get_type()
+        if kind == "HEARTBEAT":
+            self.last_heartbeat_s = now_s
+            self.autopilot = msg.autopilot
+            self.armed = bool(msg.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
+            if msg.base_mode & M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+                self.mode = mavutil.mode_mapping_acm.get(msg.custom_mode, str(msg.custom_mode))
+        elif kind == "GLOBAL_POSITION_INT":
+            self.lat_deg, self.lon_deg = msg.lat / 1e7, msg.lon / 1e7
+            self.alt_m, self.rel_alt_m = msg.alt / 1000, msg.relative_alt / 1000
+            self.vel_ned_mps = (msg.vx / 100, msg.vy / 100, msg.vz / 100)
+        elif kind == "ATTITUDE":
+            self.roll_deg, self.pitch_deg, self.yaw_deg = (v * 57.29577951308232 for v in
+                                                           (msg.roll, msg.pitch, msg.yaw))
+        elif kind == "SYS_STATUS":
+            self.battery_pct = msg.battery_remaining
+            self.voltage_v = msg.voltage_battery / 1000
+        elif kind == "EXTENDED_SYS_STATE":
+            self.landed = LANDED_STATES.get(msg.landed_state, "unknown")
+        elif kind == "MISSION_CURRENT":
+            self.mission_seq = msg.seq
+            self.mission_total = getattr(msg, "total", 0)
+            self.mission_state = getattr(msg, "mission_state", 0)
+        elif kind == "MISSION_ITEM_REACHED":
+            self.reached.append(msg.seq)
+
+
+class Link:
+    def __init__(self, uri: str, index: int, source_system: int, source_component: int, signing_key: bytes | None):
+        self.uri, self.index = uri, index
+        device, options = mavutil_device(uri)
         try:
             self.conn = mavutil.mavlink_connection(device, source_system=source_system,
                                                    source_component=source_component, **options)
         except OSError as err:
-            raise LinkError(f"cannot open {self.uri}: {err.strerror or err}") from None
-        self.sysid = sysid
-        self.seen: list = []  # every message received, in order (handy for tools and tests)
+            raise LinkError(f"cannot open {uri}: {err.strerror or err}") from None
+        self.signing_key = signing_key
+        if signing_key is not None:
+            self.conn.setup_signing(signing_key, sign_outgoing=True)
+        self.last_heartbeat_sent_s = 0.0
+        self.bad_signature_frames = 0
+        self.signed_frames_unverified = 0  # signed frames heard while we have no key
+
+    def fileno(self) -> int:
+        return self.conn.fd if getattr(self.conn, "fd", None) is not None else self.conn.port.fileno()
+
+    def heartbeat(self, now_s: float) -> None:
+        if now_s - self.last_heartbeat_sent_s >= HEARTBEAT_PERIOD_S:
+            self.last_heartbeat_sent_s = now_s
+            try:
+                self.conn.mav.heartbeat_send(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, M.MAV_STATE_ACTIVE)
+            except OSError:
+                pass  # nobody to send to yet (a listening link before the first packet)
 
     def close(self) -> None:
         self.conn.close()
 
-    def recv(self, types, timeout_s: float, predicate=lambda m: True):
-        """The next message of `types` from our vehicle matching predicate, or None after timeout_s."""
-        deadline = time.monotonic() + timeout_s
-        types = [types] if isinstance(types, str) else types
-        while (left := deadline - time.monotonic()) > 0:
-            msg = self.conn.recv_match(blocking=True, timeout=min(0.2, max(left, 0.01)))
-            if msg is None:
-                continue
-            self.seen.append(msg)
-            if msg.get_srcSystem() == self.sysid and msg.get_type() in types and predicate(msg):
-                return msg
-        return None
 
-    def wait_heartbeat(self, timeout_s: float = 5.0):
-        hb = self.recv("HEARTBEAT", timeout_s)
+class MavlinkClient:
+    """Several links, every vehicle heard on them; operations address a vehicle by system id."""
+
+    def __init__(self, uris: list[str] | str | None = None, sysid: int | None = None, signing_key: bytes | None = None,
+                 source_system: int = 255, source_component: int = M.MAV_COMP_ID_MISSIONPLANNER):
+        if uris is None or uris == []:
+            uris = [os.environ.get("NAC_MAVLINK_URI", DEFAULT_URI)]
+        elif isinstance(uris, str):
+            uris = [uris]
+        self.links: list[Link] = []
+        try:
+            for k, uri in enumerate(uris):
+                self.links.append(Link(uri, k, source_system, source_component, signing_key))
+        except LinkError:
+            self.close()
+            raise
+        self.sysid = sysid  # default target; None = the first vehicle heard
+        self.vehicles: dict[int, VehicleState] = {}
+        self.seen: list = []  # every message received, in order (bounded; handy for tools and tests)
+        self._inbox: deque = deque()  # received, not yet offered to recv()
+
+    @property
+    def conn(self):
+        return self.links[0].conn
+
+    def close(self) -> None:
+        for link in self.links:
+            link.close()
+
+    def __enter__(self) -> MavlinkClient:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ---- receiving --------------------------------------------------------------------------------------
+    def _drain(self, link: Link, now_s: float):
+        while True:
+            msg = link.conn.recv_match(blocking=False)
+            if msg is None:
+                return
+            kind = msg.get_type()
+            if kind == "BAD_DATA":
+                if "signature" in str(getattr(msg, "reason", "")).lower():
+                    link.bad_signature_frames += 1
+                continue
+            if link.signing_key is None and msg.get_header().incompat_flags & 1:
+                link.signed_frames_unverified += 1
+            sysid = msg.get_srcSystem()
+            if msg.get_srcComponent() == 1 or kind == "HEARTBEAT" and msg.type != M.MAV_TYPE_GCS:
+                state = self.vehicles.get(sysid)
+                if state is None and kind == "HEARTBEAT":
+                    state = self.vehicles[sysid] = VehicleState(sysid, link.index)
+                if state is not None:
+                    state.apply(msg, now_s)
+            if len(self.seen) > 10000:
+                del self.seen[:5000]
+            self.seen.append(msg)
+            yield link, msg
+
+    def poll(self, timeout_s: float) -> list:
+        """Wait up to timeout_s for traffic on any link; returns the messages that arrived."""
+        ready, _, _ = select.select(self.links, [], [], max(timeout_s, 0.0))
+        now = time.monotonic()
+        out = []
+        for link in self.links:
+            link.heartbeat(now)
+            out.extend(msg for _, msg in self._drain(link, now))
+        return out
+
+    def recv(self, types, timeout_s: float, predicate=lambda m: True, sysid: int | None = None):
+        """The next message of `types` from the vehicle matching predicate, or None after timeout_s."""
+        target = self.sysid if sysid is None else sysid
+        types = {types} if isinstance(types, str) else set(types)
+        deadline = time.monotonic() + timeout_s
+        while True:
+            self._inbox.extend(self.poll(0.0))
+            while self._inbox:  # like recv_match, what does not match is consumed and dropped
+                msg = self._inbox.popleft()
+                if (msg.get_type() in types and (target is None or msg.get_srcSystem() == target)
+                        and predicate(msg)):
+                    return msg
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return None
+            select.select(self.links, [], [], min(left, 0.1))
+
+    def wait_vehicles(self, count: int = 1, timeout_s: float = 5.0, sysids: list[int] | None = None) -> dict:
+        """Listen until `count` vehicles (or the given sysids) have sent a heartbeat."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            self.poll(min(0.1, deadline - time.monotonic()))
+            heard = set(self.vehicles)
+            if (sysids and set(sysids) <= heard) or (not sysids and len(heard) >= count):
+                break
+        return self.vehicles
+
+    def wait_heartbeat(self, timeout_s: float = 5.0, sysid: int | None = None):
+        target = self.sysid if sysid is None else sysid
+        hb = self.recv("HEARTBEAT", timeout_s, lambda m: m.type != M.MAV_TYPE_GCS, sysid=target)
         if hb is None:
-            raise LinkError(f"no heartbeat from system {self.sysid} on {self.uri} within {timeout_s:g} s")
-        self.conn.target_system, self.conn.target_component = self.sysid, 1
+            raise LinkError(self.silence_reason(target, timeout_s))
+        if self.sysid is None:
+            self.sysid = hb.get_srcSystem()
+        link = self.links[self.vehicles[hb.get_srcSystem()].link]
+        link.conn.target_system, link.conn.target_component = hb.get_srcSystem(), 1
         return hb
 
-    def command(self, command: int, *params: float, timeout_s: float = 1.5, retries: int = 3) -> int:
+    def silence_reason(self, sysid: int | None, timeout_s: float) -> str:
+        who = "any vehicle" if sysid is None else f"vehicle {sysid}"
+        where = ", ".join(link.uri for link in self.links)
+        text = f"no heartbeat from {who} on {where} within {timeout_s:g} s"
+        if any(link.bad_signature_frames for link in self.links):
+            text += " (frames arrived with an invalid signature: the signing key differs from the vehicle's)"
+        return text
+
+    def signing_hint(self) -> str:
+        if any(link.signed_frames_unverified for link in self.links):
+            return " The vehicle signs its messages: it needs our messages signed too (--signing-key-file)."
+        return ""
+
+    def _link_for(self, sysid: int):
+        state = self.vehicles.get(sysid)
+        return self.links[state.link if state else 0].conn
+
+    # ---- commands ---------------------------------------------------------------------------------------
+    def command(self, command: int, *params: float, timeout_s: float = 1.5, retries: int = 3,
+                sysid: int | None = None) -> int:
         """Send COMMAND_LONG until its COMMAND_ACK arrives (confirmation counts retries); returns MAV_RESULT."""
-        p = list(params) + [0.0] * (7 - len(params))
+        target = self.sysid if sysid is None else sysid
+        p = [float(v) for v in params] + [0.0] * (7 - len(params))
         for confirmation in range(retries):
-            self.conn.mav.command_long_send(self.sysid, 1, command, confirmation, *p)
-            ack = self.recv("COMMAND_ACK", timeout_s, lambda m: m.command == command)
+            self._link_for(target).mav.command_long_send(target, 1, command, confirmation, *p)
+            ack = self.recv("COMMAND_ACK", timeout_s,
+                            lambda m: m.command == command and m.result != M.MAV_RESULT_IN_PROGRESS, sysid=target)
             if ack is not None:
                 return ack.result
-        raise LinkError(f"no COMMAND_ACK for command {command} from system {self.sysid} after {retries} tries")
+        raise LinkError(f"no answer from vehicle {target} to {_enum_name('MAV_CMD', command)} after {retries} "
+                        f"tries of {timeout_s:g} s.{self.signing_hint()}")
 
-    def command_ok(self, command: int, *params: float, **kwargs) -> None:
-        result = self.command(command, *params, **kwargs)
+    def command_ok(self, command: int, *params: float, sysid: int | None = None, **kwargs) -> None:
+        target = self.sysid if sysid is None else sysid
+        result = self.command(command, *params, sysid=target, **kwargs)
         if result != M.MAV_RESULT_ACCEPTED:
-            raise CommandError(command, result)
+            raise CommandError(command, result, target)
 
-    def set_mode(self, name: str) -> int:
+    def set_mode(self, name: str, sysid: int | None = None) -> int:
         if name not in COPTER_MODES:
             raise ValueError(f"unknown mode {name!r}; known: {', '.join(sorted(COPTER_MODES))}")
-        return self.command(MavCmd.DO_SET_MODE, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, COPTER_MODES[name])
+        return self.command(MavCmd.DO_SET_MODE, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, COPTER_MODES[name],
+                            sysid=sysid)
 
-    def upload(self, items: list[MissionItem], mission_type: int = 0, timeout_s: float = 60.0,
-               item_timeout_s: float = 1.5, progress=None) -> int:
-        """Mission upload; re-sends COUNT or the last item when the vehicle goes quiet. Returns the ACK type."""
-        mav = self.conn.mav
-        deadline = time.monotonic() + timeout_s
-        mav.mission_count_send(self.sysid, 1, len(items), mission_type)
-        last_sent = None
-        while time.monotonic() < deadline:
+    # ---- missions ---------------------------------------------------------------------------------------
+    def upload(self, items: list[MissionItem], mission_type: int = 0, item_timeout_s: float = 1.5,
+               retries: int = 5, progress=None, sysid: int | None = None) -> int:
+        """Mission upload as the protocol asks of a GCS: answer each request once; when the vehicle goes quiet
+        for item_timeout_s, re-send COUNT (nothing requested yet) or the last item, at most `retries` times in
+        a row. Returns the vehicle's MISSION_ACK type."""
+        target = self.sysid if sysid is None else sysid
+        conn = self._link_for(target)
+        conn.mav.mission_count_send(target, 1, len(items), mission_type)
+        last_sent, quiet = None, 0
+        while True:
             msg = self.recv(["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"], item_timeout_s,
-                            lambda m: m.mission_type == mission_type)
+                            lambda m: m.mission_type == mission_type and m.target_system in (0, conn.mav.srcSystem),
+                            sysid=target)
             if msg is None:
+                quiet += 1
+                if quiet > retries:
+                    waiting = "the first request" if last_sent is None else f"the request after item {last_sent}"
+                    raise MissionError(f"mission upload to vehicle {target} gave up: no answer ({waiting}) after "
+                                       f"{retries} retries.{self.signing_hint()}")
                 if last_sent is None:
-                    mav.mission_count_send(self.sysid, 1, len(items), mission_type)
+                    conn.mav.mission_count_send(target, 1, len(items), mission_type)
                 else:
-                    self.send_item(items[last_sent], mission_type)
+                    self.send_item(items[last_sent], mission_type, target)
                 continue
+            quiet = 0
             if msg.get_type() == "MISSION_ACK":
                 return msg.type
             if not 0 <= msg.seq < len(items):
                 continue
             last_sent = msg.seq
-            self.send_item(items[msg.seq], mission_type)
+            self.send_item(items[msg.seq], mission_type, target)
             if progress is not None:
                 progress(msg.seq + 1, len(items))
-        raise MissionError(f"mission upload to system {self.sysid} timed out after {timeout_s:g} s")
 
-    def send_item(self, it: MissionItem, mission_type: int) -> None:
-        self.conn.mav.mission_item_int_send(
-            self.sysid, 1, it.seq, it.frame, it.command, 0, int(it.autocontinue), it.p1, it.p2, it.p3, it.p4,
+    def send_item(self, it: MissionItem, mission_type: int, sysid: int | None = None) -> None:
+        target = self.sysid if sysid is None else sysid
+        self._link_for(target).mav.mission_item_int_send(
+            target, 1, it.seq, it.frame, it.command, 0, int(it.autocontinue), it.p1, it.p2, it.p3, it.p4,
             int(round(it.lat_deg * 1e7)), int(round(it.lon_deg * 1e7)), it.alt_m, mission_type)
 
-    def download(self, mission_type: int = 0, timeout_s: float = 30.0) -> list[MissionItem]:
-        mav = self.conn.mav
-        deadline = time.monotonic() + timeout_s
-        count = None
-        while count is None and time.monotonic() < deadline:
-            mav.mission_request_list_send(self.sysid, 1, mission_type)
-            msg = self.recv("MISSION_COUNT", 1.5, lambda m: m.mission_type == mission_type)
-            count = None if msg is None else msg.count
-        items: list[MissionItem] = []
-        while count is not None and len(items) < count and time.monotonic() < deadline:
-            mav.mission_request_int_send(self.sysid, 1, len(items), mission_type)
-            msg = self.recv("MISSION_ITEM_INT", 0.5, lambda m: m.seq == len(items))
+    def download(self, mission_type: int = 0, item_timeout_s: float = 1.5, retries: int = 5, progress=None,
+                 sysid: int | None = None) -> list[MissionItem]:
+        target = self.sysid if sysid is None else sysid
+        conn = self._link_for(target)
+        count, quiet = None, 0
+        while count is None:
+            conn.mav.mission_request_list_send(target, 1, mission_type)
+            msg = self.recv("MISSION_COUNT", item_timeout_s, lambda m: m.mission_type == mission_type, sysid=target)
             if msg is not None:
-                items.append(MissionItem(msg.seq, msg.command, msg.frame, msg.param1, msg.param2, msg.param3,
-                                         msg.param4, msg.x / 1e7, msg.y / 1e7, msg.z, bool(msg.autocontinue),
-                                         mission_type=msg.mission_type))
-        if count is None or len(items) < count:
-            raise MissionError(f"mission download from system {self.sysid} timed out after {timeout_s:g} s")
-        mav.mission_ack_send(self.sysid, 1, M.MAV_MISSION_ACCEPTED, mission_type)
+                count = msg.count
+            elif (quiet := quiet + 1) > retries:
+                raise MissionError(f"mission download from vehicle {target}: no MISSION_COUNT after {retries} "
+                                   f"retries.{self.signing_hint()}")
+        items: list[MissionItem] = []
+        quiet = 0
+        while len(items) < count:
+            conn.mav.mission_request_int_send(target, 1, len(items), mission_type)
+            msg = self.recv("MISSION_ITEM_INT", item_timeout_s, lambda m: m.seq == len(items), sysid=target)
+            if msg is None:
+                if (quiet := quiet + 1) > retries:
+                    raise MissionError(f"mission download from vehicle {target}: item {len(items)} of {count} "
+                                       f"never came after {retries} retries")
+                continue
+            quiet = 0
+            items.append(MissionItem(msg.seq, msg.command, msg.frame, msg.param1, msg.param2, msg.param3,
+                                     msg.param4, msg.x / 1e7, msg.y / 1e7, msg.z, bool(msg.autocontinue),
+                                     mission_type=msg.mission_type))
+            if progress is not None:
+                progress(len(items), count)
+        conn.mav.mission_ack_send(target, 1, M.MAV_MISSION_ACCEPTED, mission_type)
         return items
+
+    def clear(self, mission_type: int = 0, timeout_s: float = 1.5, retries: int = 3,
+              sysid: int | None = None) -> int:
+        target = self.sysid if sysid is None else sysid
+        for _ in range(retries):
+            self._link_for(target).mav.mission_clear_all_send(target, 1, mission_type)
+            ack = self.recv("MISSION_ACK", timeout_s, lambda m: m.mission_type == mission_type, sysid=target)
+            if ack is not None:
+                return ack.type
+        raise MissionError(f"vehicle {target} did not acknowledge the mission clear after {retries} tries")
+
+
+class VehicleClient(MavlinkClient):
+    """One link, one vehicle: the shape the demo and simple tools need."""
+
+    def __init__(self, uri: str | None = None, sysid: int = 1, source_system: int = 255,
+                 source_component: int = M.MAV_COMP_ID_MISSIONPLANNER, signing_key: bytes | None = None):
+        super().__init__(uri, sysid=sysid, signing_key=signing_key, source_system=source_system,
+                         source_component=source_component)
+        self.uri = self.links[0].uri

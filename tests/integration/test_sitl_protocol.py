@@ -22,7 +22,7 @@ def test_upload_of_50_items_completes_under_30_percent_loss(start_sitl, gcs_for)
     gcs = gcs_for(sim)
     sim.set_loss(0, "ground", 30.0)
     items = long_mission(sim, 50)
-    assert gcs.upload(items, timeout_s=120) == M.MAV_MISSION_ACCEPTED
+    assert gcs.upload(items) == M.MAV_MISSION_ACCEPTED
     sim.set_loss(0, "ground", 0.0)
     downloaded = gcs.download()
     assert same_items(downloaded, items)
