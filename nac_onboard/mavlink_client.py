@@ -10,8 +10,8 @@ from __future__ import annotations
 import logging
 import os
 import select
-from collections import deque
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 os.environ.setdefault("MAVLINK20", "1")

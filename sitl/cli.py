@@ -12,10 +12,10 @@ import sys
 import threading
 from pathlib import Path
 
+from nac_onboard.signing import SigningKeyError, load_signing_key
 from sitl.geodesy import Home
 from sitl.params import ParamError, parse_param_file
 from sitl.server import Sitl, SitlConfig, SitlError
-from sitl.signing import SigningKeyError, load_signing_key
 
 log = logging.getLogger(__name__)
 

@@ -85,6 +85,7 @@ class MissionReceiver:
         # The last completed upload, so a GCS whose ACK was lost and who re-sends the last item is re-ACKed.
         self._finished: tuple[Partner, int, int, float] | None = None
         self.requests_sent_total = 0
+        self.items_received_total = 0  # every MISSION_ITEM(_INT) that arrived, duplicates included
 
     @property
     def busy(self) -> bool:
@@ -116,6 +117,7 @@ class MissionReceiver:
         return [self._request(self.upload, now_s)]
 
     def on_item(self, partner: Partner, item: MissionItem, now_s: float) -> list[Action]:
+        self.items_received_total += 1
         up = self.upload
         if up is None:
             fin = self._finished

@@ -47,6 +47,7 @@ PARAM_DEFS: tuple[ParamDef, ...] = (
     ParamDef("SIM_LOSS_GCS", 0, 0, 100, "fault: packet loss on the ground link, both directions (%)"),
     ParamDef("SIM_LOSS_CC", 0, 0, 100, "fault: packet loss on the companion link, both directions (%)"),
     ParamDef("SIM_LINK_DOWN", 0, 0, 3, "fault: links down, bitmask 1 = ground, 2 = companion"),
+    ParamDef("SIM_MIS_RETRY_MS", 250, 10, 5000, "mission upload: re-request an item after this long without it (ms)"),
     ParamDef("SIM_SPEEDUP", 1, 0.1, 1000, "simulation speed-up (read-only: set at start)"),
 )
 PARAMS_BY_NAME = {p.name: p for p in PARAM_DEFS}

@@ -312,6 +312,8 @@ class Sitl:
         self.physics = p.physics()
         self.fleet.gps_ok = p.column("SIM_GPS_DISABLE") < 0.5
         self.fleet.on_params_changed()
+        for link, retry_ms in zip(self.links, p.column("SIM_MIS_RETRY_MS"), strict=True):
+            link.receiver.item_timeout_s = retry_ms / 1000.0
         batt = p.column("SIM_BATT_PCT")
         override = batt >= 0
         if override.any():

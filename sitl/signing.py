@@ -1,40 +1,13 @@
-"""MAVLink 2 signing keys and the signature block (stdlib only).
-
-A key file holds either 64 hex characters (the 32-byte secret itself) or a passphrase, whose SHA-256 is the
-secret, as MAVProxy's `signing setup PASSPHRASE` derives it.
-"""
+"""MAVLink 2 signature block for the SITL's own fast encoder (stdlib only). Keys: nac_onboard.signing."""
 
 from __future__ import annotations
 
 import hashlib
 import struct
 import time
-from pathlib import Path
 
 SIGNING_EPOCH_UNIX_S = 1420070400  # 2015-01-01, the origin of MAVLink signing timestamps
 INCOMPAT_SIGNED = 0x01
-
-
-class SigningKeyError(ValueError):
-    pass
-
-
-def load_signing_key(path: str | Path) -> bytes:
-    path = Path(path)
-    try:
-        text = path.read_text().strip()
-    except OSError as err:
-        raise SigningKeyError(f"cannot read signing key file {path}: {err.strerror}") from None
-    except UnicodeDecodeError:
-        raise SigningKeyError(f"signing key file {path}: expected 64 hex characters or a passphrase") from None
-    if not text:
-        raise SigningKeyError(f"signing key file {path} is empty: expected 64 hex characters or a passphrase")
-    if len(text) == 64:
-        try:
-            return bytes.fromhex(text)
-        except ValueError:
-            pass
-    return hashlib.sha256(text.encode()).digest()
 
 
 def initial_timestamp() -> int:
