@@ -1,21 +1,124 @@
-"""`nac-ground`: the operator's command line (mission, vehicle and log commands arrive in later issues)."""
+"""`nac-ground`: the operator's command line over the MAVLink client.
+
+    nac-ground [--connect URI ...] [--sysid N] [--signing-key-file F] COMMAND ...
+
+Exit codes: 0 ok, 1 the vehicle refused or did not answer in time, 2 bad input (nothing was sent).
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
+
+from ground import operations as ops
+from missions import MissionFileError, load_mission
+from nac_onboard.mavlink_client import COPTER_MODES, DEFAULT_URI, CommandError, LinkError, MavlinkClient, MissionError
+from nac_onboard.signing import SigningKeyError, load_signing_key
+
+
+class UsageError(ValueError):
+    pass
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="nac-ground", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--connect", action="append", metavar="URI",
+                        help=f"link to listen on or dial (repeatable; default {DEFAULT_URI} or $NAC_MAVLINK_URI): "
+                             "udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, serial:DEVICE:BAUD")
+    parser.add_argument("--sysid", type=int, help="vehicle to command (default: the first one heard)")
+    parser.add_argument("--signing-key-file", type=Path, help="MAVLink 2 signing key (64 hex chars or passphrase)")
+    parser.add_argument("--wait-s", type=float, default=5.0, help="how long to wait for the vehicle's heartbeat")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    mission = sub.add_parser("mission", help="upload, download, clear, validate, convert, start")
+    msub = mission.add_subparsers(dest="action", required=True, metavar="ACTION")
+    msub.add_parser("upload", help="upload a .plan or QGC WPL file").add_argument("file")
+    msub.add_parser("download", help="save the vehicle's mission (.plan or .waypoints by extension)") \
+        .add_argument("file")
+    msub.add_parser("clear", help="delete the vehicle's mission")
+    msub.add_parser("validate", help="check a mission file offline").add_argument("file")
+    convert = msub.add_parser("convert", help="convert between .plan and QGC WPL 110")
+    convert.add_argument("source")
+    convert.add_argument("target")
+    msub.add_parser("start", help="start the uploaded mission (MISSION_START)")
+
+    sub.add_parser("arm", help="arm the motors")
+    sub.add_parser("disarm", help="disarm the motors")
+    sub.add_parser("takeoff", help="GUIDED takeoff to ALT_M above home").add_argument("alt_m", type=float)
+    sub.add_parser("mode", help=f"set a flight mode ({', '.join(sorted(COPTER_MODES))})").add_argument("name")
+    sub.add_parser("land", help="land where the vehicle is")
+    sub.add_parser("rtl", help="return to launch")
+    wait = sub.add_parser("wait", help="block until the mission is complete or the vehicle has landed")
+    wait.add_argument("what", choices=["mission-complete", "landed"])
+    wait.add_argument("--timeout-s", type=float, default=600.0)
+    status = sub.add_parser("status", help="one table of every vehicle heard")
+    status.add_argument("--listen-s", type=float, default=3.0)
+    monitor = sub.add_parser("monitor", help="live table of every vehicle heard (Ctrl-C to stop)")
+    monitor.add_argument("--refresh-s", type=float, default=1.0)
+    monitor.add_argument("--duration-s", type=float, help="stop after this long (default: until Ctrl-C)")
+    return parser
+
+
+def run(args: argparse.Namespace, out=sys.stdout) -> int:
+    key = (args.command, getattr(args, "action", None))
+    if key == ("mission", "validate"):
+        ops.mission_validate(args.file, out)
+        return 0
+    if key == ("mission", "convert"):
+        ops.mission_convert(args.source, args.target, out)
+        return 0
+    # Everything that can be refused offline is checked before any link opens: bad input sends nothing.
+    mission = load_mission(args.file) if key == ("mission", "upload") else None
+    if args.command == "mode" and args.name.upper() not in COPTER_MODES:
+        raise UsageError(f"unknown mode {args.name!r}; known: {', '.join(sorted(COPTER_MODES))}")
+    signing_key = load_signing_key(args.signing_key_file) if args.signing_key_file else None
+
+    with MavlinkClient(args.connect, sysid=args.sysid, signing_key=signing_key) as client:
+        if args.command == "status":
+            ops.status(client, args.listen_s, out)
+            return 0
+        if args.command == "monitor":
+            try:
+                ops.monitor(client, args.refresh_s, args.duration_s, out)
+            except KeyboardInterrupt:
+                pass
+            return 0
+        ops.connect(client, args.wait_s)
+        if args.command == "mission":
+            {"upload": lambda: ops.mission_upload(client, mission, out),
+             "download": lambda: ops.mission_download(client, args.file, out),
+             "clear": lambda: ops.mission_clear(client, out),
+             "start": lambda: ops.mission_start(client, out)}[args.action]()
+        elif args.command in ("arm", "disarm"):
+            ops.arm(client, out, args.command == "arm")
+        elif args.command == "takeoff":
+            ops.takeoff(client, args.alt_m, out)
+        elif args.command == "mode":
+            ops.set_mode(client, args.name.upper(), out)
+        elif args.command == "land":
+            ops.land(client, out)
+        elif args.command == "rtl":
+            ops.rtl(client, out)
+        elif args.command == "wait":
+            ops.wait_for(client, args.what, args.timeout_s, out)
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="nac-ground", description=__doc__)
-    parser.add_argument("command", nargs="?", choices=["mission", "status", "monitor", "logs"])
-    args, _rest = parser.parse_known_args(argv)
-    if args.command is None:
-        parser.print_help()
-        return 0
-    print(f"nac-ground {args.command}: not implemented yet (planned: missions, vehicle commands, log analysis).",
-          file=sys.stderr)
-    return 1
+    args = build_parser().parse_args(argv)
+    try:
+        return run(args)
+    except (UsageError, MissionFileError, SigningKeyError) as err:
+        print(f"nac-ground: {err}", file=sys.stderr)
+        return 2
+    except (LinkError, CommandError, MissionError) as err:
+        print(f"nac-ground: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("nac-ground: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -37,6 +37,8 @@ class MissionResult(IntEnum):
     OPERATION_CANCELLED = 15
 
 
+REACK_WINDOW_S = 30.0  # how long after completing an upload a repeated last item is answered with the ACK again
+
 Partner = tuple  # (sysid, compid, channel id): whoever started the transfer
 
 
@@ -122,7 +124,7 @@ class MissionReceiver:
         if up is None:
             fin = self._finished
             if (fin is not None and fin[0] == partner and fin[1] == item.mission_type and item.seq == fin[2] - 1
-                    and now_s - fin[3] < self.idle_timeout_s):
+                    and now_s - fin[3] < REACK_WINDOW_S):
                 return [Ack(MissionResult.ACCEPTED, item.mission_type)]
             return []
         if partner != up.partner or item.mission_type != up.mission_type:

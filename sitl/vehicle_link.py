@@ -264,9 +264,10 @@ class VehicleLink:
         self.fleet.transfer_busy[self.i] = self.receiver.busy
 
     def _on_mission_count(self, msg, channel: Channel) -> None:
-        actions = self.receiver.on_count(self._partner(msg, channel), msg.mission_type, msg.count,
-                                         self.sim.wall_s())
-        self._pending_transfer = (msg, channel)
+        partner = self._partner(msg, channel)
+        actions = self.receiver.on_count(partner, msg.mission_type, msg.count, self.sim.wall_s())
+        if self.receiver.upload is not None and self.receiver.upload.partner == partner:
+            self._pending_transfer = (msg, channel)  # re-requests go to the uploader, not to a denied second GCS
         self._mission_actions(actions, msg, channel)
 
     def _on_mission_item(self, msg, channel: Channel) -> None:

@@ -205,3 +205,24 @@ def test_guided_goto_by_position_target_and_reposition(start_sitl, gcs_for):
     target = offset_home(home, -5.0, 5.0)
     assert gcs.command(M.MAV_CMD_DO_REPOSITION, -1, 0, 0, float("nan"), target.lat_deg, target.lon_deg, 4.0) == 0
     assert gcs.recv("LOCAL_POSITION_NED", 60.0, lambda m: abs(m.y + 5) < 0.3 and abs(m.x - 5) < 0.3)
+
+
+def test_second_ground_station_is_denied_without_disturbing_the_first(start_sitl, gcs_for):
+    from tests.integration.gcs import Gcs
+
+    sim = start_sitl(speedup=2.0)
+    first = gcs_for(sim)
+    second = Gcs(sim.config.companion_base_port, source_system=200)
+    try:
+        second.wait_heartbeat()
+        items = long_mission(sim, 10)
+        first.conn.mav.mission_count_send(1, 1, len(items), 0)
+        assert first.recv("MISSION_REQUEST_INT", 3.0).seq == 0
+        second.conn.mav.mission_count_send(1, 1, 3, 0)
+        assert second.recv("MISSION_ACK", 3.0).type == M.MAV_MISSION_DENIED
+        # The first upload goes on: its re-request still comes to the first station.
+        again = first.recv("MISSION_REQUEST_INT", 3.0)
+        assert again is not None and again.seq == 0
+        assert first.upload(items) == M.MAV_MISSION_ACCEPTED
+    finally:
+        second.close()

@@ -1,0 +1,149 @@
+"""Write the example missions with the library's own writer, so they are exactly what it reads back.
+
+    python -m missions.examples.generate        (from the repository root)
+
+Geometry assumes the SITL defaults: home 47.397742, 8.545594, 488 m AMSL and `nac-sitl run --spacing-m 5`, so
+vehicle i (0-based) starts 5*i m east of that home. Vehicle 1 (i = 0) is the master in both scenarios. Every
+mission takes off where the vehicle stands and lands at its last point, so `nac-ground wait landed` finishes.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from missions import Frame, MavCmd, Mission, MissionItem, PlannedHome, load_mission, save_mission
+
+SITL_HOME = PlannedHome(47.397742, 8.545594, 488.0)
+SPACING_M = 5.0
+MAX_RANGE_M = 300.0  # every point stays this close to the flying vehicle's home
+WGS84_A_M = 6378137.0
+WGS84_E2 = 6.69437999014e-3
+HERE = Path(__file__).resolve().parent
+
+PAPER_SIM_ALT_M = 10.0
+FLIGHT_TEST_ALT_M = 3.04  # the paper's flight-test altitude (10 ft)
+FLIGHT_TEST_SPEED_MPS = 0.67  # the paper's flight-test ground speed (1.5 mph)
+FLIGHT_TEST_HOLD_S = 60.0
+
+
+def offset(origin: PlannedHome, east_m: float, north_m: float) -> PlannedHome:
+    """A point east_m/north_m from origin on the local tangent plane (mm-exact at these distances)."""
+    s = math.sin(math.radians(origin.lat_deg))
+    w = math.sqrt(1.0 - WGS84_E2 * s * s)
+    meridian_m = WGS84_A_M * (1.0 - WGS84_E2) / w ** 3
+    normal_m = WGS84_A_M / w
+    lat = origin.lat_deg + math.degrees(north_m / meridian_m)
+    lon = origin.lon_deg + math.degrees(east_m / (normal_m * math.cos(math.radians(origin.lat_deg))))
+    return PlannedHome(round(lat, 8), round(lon, 8), origin.alt_m)  # 1e-8 deg ~ 1 mm: readable files
+
+
+def vehicle_home(i: int) -> PlannedHome:
+    return offset(SITL_HOME, SPACING_M * i, 0.0)
+
+
+class Builder:
+    """Items numbered 1..n in the order added; NaN yaw means 'keep heading', as QGC writes it."""
+
+    def __init__(self, home: PlannedHome):
+        self.home, self.items = home, []
+
+    def _add(self, command: int, frame: int, *params: float, at: PlannedHome | None = None, alt_m: float = 0.0):
+        lat, lon = (at.lat_deg, at.lon_deg) if at else (0.0, 0.0)
+        p = [float(x) for x in (*params, 0.0, 0.0, 0.0, 0.0)[:4]]
+        self.items.append(MissionItem(len(self.items) + 1, command, frame, *p, lat_deg=lat, lon_deg=lon, alt_m=alt_m))
+
+    def takeoff(self, alt_m: float) -> Builder:
+        self._add(MavCmd.NAV_TAKEOFF, Frame.GLOBAL_RELATIVE_ALT, 0, 0, 0, math.nan, at=self.home, alt_m=alt_m)
+        return self
+
+    def speed(self, ground_speed_mps: float) -> Builder:
+        self._add(MavCmd.DO_CHANGE_SPEED, Frame.MISSION, 1, ground_speed_mps, -1, 0)  # type 1 = ground speed
+        return self
+
+    def waypoint(self, east_m: float, north_m: float, alt_m: float) -> Builder:
+        self._add(MavCmd.NAV_WAYPOINT, Frame.GLOBAL_RELATIVE_ALT, 0, 0, 0, math.nan,
+                  at=offset(self.home, east_m, north_m), alt_m=alt_m)
+        return self
+
+    def hold(self, east_m: float, north_m: float, alt_m: float, seconds: float) -> Builder:
+        self._add(MavCmd.NAV_LOITER_TIME, Frame.GLOBAL_RELATIVE_ALT, seconds, 0, 0, 0,
+                  at=offset(self.home, east_m, north_m), alt_m=alt_m)
+        return self
+
+    def land(self, east_m: float, north_m: float) -> Builder:
+        self._add(MavCmd.NAV_LAND, Frame.GLOBAL_RELATIVE_ALT, 0, 0, 0, math.nan,
+                  at=offset(self.home, east_m, north_m), alt_m=0.0)
+        return self
+
+    def mission(self) -> Mission:
+        return Mission(home=self.home, items=self.items)
+
+
+def leg(home: PlannedHome, alt_m: float, east_m: float, north_m: float) -> Mission:
+    """Take off, fly one straight leg to (east_m, north_m) from home, land there."""
+    return Builder(home).takeoff(alt_m).waypoint(east_m, north_m, alt_m).land(east_m, north_m).mission()
+
+
+def paper_sim() -> dict[str, Mission]:
+    """Matrix-multiplication scenario, 1 master + 3 workers: the master shifts 10 m north while the workers fly
+    30-40 m away from it, fanning out east so the master-worker links weaken through the run."""
+    alt = PAPER_SIM_ALT_M
+    return {
+        "paper-sim-master.plan": leg(vehicle_home(0), alt, 0.0, 10.0),
+        "paper-sim-worker1.plan": leg(vehicle_home(1), alt, 26.0, 15.0),  # 30 m towards east-north-east
+        "paper-sim-worker2.plan": leg(vehicle_home(2), alt, 35.0, 0.0),  # 35 m east
+        "paper-sim-worker3.plan": leg(vehicle_home(3), alt, 34.6, -20.0),  # 40 m towards east-south-east
+    }
+
+
+def flight_test() -> dict[str, Mission]:
+    """Linear-regression flight test, 1 master + 2 workers: the workers fly parallel 40 m lines north at
+    0.67 m/s and 3.04 m; the master moves 5 m north, holds there 60 s and lands."""
+    alt, v = FLIGHT_TEST_ALT_M, FLIGHT_TEST_SPEED_MPS
+
+    def worker(i: int) -> Mission:
+        home = vehicle_home(i)
+        return Builder(home).takeoff(alt).speed(v).waypoint(0.0, 40.0, alt).land(0.0, 40.0).mission()
+
+    master = (Builder(vehicle_home(0)).takeoff(alt).waypoint(0.0, 5.0, alt).hold(0.0, 5.0, alt, FLIGHT_TEST_HOLD_S)
+              .land(0.0, 5.0).mission())
+    return {"flight-test-master.plan": master, "flight-test-worker1.plan": worker(1),
+            "flight-test-worker2.plan": worker(2)}
+
+
+def distance_m(a: PlannedHome, b: PlannedHome) -> float:
+    north = math.radians(b.lat_deg - a.lat_deg) * WGS84_A_M
+    east = math.radians(b.lon_deg - a.lon_deg) * WGS84_A_M * math.cos(math.radians(a.lat_deg))
+    return math.hypot(east, north)
+
+
+def examples() -> dict[str, Mission]:
+    """File name -> mission, for every example."""
+    return {**paper_sim(), **flight_test()}
+
+
+def write_examples(out_dir: Path = HERE) -> list[Path]:
+    """Write every example to out_dir, read each back (validating it) and check it stays near its home."""
+    paths = []
+    for name, mission in examples().items():
+        path = Path(out_dir) / name
+        save_mission(mission, path)
+        back = load_mission(path)
+        if not back.same_items_as(mission):
+            raise RuntimeError(f"{path}: did not read back item for item")
+        for item in back.items:
+            far_m = distance_m(back.home, PlannedHome(item.lat_deg, item.lon_deg, 0.0)) if item.lat_deg else 0.0
+            if far_m > MAX_RANGE_M:
+                raise RuntimeError(f"{path}: item {item.seq} is {far_m:.0f} m from home (limit {MAX_RANGE_M:g} m)")
+        paths.append(path)
+    return paths
+
+
+def main() -> None:
+    for path in write_examples():
+        print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,104 @@
+"""`QGC WPL 110` waypoint files <-> Mission.
+
+First line `QGC WPL 110`, then one tab-separated row per item:
+INDEX CURRENT FRAME COMMAND P1 P2 P3 P4 LAT LON ALT AUTOCONTINUE. Row 0 is home (ArduPilot's convention), so
+rows 1..n are the mission items with the same sequence numbers they get on the wire. The format has no place
+for fence or rally points.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from missions.errors import MissionFileError
+from missions.model import Frame, MavCmd, Mission, MissionItem, MissionType, PlannedHome
+from missions.plan import read_text, write_text
+from missions.validate import check_numbering
+
+HEADER = "QGC WPL 110"
+COLUMNS = ("INDEX", "CURRENT", "FRAME", "COMMAND", "P1", "P2", "P3", "P4", "LAT", "LON", "ALT", "AUTOCONTINUE")
+_INT_COLUMNS = frozenset({"INDEX", "CURRENT", "FRAME", "COMMAND", "AUTOCONTINUE"})
+_FLAG_COLUMNS = frozenset({"CURRENT", "AUTOCONTINUE"})
+
+
+def _parse_row(fields: list[str], source: str, where: str) -> dict[str, float | int]:
+    row: dict[str, float | int] = {}
+    for name, text in zip(COLUMNS, fields, strict=True):
+        try:
+            value = float(text)  # accepts nan/NaN/inf as other writers spell them
+        except ValueError:
+            raise MissionFileError(source, where, f"{name} is {text!r}; expected a number") from None
+        if name in _INT_COLUMNS:
+            if not value.is_integer():
+                raise MissionFileError(source, where, f"{name} is {text!r}; expected a whole number")
+            value = int(value)
+            if name in _FLAG_COLUMNS and value not in (0, 1):
+                raise MissionFileError(source, where, f"{name} is {text!r}; expected 0 or 1")
+        row[name] = value
+    return row
+
+
+def loads_wpl(text: str, source: str = "<waypoints>") -> Mission:
+    """Parse QGC WPL 110 text; MissionFileError (`source: line N: reason`) for anything malformed."""
+    lines = text.splitlines()
+    first = lines[0].strip() if lines else ""
+    if first != HEADER:
+        raise MissionFileError(source, "line 1", f"header is {first!r}; expected {HEADER!r}")
+    mission = Mission()
+    expected_index = 0
+    for lineno, line in enumerate(lines[1:], 2):
+        if not line.strip():
+            continue  # trailing or separating blank lines carry nothing
+        where = f"line {lineno}"
+        fields = line.split()
+        if len(fields) != len(COLUMNS):
+            raise MissionFileError(source, where, f"has {len(fields)} columns; expected {len(COLUMNS)} "
+                                                  f"({' '.join(COLUMNS)}, tab-separated)")
+        row = _parse_row(fields, source, where)
+        if row["INDEX"] != expected_index:
+            raise MissionFileError(source, where, f"INDEX is {row['INDEX']}; expected {expected_index} "
+                                                  f"(rows are numbered 0..n-1 in order, row 0 is home)")
+        if expected_index == 0:
+            if row["LAT"] != 0.0 or row["LON"] != 0.0:
+                mission.home = PlannedHome(row["LAT"], row["LON"], row["ALT"])
+        else:
+            mission.items.append(MissionItem(
+                expected_index, row["COMMAND"], row["FRAME"], row["P1"], row["P2"], row["P3"], row["P4"],
+                row["LAT"], row["LON"], row["ALT"], autocontinue=bool(row["AUTOCONTINUE"]),
+                current=bool(row["CURRENT"]), mission_type=MissionType.MISSION))
+        mission.origins[(MissionType.MISSION, expected_index)] = where
+        expected_index += 1
+    return mission
+
+
+def _fmt(x: float) -> str:
+    """Shortest text that reads back to the same double (repr), whole numbers without '.0'."""
+    x = float(x)
+    if math.isfinite(x) and x.is_integer() and abs(x) < 1e15:
+        return str(int(x))
+    return repr(x)  # 'nan' and 'inf' included, as float() reads them
+
+
+def dumps_wpl(mission: Mission, source: str = "<waypoints>") -> str:
+    """The mission as QGC WPL 110 text; refuses a mission with fence or rally items, which the format cannot hold."""
+    if mission.fence or mission.rally:
+        raise MissionFileError(source, "", f"QGC WPL 110 holds mission items only; this mission also has "
+                                           f"{len(mission.fence)} fence items and {len(mission.rally)} rally points "
+                                           f"(save it as .plan to keep them)")
+    h = mission.home or PlannedHome(0.0, 0.0, 0.0)
+    rows = [[0, 1, int(Frame.GLOBAL), int(MavCmd.NAV_WAYPOINT), 0, 0, 0, 0, h.lat_deg, h.lon_deg, h.alt_m, 1]]
+    check_numbering(mission, source)
+    for k, item in enumerate(mission.items, 1):
+        rows.append([k, int(item.current), int(item.frame), int(item.command), item.p1, item.p2, item.p3, item.p4,
+                     item.lat_deg, item.lon_deg, item.alt_m, int(bool(item.autocontinue))])
+    body = ["\t".join(_fmt(v) if isinstance(v, float) else str(v) for v in row) for row in rows]
+    return "\n".join([HEADER, *body]) + "\n"
+
+
+def read_wpl(path: str | Path) -> Mission:
+    return loads_wpl(read_text(path), str(path))
+
+
+def write_wpl(mission: Mission, path: str | Path) -> None:
+    write_text(path, dumps_wpl(mission, str(path)))

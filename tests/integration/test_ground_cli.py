@@ -1,0 +1,116 @@
+"""`nac-ground` against the SITL over real UDP, run as the operator runs it: one process per command."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from missions import load_mission
+from nac_onboard.signing import load_signing_key
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "missions" / "examples"
+SCENARIOS = {  # vehicle index -> example file, as missions/examples/README.md assigns them
+    "paper-sim": ["paper-sim-master.plan", "paper-sim-worker1.plan", "paper-sim-worker2.plan",
+                  "paper-sim-worker3.plan"],
+    "flight-test": ["flight-test-master.plan", "flight-test-worker1.plan", "flight-test-worker2.plan"],
+}
+
+
+def ground(*args, timeout_s: float = 120.0):
+    return subprocess.run([sys.executable, "-m", "ground.cli", *args], capture_output=True, text=True,
+                          timeout=timeout_s)
+
+
+def link(sim, vehicle: int) -> str:
+    return f"udpin:127.0.0.1:{sim.config.gcs_base_port + sim.config.port_step * vehicle}"
+
+
+def ok(result):
+    assert result.returncode == 0, f"exit {result.returncode}: {result.stderr}"
+    return result
+
+
+def test_every_example_file_is_covered():
+    assert sorted(p.name for p in EXAMPLES.glob("*.plan")) == sorted(sum(SCENARIOS.values(), []))
+
+
+@pytest.mark.parametrize("scenario", sorted(SCENARIOS))
+def test_examples_upload_download_equal_and_fly_to_completion(scenario, start_sitl, tmp_path):
+    files = SCENARIOS[scenario]
+    sim = start_sitl(vehicles=len(files), speedup=25.0, spacing_m=5.0)
+    for i, name in enumerate(files):
+        path = EXAMPLES / name
+        ok(ground("--connect", link(sim, i), "mission", "upload", str(path)))
+        back = tmp_path / f"back-{i}.plan"
+        ok(ground("--connect", link(sim, i), "mission", "download", str(back)))
+        assert load_mission(back).same_items_as(load_mission(path)), f"{name} did not read back item for item"
+        ok(ground("--connect", link(sim, i), "arm"))
+        ok(ground("--connect", link(sim, i), "mission", "start"))
+    for i, name in enumerate(files):
+        done = ok(ground("--connect", link(sim, i), "wait", "mission-complete", "--timeout-s", "60"))
+        assert "mission complete" in done.stdout
+        ok(ground("--connect", link(sim, i), "wait", "landed", "--timeout-s", "30"))
+        assert sim.truth(i)["on_ground"], name
+
+
+def test_commands_report_refusals_with_exit_1(start_sitl):
+    sim = start_sitl(speedup=10.0)
+    refused = ground("--connect", link(sim, 0), "mission", "start")
+    assert refused.returncode == 1 and "MAV_RESULT_FAILED" in refused.stderr
+    ok(ground("--connect", link(sim, 0), "arm"))
+    ok(ground("--connect", link(sim, 0), "takeoff", "5"))
+    ok(ground("--connect", link(sim, 0), "mode", "loiter"))
+    ok(ground("--connect", link(sim, 0), "rtl"))
+    ok(ground("--connect", link(sim, 0), "wait", "landed", "--timeout-s", "60"))
+    assert sim.truth(0)["mode"] == "RTL" and sim.truth(0)["on_ground"]
+    bad_mode = ground("--connect", link(sim, 0), "mode", "WARP")
+    assert bad_mode.returncode == 2 and "unknown mode 'WARP'" in bad_mode.stderr
+    silent = ground("--connect", "udpin:127.0.0.1:9", "--wait-s", "0.5", "arm")
+    assert silent.returncode == 1 and "no heartbeat" in silent.stderr
+
+
+def test_signing_same_key_works_missing_or_wrong_key_is_refused_and_explained(start_sitl, tmp_path):
+    key_file = tmp_path / "fleet.key"
+    key_file.write_text("nac test fleet key\n")
+    sim = start_sitl(speedup=5.0, signing_key=load_signing_key(key_file))
+    wrong_file = tmp_path / "wrong.key"
+    wrong_file.write_text("another key\n")
+
+    unsigned = ground("--connect", link(sim, 0), "arm")
+    assert unsigned.returncode == 1 and "signing" in unsigned.stderr
+    wrong = ground("--connect", link(sim, 0), "--signing-key-file", str(wrong_file), "--wait-s", "2", "arm")
+    assert wrong.returncode == 1 and "signing key differs" in wrong.stderr
+    assert not sim.truth(0)["armed"]
+    ok(ground("--connect", link(sim, 0), "--signing-key-file", str(key_file), "arm"))
+    assert sim.truth(0)["armed"]
+
+
+def test_status_and_monitor_show_all_four_vehicles(start_sitl):
+    sim = start_sitl(vehicles=4, speedup=5.0)
+    connects = sum((["--connect", link(sim, i)] for i in range(4)), [])
+    table = ok(ground(*connects, "status")).stdout.splitlines()
+    assert table[0].split()[:3] == ["SYSID", "MODE", "ARMED"]
+    rows = [line.split() for line in table[1:]]
+    assert [row[0] for row in rows] == ["1", "2", "3", "4"]
+    for i, row in enumerate(rows):
+        assert row[1] == "STABILIZE" and row[2] == "no"
+        assert abs(float(row[3]) - sim.homes[i].lat_deg) < 1e-6 and abs(float(row[4]) - sim.homes[i].lon_deg) < 1e-6
+    live = ok(ground(*connects, "monitor", "--duration-s", "2.5", "--refresh-s", "1")).stdout
+    frames = [block for block in live.split("\n\n") if block.strip()]
+    assert len(frames) >= 2
+    assert [line.split()[0] for line in frames[-1].splitlines()[2:]] == ["1", "2", "3", "4"]
+
+
+def test_validate_and_convert_work_offline(tmp_path):
+    source = EXAMPLES / "flight-test-master.plan"
+    checked = ok(ground("mission", "validate", str(source)))
+    assert "valid" in checked.stdout
+    wpl = tmp_path / "master.waypoints"
+    ok(ground("mission", "convert", str(source), str(wpl)))
+    assert wpl.read_text().startswith("QGC WPL 110\n")
+    back = tmp_path / "master.plan"
+    ok(ground("mission", "convert", str(wpl), str(back)))
+    assert load_mission(back).same_items_as(load_mission(source))
+    missing = ground("mission", "validate", str(tmp_path / "nope.plan"))
+    assert missing.returncode == 2 and "nope.plan" in missing.stderr
