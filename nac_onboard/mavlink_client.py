@@ -384,6 +384,10 @@ class MavlinkClient:
         conn.mav.mission_ack_send(target, 1, M.MAV_MISSION_ACCEPTED, mission_type)
         return items
 
+    def set_current(self, seq: int, sysid: int | None = None) -> None:
+        """Make mission item `seq` the current one (MAV_CMD_DO_SET_MISSION_CURRENT)."""
+        self.command_ok(MavCmd.DO_SET_MISSION_CURRENT, seq, sysid=sysid)
+
     def clear(self, mission_type: int = 0, timeout_s: float = 1.5, retries: int = 3,
               sysid: int | None = None) -> int:
         target = self.sysid if sysid is None else sysid

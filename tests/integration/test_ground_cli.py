@@ -114,3 +114,32 @@ def test_validate_and_convert_work_offline(tmp_path):
     assert load_mission(back).same_items_as(load_mission(source))
     missing = ground("mission", "validate", str(tmp_path / "nope.plan"))
     assert missing.returncode == 2 and "nope.plan" in missing.stderr
+
+
+def test_several_vehicles_through_one_link(start_sitl):
+    """All vehicles sending to one port (port step 0), as through one telemetry radio: told apart by sysid."""
+    sim = start_sitl(vehicles=3, speedup=5.0, port_step=0)
+    rows = ok(ground("--connect", link(sim, 0), "status")).stdout.splitlines()[1:]
+    assert [row.split()[0] for row in rows] == ["1", "2", "3"]
+    ok(ground("--connect", link(sim, 0), "--sysid", "2", "arm"))
+    assert [sim.truth(i)["armed"] for i in range(3)] == [False, True, False]
+
+
+def test_client_sets_the_current_item_and_reads_telemetry_state(start_sitl):
+    from nac_onboard.mavlink_client import CommandError, MavlinkClient
+
+    sim = start_sitl(speedup=5.0)
+    with MavlinkClient(link(sim, 0)) as client:
+        client.wait_heartbeat()
+        ok(ground("--connect", link(sim, 0), "mission", "upload", str(EXAMPLES / "paper-sim-master.plan")))
+        client.set_current(2)
+        assert client.recv("MISSION_CURRENT", 3.0, lambda m: m.seq == 2) is not None
+        with pytest.raises(CommandError, match="MAV_RESULT_DENIED"):
+            client.set_current(99)
+        client.poll(1.5)
+        state = client.vehicles[1]
+        assert state.mode == "STABILIZE" and not state.armed and state.landed == "on ground"
+        assert abs(state.lat_deg - sim.homes[0].lat_deg) < 1e-6 and state.battery_pct == 100
+        assert state.mission_seq == 2 and state.mission_total == len(load_mission(
+            EXAMPLES / "paper-sim-master.plan").items)
+        assert state.link_age_s() < 1.5
