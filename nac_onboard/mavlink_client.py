@@ -320,23 +320,27 @@ class MavlinkClient:
         target = self.sysid if sysid is None else sysid
         conn = self._link_for(target)
         conn.mav.mission_count_send(target, 1, len(items), mission_type)
-        last_sent, quiet = None, 0
+        last_sent, quiet_s = None, 0.0
         while True:
-            msg = self.recv(["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"], item_timeout_s,
+            # Mid-transfer the vehicle drives (it re-requests); before the first request and after the last item
+            # only we can, so we re-send three times as often for the same total patience.
+            we_drive = last_sent is None or last_sent == len(items) - 1
+            timeout_s = item_timeout_s / 3 if we_drive else item_timeout_s
+            msg = self.recv(["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"], timeout_s,
                             lambda m: m.mission_type == mission_type and m.target_system in (0, conn.mav.srcSystem),
                             sysid=target)
             if msg is None:
-                quiet += 1
-                if quiet > retries:
-                    waiting = "the first request" if last_sent is None else f"the request after item {last_sent}"
+                quiet_s += timeout_s
+                if quiet_s > retries * item_timeout_s + 1e-9:
+                    waiting = "the first request" if last_sent is None else f"the answer to item {last_sent}"
                     raise MissionError(f"mission upload to vehicle {target} gave up: no answer ({waiting}) after "
-                                       f"{retries} retries.{self.signing_hint()}")
+                                       f"{quiet_s:.1f} s of retries.{self.signing_hint()}")
                 if last_sent is None:
                     conn.mav.mission_count_send(target, 1, len(items), mission_type)
                 else:
                     self.send_item(items[last_sent], mission_type, target)
                 continue
-            quiet = 0
+            quiet_s = 0.0
             if msg.get_type() == "MISSION_ACK":
                 return msg.type
             if not 0 <= msg.seq < len(items):
