@@ -74,7 +74,6 @@ class VehicleLink:
         self.encoder = FrameEncoder(self.sysid, 1, signing_key=sim.config.signing_key)
         self.channels: list[Channel] = []
         self.receiver = MissionReceiver(validate_item)
-        self.mission_requests_received = 0
         self._after_ack: list = []
         self._command_alt_amsl = False
         self._pending_transfer = None
@@ -309,7 +308,6 @@ class VehicleLink:
                                                       msg.mission_type), channel)
 
     def _on_mission_request(self, msg, channel: Channel) -> None:
-        self.mission_requests_received += 1
         if not self._known_type(msg, channel):
             return
         items = self.download_items(msg.mission_type)
