@@ -14,7 +14,6 @@ from missions.model import MavCmd, Mission, MissionType
 from nac_onboard.mavlink_client import (
     COPTER_MODES,
     MISSION_STATE_COMPLETE,
-    CommandError,
     LinkError,
     M,
     MavlinkClient,
@@ -43,41 +42,35 @@ def connect(client: MavlinkClient, wait_s: float) -> int:
     return client.sysid
 
 
-def _check(client: MavlinkClient, command: int, *params: float) -> None:
-    result = client.command(command, *params)
-    if result != M.MAV_RESULT_ACCEPTED:
-        raise CommandError(command, result, client.sysid)
-
-
 def arm(client: MavlinkClient, out, arm_motors: bool = True) -> None:
-    _check(client, MavCmd.COMPONENT_ARM_DISARM, 1 if arm_motors else 0)
+    client.command_ok(MavCmd.COMPONENT_ARM_DISARM, 1 if arm_motors else 0)
     print(f"vehicle {client.sysid}: {'armed' if arm_motors else 'disarmed'}", file=out)
 
 
 def set_mode(client: MavlinkClient, name: str, out) -> None:
-    _check(client, MavCmd.DO_SET_MODE, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, COPTER_MODES[name])
+    client.command_ok(MavCmd.DO_SET_MODE, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, COPTER_MODES[name])
     print(f"vehicle {client.sysid}: mode {name}", file=out)
 
 
 def takeoff(client: MavlinkClient, alt_m: float, out) -> None:
     # ArduCopter takes off only in GUIDED, as MAVSDK and QGC switch before the command.
-    _check(client, MavCmd.DO_SET_MODE, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, COPTER_MODES["GUIDED"])
-    _check(client, MavCmd.NAV_TAKEOFF, 0, 0, 0, float("nan"), 0, 0, alt_m)
+    client.command_ok(MavCmd.DO_SET_MODE, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, COPTER_MODES["GUIDED"])
+    client.command_ok(MavCmd.NAV_TAKEOFF, 0, 0, 0, float("nan"), 0, 0, alt_m)
     print(f"vehicle {client.sysid}: taking off to {alt_m:g} m", file=out)
 
 
 def land(client: MavlinkClient, out) -> None:
-    _check(client, MavCmd.NAV_LAND)
+    client.command_ok(MavCmd.NAV_LAND)
     print(f"vehicle {client.sysid}: landing", file=out)
 
 
 def rtl(client: MavlinkClient, out) -> None:
-    _check(client, MavCmd.NAV_RETURN_TO_LAUNCH)
+    client.command_ok(MavCmd.NAV_RETURN_TO_LAUNCH)
     print(f"vehicle {client.sysid}: returning to launch", file=out)
 
 
 def mission_start(client: MavlinkClient, out) -> None:
-    _check(client, MavCmd.MISSION_START, 0, 0)
+    client.command_ok(MavCmd.MISSION_START, 0, 0)
     print(f"vehicle {client.sysid}: mission started", file=out)
 
 

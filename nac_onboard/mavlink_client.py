@@ -410,4 +410,3 @@ class VehicleClient(MavlinkClient):
                  source_component: int = M.MAV_COMP_ID_MISSIONPLANNER, signing_key: bytes | None = None):
         super().__init__(uri, sysid=sysid, signing_key=signing_key, source_system=source_system,
                          source_component=source_component)
-        self.uri = self.links[0].uri

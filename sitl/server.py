@@ -60,7 +60,6 @@ class Channel:
         self.sock, self.peer, self.tcp = sock, peer, tcp
         self.parser = new_parser(sim.config.signing_key)
         self.closed = False
-        self.bytes_out = 0
         self.pending: list[bytes] = []
         self.pending_bytes = 0
 
@@ -92,7 +91,6 @@ class Channel:
                 self.sock.send(data)
             else:
                 self.sock.sendto(data, self.peer)
-            self.bytes_out += len(data)
         except BlockingIOError:
             pass  # a slow TCP reader loses telemetry, as over a real radio
         except OSError as err:
