@@ -1,21 +1,145 @@
-"""`nac-onboard`: the companion computer's command line (agent and compute arrive in later issues)."""
+"""`nac-onboard`: the companion computer's command line.
+
+    nac-onboard agent --config FILE [--run-id ID] [--log-dir DIR]   the daemon (systemd runs this)
+    nac-onboard throughput server [--bind ADDR] [--port N]           like `iperf3 -s`
+    nac-onboard throughput probe HOST [--port N] [-t S | -n BYTES]   like `iperf3 -c HOST -J`
+    nac-onboard log check FILE...                                   read flight logs, report damaged lines
+    nac-onboard state [--feed HOST:PORT]                             what the agent knows of everyone now
+
+Exit codes: 0 ok, 1 the operation failed, 2 bad input.
+"""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
+import logging
 import sys
+
+from nac_onboard.config import ConfigError, load_agent_config
+from nac_onboard.throughput import DEFAULT_PORT
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="nac-onboard", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("-v", "--verbose", action="store_true")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    agent = sub.add_parser("agent", help="run the onboard agent")
+    agent.add_argument("--config", required=True, help="agent TOML file (see deploy/)")
+    agent.add_argument("--run-id", help="run directory name (default: log.run_id, $NAC_RUN_ID or the start time)")
+    agent.add_argument("--log-dir", help="override log.dir")
+
+    tp = sub.add_parser("throughput", help="iperf3-style throughput server and probe")
+    tsub = tp.add_subparsers(dest="action", required=True, metavar="ACTION")
+    server = tsub.add_parser("server", help="serve probes until interrupted")
+    server.add_argument("--bind", default="0.0.0.0")
+    server.add_argument("--port", type=int, default=DEFAULT_PORT)
+    client = tsub.add_parser("probe", help="measure the path to a server; prints iperf3-shaped JSON")
+    client.add_argument("host")
+    client.add_argument("--port", type=int, default=DEFAULT_PORT)
+    amount = client.add_mutually_exclusive_group()
+    amount.add_argument("-t", "--time", type=float, default=None, dest="duration_s", help="seconds (default 1)")
+    amount.add_argument("-n", "--bytes", type=int, default=None, dest="nbytes")
+    client.add_argument("-i", "--interval", type=float, default=0.5, dest="interval_s")
+    client.add_argument("-b", "--bitrate", type=float, default=None, dest="rate_bps", help="cap, bits/s")
+
+    logs = sub.add_parser("log", help="flight log tools")
+    lsub = logs.add_subparsers(dest="action", required=True, metavar="ACTION")
+    lsub.add_parser("check", help="parse JSON Lines logs and report damaged lines").add_argument("files", nargs="+")
+
+    state = sub.add_parser("state", help="ask the local agent for everyone's position")
+    state.add_argument("--feed", default="127.0.0.1:47200")
+    return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="nac-onboard", description=__doc__)
-    parser.add_argument("command", nargs="?", choices=["agent", "compute"])
-    args = parser.parse_args(argv)
-    if args.command is None:
-        parser.print_help()
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(message)s")
+    try:
+        if args.command == "agent":
+            return agent_command(args)
+        if args.command == "throughput":
+            return throughput_command(args)
+        if args.command == "log":
+            return log_check(args.files)
+        if args.command == "state":
+            from nac_onboard.state_feed import fetch_state
+
+            print(json.dumps(fetch_state(args.feed), indent=2))
+            return 0
+    except ConfigError as err:
+        print(f"nac-onboard: {err}", file=sys.stderr)
+        return 2
+    except RuntimeError as err:  # LinkError, ProbeError, StateFeedError, SigningKeyError: operator-facing text
+        print(f"nac-onboard: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+    return 2
+
+
+def agent_command(args) -> int:
+    from nac_onboard.agent import run_agent
+    from nac_onboard.signing import SigningKeyError
+
+    config = load_agent_config(args.config)
+    if args.log_dir:
+        config = dataclasses.replace(config, log=dataclasses.replace(config.log, dir=args.log_dir))
+    try:
+        return run_agent(config, args.run_id, ready_line=lambda text: print(text, flush=True))
+    except SigningKeyError as err:
+        raise ConfigError(str(err)) from None
+    except OSError as err:  # a port in use, a log directory we may not write
+        print(f"nac-onboard agent: {err}", file=sys.stderr)
+        return 1
+
+
+def throughput_command(args) -> int:
+    from nac_onboard.throughput import ThroughputServer, probe
+
+    if args.action == "server":
+        try:
+            server = ThroughputServer(args.bind, args.port)
+        except OSError as err:
+            print(f"nac-onboard: cannot listen on {args.bind}:{args.port}: {err.strerror}", file=sys.stderr)
+            return 1
+        print(f"throughput server listening on {args.bind}:{server.port}", flush=True)
+        try:
+            server.serve_forever()
+        except KeyboardInterrupt:
+            pass
         return 0
-    print(f"nac-onboard {args.command}: not implemented yet (planned: onboard agent and MPI compute).",
-          file=sys.stderr)
-    return 1
+    duration_s = args.duration_s if args.duration_s is not None or args.nbytes is not None else 1.0
+    result = probe(args.host, args.port, duration_s=duration_s, nbytes=args.nbytes, interval_s=args.interval_s,
+                   rate_bps=args.rate_bps)
+    print(json.dumps(result, indent=2))
+    return 0
+
+
+def log_check(files: list[str]) -> int:
+    from nac_onboard.flight_log import read_jsonl
+
+    status = 0
+    for name in files:
+        try:
+            read = read_jsonl(name)
+        except OSError as err:
+            print(f"{name}: cannot read: {err.strerror}", file=sys.stderr)
+            status = 2
+            continue
+        kinds: dict[str, int] = {}
+        for record in read.records:
+            kinds[record["kind"]] = kinds.get(record["kind"], 0) + 1
+        summary = ", ".join(f"{k} {n}" for k, n in sorted(kinds.items()))
+        print(f"{name}: {len(read.records)} records ({summary})")
+        for problem in read.problems:
+            print(f"  warning: {problem}")
+        if read.problems:
+            status = max(status, 1)
+    return status
 
 
 if __name__ == "__main__":

@@ -32,6 +32,10 @@ class LinkError(RuntimeError):
     """The link could not be opened or stayed silent; the message says which endpoint and what was expected."""
 
 
+class LinkClosed(LinkError):
+    """The other end closed a stream link (TCP); the link must be opened again."""
+
+
 class CommandError(RuntimeError):
     def __init__(self, command: int, result: int, sysid: int):
         self.command, self.result = command, result
@@ -56,8 +60,10 @@ def _enum_name(enum: str, value: int) -> str:
 def mavutil_device(uri: str) -> tuple[str, dict]:
     """Map a NAC endpoint URI to pymavlink's device string and options."""
     scheme, _, rest = uri.partition(":")
-    if scheme in ("udpin", "udpout", "tcp", "tcpin") and rest.rpartition(":")[2].isdigit():
+    if scheme in ("udpin", "udpout", "tcpin") and rest.rpartition(":")[2].isdigit():
         return uri, {}
+    if scheme == "tcp" and rest.rpartition(":")[2].isdigit():
+        return uri, {"retries": 0}  # fail fast: callers that want to wait retry on their own schedule
     if scheme == "serial":
         device, _, baud = rest.rpartition(":")
         if device and baud.isdigit():
@@ -86,6 +92,7 @@ class VehicleState:
     battery_pct: int = -1
     voltage_v: float = float("nan")
     landed: str = "unknown"
+    time_boot_ms: int = -1  # the autopilot's clock at the last position (GLOBAL_POSITION_INT)
     mission_seq: int = 0
     mission_total: int = 0
     mission_state: int = 0
@@ -108,6 +115,7 @@ class VehicleState:
             if msg.base_mode & M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
                 self.mode = mavutil.mode_mapping_acm.get(msg.custom_mode, str(msg.custom_mode))
         elif kind == "GLOBAL_POSITION_INT":
+            self.time_boot_ms = msg.time_boot_ms
             self.lat_deg, self.lon_deg = msg.lat / 1e7, msg.lon / 1e7
             self.alt_m, self.rel_alt_m = msg.alt / 1000, msg.relative_alt / 1000
             self.vel_ned_mps = (msg.vx / 100, msg.vy / 100, msg.vz / 100)
@@ -128,8 +136,9 @@ class VehicleState:
 
 
 class Link:
-    def __init__(self, uri: str, index: int, source_system: int, source_component: int, signing_key: bytes | None):
-        self.uri, self.index = uri, index
+    def __init__(self, uri: str, index: int, source_system: int, source_component: int, signing_key: bytes | None,
+                 mav_type: int = M.MAV_TYPE_GCS):
+        self.uri, self.index, self.mav_type = uri, index, mav_type
         device, options = mavutil_device(uri)
         try:
             self.conn = mavutil.mavlink_connection(device, source_system=source_system,
@@ -137,6 +146,9 @@ class Link:
         except OSError as err:
             raise LinkError(f"cannot open {uri}: {err.strerror or err}") from None
         self.signing_key = signing_key
+        if uri.startswith("tcp"):
+            # pymavlink prints and returns nothing forever on a closed TCP socket unless told to reconnect itself.
+            self.conn.handle_eof = self.conn.handle_disconnect = self._closed
         if signing_key is not None:
             self.conn.setup_signing(signing_key, sign_outgoing=True)
         self.last_heartbeat_sent_s = 0.0
@@ -146,11 +158,14 @@ class Link:
     def fileno(self) -> int:
         return self.conn.fd if getattr(self.conn, "fd", None) is not None else self.conn.port.fileno()
 
+    def _closed(self):
+        raise LinkClosed(f"{self.uri}: the other end closed the connection")
+
     def heartbeat(self, now_s: float) -> None:
         if now_s - self.last_heartbeat_sent_s >= HEARTBEAT_PERIOD_S:
             self.last_heartbeat_sent_s = now_s
             try:
-                self.conn.mav.heartbeat_send(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, M.MAV_STATE_ACTIVE)
+                self.conn.mav.heartbeat_send(self.mav_type, M.MAV_AUTOPILOT_INVALID, 0, 0, M.MAV_STATE_ACTIVE)
             except OSError:
                 pass  # nobody to send to yet (a listening link before the first packet)
 
@@ -162,15 +177,17 @@ class MavlinkClient:
     """Several links, every vehicle heard on them; operations address a vehicle by system id."""
 
     def __init__(self, uris: list[str] | str | None = None, sysid: int | None = None, signing_key: bytes | None = None,
-                 source_system: int = 255, source_component: int = M.MAV_COMP_ID_MISSIONPLANNER):
+                 source_system: int = 255, source_component: int = M.MAV_COMP_ID_MISSIONPLANNER,
+                 mav_type: int = M.MAV_TYPE_GCS):
         if uris is None or uris == []:
             uris = [os.environ.get("NAC_MAVLINK_URI", DEFAULT_URI)]
         elif isinstance(uris, str):
             uris = [uris]
         self.links: list[Link] = []
+        self._link_args = (source_system, source_component, signing_key, mav_type)
         try:
             for k, uri in enumerate(uris):
-                self.links.append(Link(uri, k, source_system, source_component, signing_key))
+                self.links.append(Link(uri, k, *self._link_args))
         except LinkError:
             self.close()
             raise
@@ -186,6 +203,24 @@ class MavlinkClient:
     def close(self) -> None:
         for link in self.links:
             link.close()
+
+    def reopen(self, index: int = 0) -> Link:
+        """Close and open a link again (a serial device that came back, a TCP peer that restarted)."""
+        old = self.links[index]
+        old.close()
+        self.links[index] = Link(old.uri, index, *self._link_args)
+        return self.links[index]
+
+    def tap_sent(self, callback) -> None:
+        """Call callback(frame_bytes) for every frame this client sends (the agent's .tlog)."""
+        for link in self.links:
+            link.conn.mav.set_send_callback(lambda msg: callback(msg.get_msgbuf()))
+
+    def request_streams(self, rate_hz: float, sysid: int | None = None) -> None:
+        """Ask the autopilot to stream all telemetry at rate_hz (REQUEST_DATA_STREAM, as MAVProxy's SR does)."""
+        target = self.sysid if sysid is None else sysid
+        self._link_for(target).mav.request_data_stream_send(target, 1, M.MAV_DATA_STREAM_ALL,
+                                                            max(1, round(rate_hz)), 1)
 
     def __enter__(self) -> MavlinkClient:
         return self
@@ -401,6 +436,44 @@ class MavlinkClient:
             if ack is not None:
                 return ack.type
         raise MissionError(f"vehicle {target} did not acknowledge the mission clear after {retries} tries")
+
+
+class RawEndpoint:
+    """A MAVLink endpoint whose frames are relayed byte for byte (the agent's routing to MAVProxy and tools)."""
+
+    def __init__(self, uri: str):
+        self.uri = uri
+        device, options = mavutil_device(uri)
+        try:
+            self.conn = mavutil.mavlink_connection(device, **options)
+        except OSError as err:
+            raise LinkError(f"cannot open routing endpoint {uri}: {err.strerror or err}") from None
+        self.conn.mav.robust_parsing = True
+
+    def fileno(self) -> int:
+        return self.conn.fd if getattr(self.conn, "fd", None) is not None else self.conn.port.fileno()
+
+    def read_frames(self) -> list[bytes]:
+        frames = []
+        while (msg := self.conn.recv_msg()) is not None:
+            if msg.get_type() != "BAD_DATA":
+                frames.append(bytes(msg.get_msgbuf()))
+        return frames
+
+    def write(self, frame: bytes) -> bool:
+        try:
+            self.conn.write(frame)
+        except OSError:
+            return False  # nobody listening yet (udpout before the tool starts): the frame is simply not routed
+        return True
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+def write_frame(link: Link, frame: bytes) -> None:
+    """Send a frame someone else built (routed) on a link, unchanged."""
+    link.conn.write(frame)
 
 
 class VehicleClient(MavlinkClient):

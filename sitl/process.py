@@ -2,13 +2,10 @@
 
 from __future__ import annotations
 
-import os
-import selectors
 import signal
-import subprocess
 import sys
-import time
 
+from nac_onboard.process import ChildStartError, ReadyProcess
 from sitl.server import SitlConfig, SitlError
 
 
@@ -23,60 +20,20 @@ def cli_args(config: SitlConfig) -> list[str]:
     return args
 
 
-class SitlProcess:
+class SitlProcess(ReadyProcess):
     """`with SitlProcess(config) as proc:` starts the simulator and waits until it says it is ready."""
 
     def __init__(self, config: SitlConfig, extra_args: list[str] | None = None, ready_timeout_s: float = 20.0):
         self.config = config
-        self.command = [sys.executable, "-m", "sitl.cli", *cli_args(config), *(extra_args or [])]
-        self.ready_timeout_s = ready_timeout_s
-        self.proc: subprocess.Popen | None = None
-        self.banner: list[str] = []
+        command = [sys.executable, "-m", "sitl.cli", *cli_args(config), *(extra_args or [])]
+        super().__init__(command, "nac-sitl ready", "nac-sitl", ready_timeout_s, signal.SIGINT)
+
+    @property
+    def banner(self) -> list[str]:
+        return list(self.output)
 
     def start(self) -> SitlProcess:
-        self.proc = subprocess.Popen(self.command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-        deadline = time.monotonic() + self.ready_timeout_s
-        fd = self.proc.stdout.fileno()  # raw reads: a buffered readline would hide lines from select()
-        pending = b""
-        with selectors.DefaultSelector() as sel:
-            sel.register(fd, selectors.EVENT_READ)
-            while time.monotonic() < deadline:
-                if not sel.select(max(deadline - time.monotonic(), 0.0)):
-                    break
-                chunk = os.read(fd, 65536)
-                if not chunk:
-                    break
-                *lines, pending = (pending + chunk).split(b"\n")
-                self.banner += [line.decode(errors="replace") for line in lines]
-                if any(line.startswith(b"nac-sitl ready") for line in lines):
-                    return self
-        self._end(close=False)
-        err = self.proc.stderr.read().decode(errors="replace") if self.proc.stderr else ""
-        self._end()
-        raise SitlError(f"nac-sitl did not become ready within {self.ready_timeout_s:g} s: {err.strip()}")
-
-    def stop(self, timeout_s: float = 10.0) -> int:
-        """SIGINT, then SIGKILL if it has not exited within timeout_s; returns the exit code."""
-        return self._end(timeout_s)
-
-    def _end(self, timeout_s: float = 10.0, close: bool = True) -> int:
-        proc = self.proc
-        if proc is None:
-            return 0
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(timeout_s)
-        for stream in (proc.stdout, proc.stderr) if close else ():
-            if stream:
-                stream.close()
-        return proc.returncode
-
-    def __enter__(self) -> SitlProcess:
-        return self.start()
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
+        try:
+            return super().start()
+        except ChildStartError as err:
+            raise SitlError(str(err)) from None

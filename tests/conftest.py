@@ -32,3 +32,12 @@ def allocate_base_port(vehicles: int, step: int = 10) -> int:
 @pytest.fixture
 def base_port():
     return allocate_base_port
+
+
+def free_port() -> int:
+    """A port free for both UDP and TCP on loopback right now."""
+    for _ in range(200):
+        port = random.randrange(20000, 60000)
+        if _free(port, socket.SOCK_DGRAM) and _free(port, socket.SOCK_STREAM):
+            return port
+    raise RuntimeError("no free port found")

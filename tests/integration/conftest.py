@@ -9,10 +9,13 @@ def start_sitl(base_port):
     """Factory: an in-process SITL on its own ports, stopped when the test ends."""
     started: list[Sitl] = []
 
-    def start(vehicles: int = 1, speedup: float = 20.0, **kwargs) -> Sitl:
-        base = base_port(vehicles)
-        config = SitlConfig(vehicles=vehicles, speedup=speedup, gcs_base_port=base, companion_base_port=base + 1,
-                            tcp_base_port=kwargs.pop("tcp_base_port", 0), **kwargs)
+    def start(vehicles: int = 1, speedup: float = 20.0, config: SitlConfig | None = None, **kwargs) -> Sitl:
+        """A new SITL; with config, one on the same ports as an earlier one (a restarted autopilot)."""
+        if config is None:
+            base = base_port(vehicles)
+            config = SitlConfig(vehicles=vehicles, speedup=speedup, gcs_base_port=base,
+                                companion_base_port=base + 1, tcp_base_port=kwargs.pop("tcp_base_port", 0),
+                                **kwargs)
         sim = Sitl(config).start()
         started.append(sim)
         return sim
@@ -38,3 +41,23 @@ def gcs_for():
     yield connect
     for gcs in opened:
         gcs.close()
+
+
+@pytest.fixture
+def start_agent(tmp_path):
+    """Factory: `nac-onboard agent` child processes from config text, each stopped (SIGTERM) at the end."""
+    from nac_onboard.process import AgentProcess
+
+    started: list[AgentProcess] = []
+
+    def start(config_text: str, name: str = "agent", env: dict | None = None) -> AgentProcess:
+        path = tmp_path / f"{name}-{len(started)}.toml"
+        path.write_text(config_text)
+        agent = AgentProcess(path, env=env)
+        started.append(agent)
+        return agent.start()
+
+    yield start
+    for agent in started:
+        agent.stop()
+        assert not agent.alive()

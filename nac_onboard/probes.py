@@ -1,0 +1,71 @@
+"""The master's probe schedule: every period, one throughput probe to each worker, logged with positions.
+
+A probe occupies a path for duration_s out of every period_s (the duty cycle), and rate_bps can cap it further,
+so the compute traffic sharing the Wi-Fi is not starved. Each record is the iperf3-shaped result of
+`throughput.probe` plus who probed whom, both positions at the start and end of the probe and their distances.
+A probe that fails is logged too, with iperf3's `error` key: a broken link is a measurement, not a gap.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+from nac_onboard.config import ThroughputSection
+from nac_onboard.flight_log import JsonlLog
+from nac_onboard.state_feed import distance_between, position_of
+from nac_onboard.throughput import ProbeError, probe
+
+log = logging.getLogger(__name__)
+_POSITION_KEYS = ("lat_deg", "lon_deg", "alt_m")
+
+
+class ProbeScheduler:
+    def __init__(self, settings: ThroughputSection, self_id: str, targets, positions, out: JsonlLog,
+                 stop: threading.Event):
+        self.settings, self.self_id = settings, self_id
+        self.targets, self.positions = targets, positions  # callables: [(id, host, port)], state-feed answer
+        self.out, self.stop_event = out, stop
+        self.rounds = 0
+        self._thread = threading.Thread(target=self._run, name="throughput-probes", daemon=True)
+
+    def start(self) -> ProbeScheduler:
+        self._thread.start()
+        return self
+
+    def join(self, timeout_s: float) -> None:
+        self._thread.join(timeout_s)
+
+    def _run(self) -> None:
+        next_round = time.monotonic()
+        while not self.stop_event.wait(max(next_round - time.monotonic(), 0.0)):
+            next_round += self.settings.period_s
+            for peer_id, host, port in self.targets():
+                if self.stop_event.is_set():
+                    return
+                self.probe_once(peer_id, host, port)
+            self.rounds += 1
+            next_round = max(next_round, time.monotonic())
+
+    def probe_once(self, peer_id: str, host: str, port: int) -> dict:
+        s = self.settings
+        before = self.positions()
+        fields: dict = {"client": self.self_id, "server": peer_id, "host": host, "port": port}
+        try:
+            result = probe(host, port, duration_s=None if s.bytes else s.duration_s, nbytes=s.bytes or None,
+                           interval_s=s.interval_s, rate_bps=s.rate_bps or None)
+        except ProbeError as err:
+            result = {"error": str(err)}
+        after = self.positions()
+        fields["positions"] = {"start": self._pair(before, peer_id), "end": self._pair(after, peer_id)}
+        fields["distance_m"] = distance_between(before, self.self_id, peer_id)
+        fields["distance_end_m"] = distance_between(after, self.self_id, peer_id)
+        return self.out.write("throughput", **fields, **result)
+
+    def _pair(self, state: dict, peer_id: str) -> dict:
+        out = {}
+        for who in (self.self_id, peer_id):
+            entry = position_of(state, who)
+            out[who] = None if entry is None else {k: entry.get(k) for k in _POSITION_KEYS}
+        return out

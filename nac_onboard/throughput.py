@@ -1,0 +1,293 @@
+"""Throughput probes, iperf3-style: a TCP server on every vehicle and a client that measures one path.
+
+One probe is one TCP connection. The client sends a JSON header line, then data for a fixed duration or byte
+count, then half-closes; the server counts what arrives, per interval, and answers with its own measurement as a
+JSON line. The result reads like `iperf3 -J` (DESIGN.md section 4): `start`, `intervals[]` (sender side, each
+with `streams[]` and `sum`), `end.sum_sent` and `end.sum_received`, and the server's intervals under
+`server_output_json`, the key iperf3 uses for `--get-server-output`. A failed probe is `{"error": "..."}` as in
+iperf3. The receiver's figure is the path's: the sender's also counts what still sits in its socket buffer.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import mmap
+import select
+import socket
+import struct
+import threading
+import time
+
+log = logging.getLogger(__name__)
+
+DEFAULT_PORT = 5201  # iperf3's
+BLOCK_BYTES = 1024 * 1024  # per write: on a CPU-bound path (loopback) fewer, larger writes go faster
+RECV_BYTES = 1024 * 1024
+HEADER_LIMIT_BYTES = 4096
+IDLE_TIMEOUT_S = 10.0
+PROTOCOL = "nac-probe/1"
+# Fields of Linux's struct tcp_info (include/uapi/linux/tcp.h) that iperf3 reports, by byte offset.
+_TCP_INFO = {"snd_mss": 16, "pmtu": 60, "rtt": 68, "rttvar": 72, "snd_cwnd": 80, "total_retrans": 100,
+             "snd_wnd": 228}
+_U32 = struct.Struct("=I")
+
+
+class ProbeError(RuntimeError):
+    """A probe could not run; the message names the peer and what went wrong."""
+
+
+def tcp_info(sock: socket.socket) -> dict:
+    """The sender's TCP state as iperf3 reports it (snd_cwnd in bytes, rtt in µs); {} where unavailable."""
+    if not hasattr(socket, "TCP_INFO"):
+        return {}
+    try:
+        raw = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, 232)
+    except OSError:
+        return {}
+    values = {name: _U32.unpack_from(raw, at)[0] for name, at in _TCP_INFO.items() if len(raw) >= at + 4}
+    if "snd_cwnd" in values and "snd_mss" in values:
+        values["snd_cwnd"] *= values["snd_mss"]  # packets -> bytes, as iperf3 does
+    values.pop("snd_mss", None)
+    return values
+
+
+def total_retransmits(sock: socket.socket) -> int | None:
+    return tcp_info(sock).get("total_retrans")
+
+
+def interval_sum(start_s: float, end_s: float, nbytes: int, sender: bool, retransmits: int | None = None) -> dict:
+    seconds = max(end_s - start_s, 0.0)
+    out = {"start": round(start_s, 6), "end": round(end_s, 6), "seconds": round(seconds, 6), "bytes": nbytes,
+           "bits_per_second": nbytes * 8 / seconds if seconds > 0 else 0.0, "omitted": False, "sender": sender}
+    if sender:
+        out["retransmits"] = retransmits if retransmits is not None else 0
+    return out
+
+
+class _IntervalCounter:
+    """Bytes per reporting interval, relative to a start time. The hot loops keep the running total themselves
+    and call close_interval only when the clock passes next_mark: a method call per block costs several percent
+    of the rate on a fast path, and the loopback comparison with iperf3 (C) has to hold within 10 %."""
+
+    def __init__(self, start_mono_s: float, interval_s: float, sender: bool, sock: socket.socket):
+        self.t0, self.interval_s, self.sender, self.sock = start_mono_s, interval_s, sender, sock
+        self.intervals: list[dict] = []
+        self.mark_s, self.mark_bytes, self.total = 0.0, 0, 0
+        self.next_mark = start_mono_s + interval_s
+        self.retrans0 = self.retrans_mark = (total_retransmits(sock) or 0) if sender else 0
+
+    def close_interval(self, now_mono_s: float, total: int) -> None:
+        self.total = total
+        self.next_mark = now_mono_s + self.interval_s
+        end_s = now_mono_s - self.t0
+        if end_s <= self.mark_s:
+            return
+        retrans = None
+        stream_extra = {}
+        if self.sender:
+            info = tcp_info(self.sock)
+            now_retrans = info.pop("total_retrans", 0)
+            retrans, self.retrans_mark = now_retrans - self.retrans_mark, now_retrans
+            stream_extra = info
+        s = interval_sum(self.mark_s, end_s, total - self.mark_bytes, self.sender, retrans)
+        self.intervals.append({"streams": [dict(s, socket=self.sock.fileno(), **stream_extra)], "sum": s})
+        self.mark_s, self.mark_bytes = end_s, total
+
+    def retransmits(self) -> int:
+        return (total_retransmits(self.sock) or 0) - self.retrans0 if self.sender else 0
+
+
+def probe(host: str, port: int = DEFAULT_PORT, duration_s: float | None = 1.0, nbytes: int | None = None,
+          interval_s: float = 0.5, rate_bps: float | None = None, connect_timeout_s: float = 3.0,
+          block_bytes: int = BLOCK_BYTES) -> dict:
+    """Send to a throughput server for duration_s (or nbytes) and return an iperf3-shaped result.
+
+    rate_bps caps the sending rate (iperf3 -b) so a probe can share a link with other traffic.
+    Raises ProbeError when the server cannot be reached or stops answering.
+    """
+    if (duration_s is None) == (nbytes is None):
+        raise ValueError("give exactly one of duration_s and nbytes")
+    where = f"{host}:{port}"
+    try:
+        sock = socket.create_connection((host, port), timeout=connect_timeout_s)
+    except OSError as err:
+        raise ProbeError(f"cannot connect to throughput server {where}: {err.strerror or err}") from None
+    with sock:
+        header = {"protocol": PROTOCOL, "duration_s": duration_s, "bytes": nbytes, "interval_s": interval_s}
+        local, remote = sock.getsockname(), sock.getpeername()
+        started_unix_s = time.time()
+        try:
+            sock.sendall(json.dumps(header).encode() + b"\n")
+            # Non-blocking writes, waiting in select() only when the buffer is full, as iperf3 does: Python's
+            # own socket timeout costs a poll() per call, and a blocking write that waits for room for a whole
+            # block both cost a good part of the rate on a fast path.
+            sock.setblocking(False)
+            t0 = time.monotonic()
+            counter = _IntervalCounter(t0, interval_s, True, sock)
+            _send_data(sock, counter, t0, duration_s, nbytes, rate_bps, block_bytes)
+            t_end = time.monotonic()
+            counter.close_interval(t_end, counter.total)
+            sock.setblocking(True)
+            set_kernel_timeouts(sock, send_s=IDLE_TIMEOUT_S, recv_s=IDLE_TIMEOUT_S)
+            sock.shutdown(socket.SHUT_WR)
+            server = _read_answer(sock, where)
+        except (OSError, TimeoutError) as err:
+            raise ProbeError(f"throughput probe to {where} failed: {err.strerror or err}") from None
+    if "error" in server:
+        raise ProbeError(f"throughput server {where}: {server['error']}")
+    received = server["sum_received"]
+    return {
+        "start": {
+            "connected": [{"socket": 1, "local_host": local[0], "local_port": local[1], "remote_host": remote[0],
+                           "remote_port": remote[1]}],
+            "timestamp": {"timesecs": int(started_unix_s), "time_s": started_unix_s},
+            "test_start": {"protocol": "TCP", "num_streams": 1, "blksize": block_bytes, "duration": duration_s or 0,
+                           "bytes": nbytes or 0, "rate_bps": rate_bps or 0},
+        },
+        "intervals": counter.intervals,
+        "end": {
+            "sum_sent": interval_sum(0.0, t_end - t0, counter.total, True, counter.retransmits()),
+            "sum_received": interval_sum(received["start"], received["end"], received["bytes"], False),
+        },
+        "server_output_json": {"intervals": server.get("intervals", [])},
+    }
+
+
+def _send_data(sock, counter: _IntervalCounter, t0: float, duration_s, nbytes, rate_bps, block_bytes) -> None:
+    block = memoryview(mmap.mmap(-1, block_bytes))  # page-aligned, as iperf3's: copies run faster
+    deadline = t0 + duration_s if duration_s is not None else float("inf")
+    limit = nbytes if nbytes is not None else float("inf")
+    send, monotonic, total, now = sock.send, time.monotonic, 0, t0
+    while now < deadline and total < limit:
+        if rate_bps:
+            ahead_s = total * 8 / rate_bps - (now - t0)
+            if ahead_s > 0:
+                time.sleep(min(ahead_s, deadline - now))
+                now = monotonic()
+                continue
+        try:
+            total += send(block if limit - total >= block_bytes else block[:int(limit - total)])
+        except BlockingIOError:  # the send buffer is full: wait for room, never past the deadline
+            if not select.select([], [sock], [], min(deadline - now, IDLE_TIMEOUT_S))[1] and duration_s is None:
+                raise TimeoutError(f"the receiver took nothing for {IDLE_TIMEOUT_S:g} s") from None
+        now = monotonic()
+        if now >= counter.next_mark:
+            counter.close_interval(now, total)
+    counter.total = total
+
+
+def set_kernel_timeouts(sock: socket.socket, send_s: float, recv_s: float) -> None:
+    for option, seconds in ((socket.SO_SNDTIMEO, send_s), (socket.SO_RCVTIMEO, recv_s)):
+        sock.setsockopt(socket.SOL_SOCKET, option, struct.pack("ll", int(seconds), int(seconds % 1 * 1e6)))
+
+
+def _read_answer(sock: socket.socket, where: str) -> dict:
+    data = b""
+    while not data.endswith(b"\n"):
+        try:
+            chunk = sock.recv(65536)
+        except BlockingIOError:
+            raise TimeoutError(f"no result within {IDLE_TIMEOUT_S:g} s") from None
+        if not chunk:
+            break
+        data += chunk
+    try:
+        return json.loads(data)
+    except ValueError:
+        raise ProbeError(f"throughput server {where} gave no result (is it a NAC throughput server?)") from None
+
+
+class ThroughputServer:
+    """Accepts probes on a TCP port, one at a time, in a background thread (or serve_forever); stop() closes it."""
+
+    def __init__(self, bind: str = "0.0.0.0", port: int = DEFAULT_PORT, on_result=None):
+        self.on_result = on_result  # called with (peer address, receiver summary) after each probe
+        self.sock = socket.create_server((bind, port), reuse_port=False)
+        self.port = self.sock.getsockname()[1]
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, name="throughput-server", daemon=True)
+
+    def start(self) -> ThroughputServer:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        self.sock.close()
+        self._thread.join(timeout=2.0)
+
+    def serve_forever(self) -> None:
+        self._serve()
+
+    def _serve(self) -> None:
+        self.sock.settimeout(0.5)
+        while not self._stop.is_set():
+            try:
+                conn, addr = self.sock.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            # One probe at a time, as iperf3's server: concurrent probes would measure each other, and a receiver
+            # in its own thread runs measurably slower on a fast path. Others wait in the listen backlog.
+            self._handle(conn, addr)
+
+    def _handle(self, conn: socket.socket, addr) -> None:
+        with conn:
+            conn.settimeout(IDLE_TIMEOUT_S)
+            try:
+                answer = receive_probe(conn)
+            except (OSError, TimeoutError, ValueError) as err:
+                log.warning("throughput probe from %s:%s failed: %s", addr[0], addr[1], err)
+                try:
+                    conn.sendall(json.dumps({"error": str(err)}).encode() + b"\n")
+                except OSError:
+                    pass
+                return
+            try:
+                conn.sendall(json.dumps(answer).encode() + b"\n")
+            except OSError as err:
+                log.warning("could not answer the probe from %s:%s: %s", addr[0], addr[1], err)
+            if self.on_result is not None:
+                self.on_result(addr, answer)
+
+
+def receive_probe(conn: socket.socket) -> dict:
+    """Read one probe's header and data until the sender half-closes; the receiver's measurement."""
+    header_bytes = b""
+    while b"\n" not in header_bytes:
+        chunk = conn.recv(HEADER_LIMIT_BYTES - len(header_bytes))
+        if not chunk:
+            raise ValueError("connection closed before the probe header")
+        header_bytes += chunk
+        if b"\n" not in header_bytes and len(header_bytes) >= HEADER_LIMIT_BYTES:
+            raise ValueError("probe header too long")
+    line, _, rest = header_bytes.partition(b"\n")
+    header = json.loads(line)
+    if header.get("protocol") != PROTOCOL:
+        raise ValueError(f"expected protocol {PROTOCOL}, got {header.get('protocol')!r}")
+    t0 = time.monotonic()
+    counter = _IntervalCounter(t0, float(header.get("interval_s") or 0.5), False, conn)
+    buf = mmap.mmap(-1, RECV_BYTES)
+    conn.settimeout(None)
+    set_kernel_timeouts(conn, send_s=IDLE_TIMEOUT_S, recv_s=IDLE_TIMEOUT_S)
+    recv_into, monotonic = conn.recv_into, time.monotonic
+    total, last_s = len(rest), t0
+    while True:
+        try:
+            n = recv_into(buf)
+        except BlockingIOError:
+            raise TimeoutError(f"the sender went silent for {IDLE_TIMEOUT_S:g} s") from None
+        if n == 0:
+            break
+        total += n
+        last_s = monotonic()
+        if last_s >= counter.next_mark:
+            counter.close_interval(last_s, total)
+    counter.close_interval(last_s, total)
+    return {"sum_received": interval_sum(0.0, last_s - t0, total, False), "intervals": counter.intervals}

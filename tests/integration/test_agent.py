@@ -1,0 +1,219 @@
+"""The onboard agent as it runs on a Jetson: a child process on the SITL's companion port, real sockets."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from pymavlink import mavutil
+
+from missions.model import MavCmd
+from nac_onboard.flight_log import read_jsonl
+from nac_onboard.mavlink_client import M
+from nac_onboard.state_feed import fetch_state
+from sitl.geodesy import lla_to_enu
+from tests.conftest import free_port
+from tests.integration.agents import agent_toml, kind, wait_for_record
+from tests.integration.gcs import waypoint_mission
+
+LEGS_M = [(12, 0), (12, 12), (0, 12)]
+
+
+def companion_uri(sim, vehicle: int = 0) -> str:
+    return f"udpin:127.0.0.1:{sim.config.companion_base_port + sim.config.port_step * vehicle}"
+
+
+def one_agent(sim, tmp_path, vehicle: int = 0, role: str = "master", **sections) -> str:
+    return agent_toml(f"uav{vehicle + 1}", role, vehicle + 1, companion_uri(sim, vehicle), tmp_path / "runs",
+                      free_port(), [], **sections)
+
+
+def run_dir(tmp_path, vehicle: int = 0) -> Path:
+    return tmp_path / "runs" / "test" / f"uav{vehicle + 1}"
+
+
+def test_logged_positions_match_truth_and_every_mission_item_is_an_event(start_sitl, gcs_for, start_agent,
+                                                                          tmp_path):
+    sim = start_sitl(speedup=10.0)
+    trace: list[tuple[float, np.ndarray]] = []
+    sim.step_observers.append(lambda t, s: trace.append((t, s.pos_m[0].copy())))
+    agent = start_agent(one_agent(sim, tmp_path))
+    log_path = run_dir(tmp_path) / "agent.jsonl"
+    wait_for_record(log_path, kind("link_up"))
+
+    gcs = gcs_for(sim, 0)
+    home = sim.homes[0]
+    items = waypoint_mission(home.lat_deg, home.lon_deg, LEGS_M, alt_m=8.0)
+    assert gcs.upload(items) == M.MAV_MISSION_ACCEPTED
+    assert gcs.command(MavCmd.COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+    assert gcs.command(MavCmd.MISSION_START, 0, 0) == M.MAV_RESULT_ACCEPTED
+    last = len(items) - 1
+    assert gcs.recv("MISSION_ITEM_REACHED", 60.0, lambda m: m.seq == last) is not None
+    wait_for_record(log_path, kind("mission_item_reached", seq=last))
+    assert agent.stop() == 0, agent.stderr_text()
+
+    read = read_jsonl(log_path)
+    assert read.problems == []
+    assert read.records[-1]["kind"] == "agent_stopped"
+    reached = [r["seq"] for r in read.of_kind("mission_item_reached")]
+    assert reached == list(range(1, len(items)))
+    assert {"AUTO"} <= {r["value"] for r in read.of_kind("mode")}
+
+    times = np.array([t for t, _ in trace])
+    truth = np.array([p for _, p in trace])
+    telemetry = [r for r in read.of_kind("telemetry") if r["armed"]]
+    assert len(telemetry) > 30, "the flight should give several seconds of 10 Hz telemetry"
+    errors = []
+    for r in telemetry:
+        t_s = r["time_boot_ms"] / 1000  # the autopilot's clock for the logged position
+        true_enu = [np.interp(t_s, times, truth[:, k]) for k in range(3)]
+        logged_enu = lla_to_enu(r["lat_deg"], r["lon_deg"], r["alt_m"], home)
+        errors.append(float(np.linalg.norm(logged_enu - true_enu)))
+    assert max(errors) < 0.5, f"worst logged position is {max(errors):.2f} m from the truth"
+    moving = max(np.hypot(*r["vel_ned_mps"][:2]) for r in telemetry)
+    assert moving > 1.0, "the comparison should cover the vehicle in motion"
+    wall = np.array([r["t_s"] for r in read.of_kind("telemetry")])
+    assert 7.0 < 1 / np.median(np.diff(wall)) < 13.0, "telemetry is logged at log.telemetry_hz (10)"
+
+    # The .tlog opens in pymavlink as any ground station's would, and carries the same positions.
+    tlog = mavutil.mavlink_connection(str(run_dir(tmp_path) / "mavlink.tlog"))
+    positions = []
+    while (msg := tlog.recv_match(type="GLOBAL_POSITION_INT")) is not None:
+        positions.append((msg.time_boot_ms, msg.lat / 1e7, msg.lon / 1e7))
+    logged = {(r["time_boot_ms"], r["lat_deg"], r["lon_deg"]) for r in telemetry}
+    assert logged <= set(positions)
+    dump = subprocess.run([sys.executable, "-m", "pymavlink.tools.mavlogdump", "--types", "MISSION_ITEM_REACHED",
+                           str(run_dir(tmp_path) / "mavlink.tlog")], capture_output=True, text=True, timeout=60)
+    assert dump.returncode == 0, dump.stderr
+    assert dump.stdout.count("MISSION_ITEM_REACHED") == len(items) - 1
+
+
+def test_link_lost_for_five_seconds_is_logged_and_logging_resumes(start_sitl, start_agent, tmp_path):
+    sim = start_sitl(speedup=5.0)
+    start_agent(one_agent(sim, tmp_path))
+    log_path = run_dir(tmp_path) / "agent.jsonl"
+    wait_for_record(log_path, kind("link_up"))
+    sim.stop()
+    stopped_s = time.time()
+    lost = wait_for_record(log_path, kind("link_lost"), timeout_s=5.0)
+    time.sleep(max(0.0, stopped_s + 5.0 - time.time()))  # the outage the scenario asks for, not a settle
+    start_sitl(config=sim.config)
+    restored = wait_for_record(log_path, kind("link_restored"), timeout_s=5.0)
+    assert 4.5 < restored["outage_s"] < 8.0
+    assert lost["t_s"] < restored["t_s"]
+    wait_for_record(log_path, lambda r: r["kind"] == "telemetry" and r["t_s"] > restored["t_s"] + 0.5)
+    read = read_jsonl(log_path)
+    during = [r for r in read.of_kind("telemetry") if lost["t_s"] < r["t_s"] < restored["t_s"]]
+    assert during == [], "no stale positions are logged while the link is down"
+
+
+def test_tcp_link_is_reopened_after_the_autopilot_restarts(start_sitl, start_agent, tmp_path, base_port):
+    sim = start_sitl(speedup=5.0, tcp_base_port=base_port(1) + 5)
+    uri = f"tcp:127.0.0.1:{sim.config.tcp_base_port}"
+    start_agent(agent_toml("uav1", "master", 1, uri, tmp_path / "runs", free_port(), []))
+    log_path = run_dir(tmp_path) / "agent.jsonl"
+    wait_for_record(log_path, kind("link_up"))
+    sim.stop()
+    wait_for_record(log_path, kind("link_lost", why="error"), timeout_s=5.0)
+    refused = wait_for_record(log_path, kind("link_open_failed"), timeout_s=5.0)
+    assert "refused" in refused["error"]
+    start_sitl(config=sim.config)
+    wait_for_record(log_path, kind("link_restored"), timeout_s=10.0)
+    wait_for_record(log_path, lambda r: r["kind"] == "telemetry" and r["t_s"] > refused["t_s"])
+
+
+def test_sigkill_mid_write_loses_at_most_the_last_record(start_sitl, start_agent, tmp_path):
+    sim = start_sitl(speedup=5.0)
+    agent = start_agent(one_agent(sim, tmp_path, log={"telemetry_hz": 500.0, "fsync_s": 0.0}))
+    log_path = run_dir(tmp_path) / "agent.jsonl"
+    wait_for_record(log_path, lambda r: r["kind"] == "telemetry" and r["time_boot_ms"] > 0)
+    os.kill(agent.pid, signal.SIGKILL)
+    agent.proc.wait(5)
+    read = read_jsonl(log_path)
+    assert len(read.records) > 10
+    assert read.records[-1]["kind"] == "telemetry", "killed mid-run: no agent_stopped record"
+    damaged = len(read.problems)
+    assert damaged == int(read.truncated_tail) <= 1, read.problems
+    check = subprocess.run([sys.executable, "-m", "nac_onboard.cli", "log", "check", str(log_path)],
+                           capture_output=True, text=True, timeout=30)
+    assert f"{len(read.records)} records" in check.stdout
+    if read.truncated_tail:
+        assert "incomplete" in check.stdout and check.returncode == 1
+    else:
+        assert check.returncode == 0
+
+
+def test_two_agents_see_each_other_within_2_s_and_log_peer_lost(start_sitl, start_agent, tmp_path):
+    sim = start_sitl(vehicles=2, speedup=5.0, spacing_m=7.0)
+    ports = [free_port(), free_port()]
+    configs = [agent_toml(f"uav{i + 1}", role, i + 1, companion_uri(sim, i), tmp_path / "runs", ports[i],
+                          [ports[1 - i]]) for i, role in enumerate(["master", "worker"])]
+    agents = [start_agent(text, name=f"uav{i + 1}") for i, text in enumerate(configs)]
+    both_ready_s = max(wait_for_record(run_dir(tmp_path, i) / "agent.jsonl", kind("agent_ready"))["t_s"]
+                       for i in range(2))
+    for i in range(2):
+        seen = wait_for_record(run_dir(tmp_path, i) / "agent.jsonl", kind("peer_seen", peer=f"uav{2 - i}"),
+                               timeout_s=3.0)
+        assert seen["t_s"] - both_ready_s < 2.0
+
+    # The local state feed serves the compute job both positions; their distance is the simulator's.
+    feed = configs[0].split("[state_feed]\nlisten = ")[1].split("\n")[0].strip('"')
+    deadline = time.monotonic() + 5.0
+    while True:
+        state = fetch_state(feed)
+        peer = state["peers"].get("uav2", {})
+        if peer.get("lat_deg") is not None and state["self"]["lat_deg"] is not None or time.monotonic() > deadline:
+            break
+    from nac_onboard.state_feed import distance_between
+
+    assert abs(distance_between(state, "uav1", "uav2") - 7.0) < 0.05
+    assert peer["role"] == "worker" and peer["age_s"] < 1.0 and not peer["lost"]
+
+    assert agents[1].stop() == 0
+    lost = wait_for_record(run_dir(tmp_path, 0) / "agent.jsonl", kind("peer_lost", peer="uav2"), timeout_s=3.0)
+    assert lost["silent_s"] > 1.0
+    assert fetch_state(feed)["peers"]["uav2"]["lost"]
+
+
+def test_routing_lets_a_second_tool_share_the_autopilot_link(start_sitl, start_agent, tmp_path):
+    sim = start_sitl(speedup=5.0)
+    tool_port = free_port()
+    tool = mavutil.mavlink_connection(f"udpin:127.0.0.1:{tool_port}", source_system=250)
+    try:
+        start_agent(one_agent(sim, tmp_path, routing={"endpoints": [f"udpout:127.0.0.1:{tool_port}"]}))
+        hb = tool.recv_match(type="HEARTBEAT", blocking=True, timeout=5.0,
+                             condition="HEARTBEAT.get_srcComponent() == 1")
+        assert hb is not None and hb.get_srcSystem() == 1, "autopilot traffic reaches the routed endpoint"
+        for _ in range(3):
+            tool.mav.command_long_send(1, 1, MavCmd.COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+            ack = tool.recv_match(type="COMMAND_ACK", blocking=True, timeout=2.0)
+            if ack is not None:
+                break
+        assert ack is not None and ack.result == M.MAV_RESULT_ACCEPTED, "the tool's command reached the autopilot"
+        assert sim.truth(0)["armed"]
+    finally:
+        tool.close()
+
+
+def test_sigterm_and_systemd_notify_and_watchdog(start_sitl, start_agent, tmp_path):
+    import socket
+
+    sim = start_sitl(speedup=5.0)
+    notify_path = str(tmp_path / "notify.sock")
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as notify:
+        notify.bind(notify_path)
+        notify.settimeout(5.0)
+        env = dict(os.environ, NOTIFY_SOCKET=notify_path, WATCHDOG_USEC="400000")
+        agent = start_agent(one_agent(sim, tmp_path), env=env)
+        received = []
+        while received.count("WATCHDOG=1") < 3:
+            received += notify.recv(4096).decode().split("\n")
+        assert received.index("READY=1") < received.index("WATCHDOG=1")
+        assert agent.stop() == 0
+        while "STOPPING=1" not in received:
+            received += notify.recv(4096).decode().split("\n")
+    read = read_jsonl(run_dir(tmp_path) / "agent.jsonl")
+    assert read.records[-1]["kind"] == "agent_stopped" and read.records[-1]["reason"] == "SIGTERM"

@@ -1,0 +1,162 @@
+"""The agent's pure parts: config checking, peer messages and table, flight-log reading and writing, distances."""
+
+import json
+import math
+import socket
+import struct
+
+import pytest
+
+from nac_onboard.config import ConfigError, load_agent_config, parse_agent_config
+from nac_onboard.flight_log import JsonlLog, TlogWriter, read_jsonl
+from nac_onboard.geo import distance_m
+from nac_onboard.peers import PeerMessageError, PeerState, PeerTable, decode_peer_state, encode_peer_state
+from nac_onboard.state_feed import distance_between
+from nac_onboard.systemd_notify import SystemdNotifier
+from sitl.geodesy import Home, enu_to_lla
+
+MINIMAL = {"vehicle": {"id": "uav1", "role": "worker"}}
+
+
+def test_minimal_config_takes_the_jetson_defaults():
+    config = parse_agent_config(MINIMAL)
+    assert config.autopilot.uri == "serial:/dev/ttyTHS2:921600"
+    assert config.log.dir == "/var/log/nac" and config.log.telemetry_hz == 10.0
+    assert config.throughput.port == 5201 and not config.throughput.probe
+
+
+@pytest.mark.parametrize("data, message", [
+    ({}, "missing [vehicle]"),
+    ({"vehicle": {"id": "uav1"}}, "[vehicle] needs role"),
+    ({"vehicle": {"id": "uav1", "role": "boss"}}, "vehicle.role must be one of master, worker"),
+    ({"vehicle": {"id": "uav 1", "role": "worker"}}, "vehicle.id must be"),
+    ({**MINIMAL, "log": {"telemetry_hz": "fast"}}, "log.telemetry_hz: expected a number, got 'fast'"),
+    ({**MINIMAL, "log": {"telemetryhz": 5}}, "unknown key log.telemetryhz"),
+    ({**MINIMAL, "logs": {}}, "unknown section [logs]"),
+    ({**MINIMAL, "autopilot": {"uri": "serial:/dev/ttyTHS2"}}, "expected udpin:HOST:PORT"),
+    ({**MINIMAL, "peers": {"send_to": ["10.0.0.255"]}}, "peers.send_to: expected HOST:PORT"),
+    ({**MINIMAL, "throughput": {"probe": True, "duration_s": 20.0, "period_s": 10.0}}, "exceeds throughput.period_s"),
+    ({**MINIMAL, "throughput": {"targets": ["10.0.0.2:5201"]}}, "expected ID=HOST:PORT"),
+    ({**MINIMAL, "peers": {"rate_hz": 0}}, "peers.rate_hz must be > 0"),
+    ({**MINIMAL, "log": {"tlog": "yes"}}, "log.tlog: expected true or false"),
+])
+def test_bad_config_names_the_file_and_key(data, message):
+    with pytest.raises(ConfigError) as err:
+        parse_agent_config(data, "agent.toml")
+    assert str(err.value).startswith("agent.toml: ") and message in str(err.value)
+
+
+def test_config_file_errors_name_the_file(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[vehicle\nid = 1\n")
+    with pytest.raises(ConfigError, match="bad.toml: not valid TOML"):
+        load_agent_config(bad)
+    with pytest.raises(ConfigError, match="cannot read agent config .*missing.toml"):
+        load_agent_config(tmp_path / "missing.toml")
+
+
+def test_deploy_examples_are_valid_configs():
+    from pathlib import Path
+
+    deploy = Path(__file__).resolve().parents[2] / "deploy"
+    roles = {load_agent_config(p).vehicle.role for p in deploy.glob("*.toml")}
+    assert roles == {"master", "worker"}
+
+
+def test_peer_message_round_trip_and_bad_datagrams():
+    state = PeerState("uav2", "worker", 1.7e9, sysid=2, lat_deg=47.1, lon_deg=8.5, alt_m=500.0,
+                      vel_ned_mps=(1.0, 0.5, 0.0), battery_pct=80, probe_port=5201)
+    back = decode_peer_state(encode_peer_state(state), "10.0.0.2")
+    assert back == PeerState(**{**state.__dict__, "host": "10.0.0.2"})
+    for garbage in (b"\xff\x00", b"[1, 2]", b'{"nac": "other/1"}', b'{"nac": "peer-state/1", "id": "x"}',
+                    b'{"nac": "peer-state/1", "id": "x", "role": "worker", "t_s": "soon"}'):
+        with pytest.raises(PeerMessageError):
+            decode_peer_state(garbage, "10.0.0.9")
+
+
+def test_peer_table_seen_lost_and_back():
+    table = PeerTable("uav1", timeout_s=1.0)
+    me = PeerState("uav1", "master", 0.0)
+    other = PeerState("uav2", "worker", 0.0)
+    assert table.update(me, 0.0) is None, "our own looped-back broadcast is not a peer"
+    assert table.update(other, 0.0) == "peer_seen"
+    assert table.update(other, 0.5) is None
+    assert table.expire(1.4) == []
+    lost = table.expire(1.6)
+    assert [(p.id, round(s, 1)) for p, s in lost] == [("uav2", 1.1)]
+    assert table.expire(3.0) == [], "lost is reported once"
+    assert table.snapshot(3.0)["uav2"]["lost"] and table.live() == []
+    assert table.update(other, 3.1) == "peer_seen", "a peer that comes back is seen again"
+
+
+def test_jsonl_records_have_time_and_kind_and_no_nan(tmp_path):
+    with JsonlLog(tmp_path / "a.jsonl") as log:
+        log.write("telemetry", t_s=5.0, lat_deg=float("nan"), vel=(1.0, float("inf")))
+        log.write("event")
+    lines = (tmp_path / "a.jsonl").read_text().splitlines()
+    assert json.loads(lines[0]) == {"t_s": 5.0, "kind": "telemetry", "lat_deg": None, "vel": [1.0, None]}
+    assert set(json.loads(lines[1])) == {"t_s", "kind"}
+
+
+def test_a_cut_at_any_byte_of_the_last_record_loses_only_that_record(tmp_path):
+    path = tmp_path / "a.jsonl"
+    with JsonlLog(path) as log:
+        for k in range(3):
+            log.write("telemetry", t_s=float(k), seq=k)
+    whole = path.read_bytes()
+    last_start = whole.rstrip(b"\n").rfind(b"\n") + 1
+    for cut in range(last_start + 1, len(whole)):
+        path.write_bytes(whole[:cut])
+        read = read_jsonl(path)
+        assert [r["seq"] for r in read.records] == [0, 1]
+        assert read.truncated_tail and len(read.problems) == 1
+        assert "line 3: last record is incomplete" in read.problems[0] and str(path) in read.problems[0]
+
+
+def test_corrupt_lines_in_the_middle_are_named_and_skipped(tmp_path):
+    path = tmp_path / "a.jsonl"
+    path.write_bytes(b'{"t_s": 1, "kind": "a"}\n\x00\x00garbage\n{"no": "kind"}\n{"t_s": 2, "kind": "b"}\n')
+    read = read_jsonl(path)
+    assert [r["kind"] for r in read.records] == ["a", "b"] and not read.truncated_tail
+    assert [p.split(": ")[1] for p in read.problems] == ["line 2", "line 3"]
+
+
+def test_tlog_layout_is_big_endian_microseconds_then_the_frame(tmp_path):
+    with TlogWriter(tmp_path / "x.tlog") as tlog:
+        tlog.write(b"\xfd\x01\x02", t_s=1.5)
+    data = (tmp_path / "x.tlog").read_bytes()
+    assert struct.unpack(">Q", data[:8])[0] == 1_500_000 and data[8:] == b"\xfd\x01\x02"
+
+
+def test_distance_agrees_with_the_simulators_geodesy():
+    home = Home(47.397742, 8.545594, 488.0)
+    for east, north, up in [(9.43, 0, 0), (0, 12.8, 3), (-17, 5, 10), (3000, -4000, 0)]:
+        lat, lon, alt = enu_to_lla([east, north, up], home)
+        d = distance_m({"lat_deg": home.lat_deg, "lon_deg": home.lon_deg, "alt_m": 488.0},
+                       {"lat_deg": float(lat), "lon_deg": float(lon), "alt_m": float(alt)})
+        assert math.isclose(d, math.dist((0, 0, 0), (east, north, up)), rel_tol=1e-6, abs_tol=1e-3)
+    assert distance_m({"lat_deg": None, "lon_deg": 8.0, "alt_m": 0}, {"lat_deg": 1, "lon_deg": 1, "alt_m": 0}) is None
+
+
+def test_state_feed_distance_between_self_and_peers():
+    state = {"self": {"id": "m", "lat_deg": 47.0, "lon_deg": 8.0, "alt_m": 500.0},
+             "peers": {"w1": {"lat_deg": 47.0, "lon_deg": 8.0, "alt_m": 510.0}}}
+    assert math.isclose(distance_between(state, "m", "w1"), 10.0, rel_tol=1e-9)
+    assert distance_between(state, "m", "w9") is None
+
+
+def test_systemd_notifier_speaks_the_notify_protocol(tmp_path):
+    path = str(tmp_path / "notify")
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as server:
+        server.bind(path)
+        notifier = SystemdNotifier({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "2000000"})
+        assert notifier.watchdog_period_s == 1.0
+        assert notifier.ready("up")
+        assert server.recv(100) == b"READY=1\nSTATUS=up"
+        notifier.watchdog()
+        assert server.recv(100) == b"WATCHDOG=1"
+        notifier.close()
+    outside = SystemdNotifier({})
+    assert not outside.ready() and outside.watchdog_period_s is None
+    other_pid = SystemdNotifier({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "2000000", "WATCHDOG_PID": "1"})
+    assert other_pid.watchdog_period_s is None, "the watchdog is meant for another process"
