@@ -23,6 +23,9 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/sitl_scale.py
+	$(BIN)/python benchmarks/mission_upload.py
+	$(BIN)/python benchmarks/agent_load.py
+	$(BIN)/python benchmarks/throughput_vs_iperf3.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .ruff_cache

@@ -140,7 +140,8 @@ class Agent:
             self.client = mav.MavlinkClient(a.uri, sysid=self.sysid, signing_key=self.signing_key,
                                             source_system=self.config.vehicle.sysid or 1,
                                             source_component=mav.M.MAV_COMP_ID_ONBOARD_COMPUTER,
-                                            mav_type=mav.M.MAV_TYPE_ONBOARD_CONTROLLER)
+                                            mav_type=mav.M.MAV_TYPE_ONBOARD_CONTROLLER,
+                                            decode_only=mav.CLIENT_MESSAGES)
         except mav.LinkError as err:
             self.open_failures += 1
             if self.open_failures == 1 or self.open_failures % 30 == 0:
@@ -219,11 +220,11 @@ class Agent:
             autopilots = [s for s, v in self.client.vehicles.items() if v.autopilot != mav.M.MAV_AUTOPILOT_INVALID]
             if autopilots:
                 self.sysid = self.client.sysid = autopilots[0]
-        for msg in messages:
-            frame = msg.get_msgbuf()
-            self.counters["frames_in"] += 1
-            if self.tlog is not None:
-                self.tlog.write(frame)
+        frames = [msg.get_msgbuf() for msg in messages]
+        self.counters["frames_in"] += len(frames)
+        if self.tlog is not None:
+            self.tlog.write_many(frames)
+        for msg, frame in zip(messages, frames, strict=True):
             for endpoint in self.endpoints:
                 if endpoint.write(frame):
                     self.counters["frames_routed"] += 1

@@ -80,8 +80,13 @@ class TlogWriter(_AppendFile):
     """MAVLink frames with their time, the `.tlog` layout."""
 
     def write(self, frame: bytes, t_s: float | None = None) -> None:
-        stamp_us = int((time.time() if t_s is None else t_s) * 1e6)
-        self._write(_TLOG_STAMP.pack(stamp_us) + bytes(frame))
+        self.write_many([frame], t_s)
+
+    def write_many(self, frames: list[bytes], t_s: float | None = None) -> None:
+        """Frames that arrived together, in one write."""
+        if frames:
+            stamp = _TLOG_STAMP.pack(int((time.time() if t_s is None else t_s) * 1e6))
+            self._write(b"".join(stamp + bytes(frame) for frame in frames))
 
 
 @dataclass

@@ -18,6 +18,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
 from missions.model import MavCmd, MissionItem  # noqa: E402
+from nac_onboard.mavframes import frame_msgid, frame_source, split_frames  # noqa: E402
 
 log = logging.getLogger(__name__)
 M = mavutil.mavlink
@@ -26,6 +27,11 @@ COPTER_MODES = {name: number for number, name in mavutil.mode_mapping_acm.items(
 LANDED_STATES = {0: "unknown", 1: "on ground", 2: "in air", 3: "taking off", 4: "landing"}
 MISSION_STATE_COMPLETE = 5
 HEARTBEAT_PERIOD_S = 1.0
+#: What VehicleState and the client's own operations (commands, mission transfer) read.
+CLIENT_MESSAGES = frozenset({
+    "HEARTBEAT", "GLOBAL_POSITION_INT", "ATTITUDE", "SYS_STATUS", "EXTENDED_SYS_STATE", "MISSION_CURRENT",
+    "MISSION_ITEM_REACHED", "COMMAND_ACK", "MISSION_COUNT", "MISSION_REQUEST", "MISSION_REQUEST_INT",
+    "MISSION_ITEM_INT", "MISSION_ACK", "STATUSTEXT"})
 
 
 class LinkError(RuntimeError):
@@ -135,6 +141,31 @@ class VehicleState:
             self.reached.append(msg.seq)
 
 
+class RawFrame:
+    """A frame passed through undecoded: enough of the message interface for logging and routing."""
+
+    __slots__ = ("_frame", "_msgid")
+
+    def __init__(self, frame: bytes, msgid: int):
+        self._frame, self._msgid = frame, msgid
+
+    def get_type(self) -> str:
+        known = M.mavlink_map.get(self._msgid)
+        return known.msgname if known is not None else f"UNKNOWN_{self._msgid}"
+
+    def get_msgbuf(self) -> bytes:
+        return self._frame
+
+    def get_srcSystem(self) -> int:  # noqa: N802 (pymavlink's name)
+        return frame_source(self._frame)[0]
+
+    def get_srcComponent(self) -> int:  # noqa: N802
+        return frame_source(self._frame)[1]
+
+    def get_header(self):
+        return None
+
+
 class Link:
     def __init__(self, uri: str, index: int, source_system: int, source_component: int, signing_key: bytes | None,
                  mav_type: int = M.MAV_TYPE_GCS):
@@ -146,6 +177,8 @@ class Link:
         except OSError as err:
             raise LinkError(f"cannot open {uri}: {err.strerror or err}") from None
         self.signing_key = signing_key
+        self.stream = not uri.startswith("udp")  # frames may straddle reads
+        self.pending = bytearray()
         if uri.startswith("tcp"):
             # pymavlink prints and returns nothing forever on a closed TCP socket unless told to reconnect itself.
             self.conn.handle_eof = self.conn.handle_disconnect = self._closed
@@ -157,6 +190,32 @@ class Link:
 
     def fileno(self) -> int:
         return self.conn.fd if getattr(self.conn, "fd", None) is not None else self.conn.port.fileno()
+
+    def read_filtered(self, wanted_ids: frozenset) -> list:
+        """Everything waiting on the link, decoding only the message ids in wanted_ids; other frames come back
+        as RawFrame (pymavlink's decoding is most of a busy link's cost, and most frames are only logged)."""
+        out = []
+        while True:
+            data = self.conn.recv(65535)
+            if not data:
+                return out
+            if isinstance(data, str):
+                data = data.encode("latin-1")
+            if self.stream:
+                self.pending += data
+                frames, used, _ = split_frames(self.pending)
+                del self.pending[:used]
+            else:
+                frames = split_frames(data)[0]  # a datagram holds whole frames: resynchronise on each
+            for frame in frames:
+                msgid = frame_msgid(frame)
+                if msgid not in wanted_ids:
+                    out.append(RawFrame(frame, msgid))
+                    continue
+                try:
+                    out.append(self.conn.mav.decode(bytearray(frame)))
+                except M.MAVError as err:
+                    out.append(M.MAVLink_bad_data(bytearray(frame), err.message))
 
     def _closed(self):
         raise LinkClosed(f"{self.uri}: the other end closed the connection")
@@ -178,7 +237,9 @@ class MavlinkClient:
 
     def __init__(self, uris: list[str] | str | None = None, sysid: int | None = None, signing_key: bytes | None = None,
                  source_system: int = 255, source_component: int = M.MAV_COMP_ID_MISSIONPLANNER,
-                 mav_type: int = M.MAV_TYPE_GCS):
+                 mav_type: int = M.MAV_TYPE_GCS, decode_only: set[str] | None = None):
+        """decode_only: message names to decode (plus what the client itself needs); every other frame is
+        returned as a RawFrame. None decodes everything."""
         if uris is None or uris == []:
             uris = [os.environ.get("NAC_MAVLINK_URI", DEFAULT_URI)]
         elif isinstance(uris, str):
@@ -191,6 +252,8 @@ class MavlinkClient:
         except LinkError:
             self.close()
             raise
+        self.wanted_ids = None if decode_only is None else frozenset(
+            getattr(M, f"MAVLINK_MSG_ID_{name}") for name in set(decode_only) | CLIENT_MESSAGES)
         self.sysid = sysid  # default target; None = the first vehicle heard
         self.vehicles: dict[int, VehicleState] = {}
         self.seen: list = []  # every message received, in order (bounded; handy for tools and tests)
@@ -230,10 +293,14 @@ class MavlinkClient:
 
     # ---- receiving --------------------------------------------------------------------------------------
     def _drain(self, link: Link, now_s: float):
-        while True:
-            msg = link.conn.recv_match(blocking=False)
-            if msg is None:
-                return
+        if self.wanted_ids is None:
+            messages = iter(lambda: link.conn.recv_match(blocking=False), None)
+        else:
+            messages = link.read_filtered(self.wanted_ids)
+        for msg in messages:
+            if isinstance(msg, RawFrame):
+                yield link, msg
+                continue
             kind = msg.get_type()
             if kind == "BAD_DATA":
                 if "signature" in str(getattr(msg, "reason", "")).lower():

@@ -8,6 +8,7 @@ import shutil
 import statistics
 import subprocess
 import sys
+from dataclasses import dataclass
 
 import pytest
 
@@ -59,19 +60,32 @@ def iperf3_result(host: str, port: int, duration_s: int | None, nbytes: int | No
     return result
 
 
+@dataclass
+class Comparison:
+    ours_bps: list[float]
+    iperf3_bps: list[float]
+
+    @property
+    def ratio(self) -> float:
+        """Median of our/iperf3 over adjacent runs: a machine that slows down for a while slows both of a pair."""
+        return statistics.median(a / b for a, b in zip(self.ours_bps, self.iperf3_bps, strict=True))
+
+    def describe(self, unit: float, unit_name: str) -> str:
+        return (f"ours/iperf3 = {self.ratio:.3f} (medians {statistics.median(self.ours_bps) / unit:.3f} vs "
+                f"{statistics.median(self.iperf3_bps) / unit:.3f} {unit_name})")
+
+
 def compare(host: str, runs: int, duration_s: int | None = None, nbytes: int | None = None,
-            netns_client: str | None = None, netns_server: str | None = None):
-    """Alternating runs of each tool over the same path: the median of our/iperf3 ratios of adjacent runs (so a
-    machine that slows down for a while slows both sides of a pair), and each tool's median rate."""
+            netns_client: str | None = None, netns_server: str | None = None) -> Comparison:
+    """Alternating runs of each tool over the same path, receiver-side rates."""
     nac_port, iperf_port = free_port(), free_port()
+    result = Comparison([], [])
     with nac_server(nac_port, netns_server), iperf3_server(iperf_port, netns_server):
-        ours, theirs = [], []
         for _ in range(runs):
-            ours.append(nac_rate_bps(host, nac_port, duration_s, nbytes, netns_client))
-            result = iperf3_result(host, iperf_port, duration_s, nbytes, netns_client)
-            theirs.append(result["end"]["sum_received"]["bits_per_second"])
-    ratio = statistics.median(a / b for a, b in zip(ours, theirs, strict=True))
-    return ratio, statistics.median(ours), statistics.median(theirs)
+            result.ours_bps.append(nac_rate_bps(host, nac_port, duration_s, nbytes, netns_client))
+            theirs = iperf3_result(host, iperf_port, duration_s, nbytes, netns_client)
+            result.iperf3_bps.append(theirs["end"]["sum_received"]["bits_per_second"])
+    return result
 
 
 @needs_iperf3
@@ -122,9 +136,9 @@ def test_loopback_rate_agrees_with_iperf3_within_10_percent(netns):
     netns([ns], [["ip", "-n", ns, "link", "set", "lo", "up"],
                  ["ip", "netns", "exec", ns, "tc", "qdisc", "add", "dev", "lo", "root", "tbf", "rate", "2gbit",
                   "burst", "512kb", "latency", "20ms"]])
-    ratio, ours, theirs = compare("127.0.0.1", runs=3, duration_s=1, netns_client=ns, netns_server=ns)
-    assert 1.8e9 < theirs < 2.1e9, f"iperf3 sees the 2 Gbit/s cap ({theirs / 1e9:.2f} Gbit/s)"
-    assert abs(ratio - 1) < 0.10, f"ours/iperf3 = {ratio:.3f} ({ours / 1e9:.3f} vs {theirs / 1e9:.3f} Gbit/s)"
+    result = compare("127.0.0.1", runs=3, duration_s=1, netns_client=ns, netns_server=ns)
+    assert all(1.8e9 < bps < 2.1e9 for bps in result.iperf3_bps), "iperf3 sees the 2 Gbit/s cap"
+    assert abs(result.ratio - 1) < 0.10, result.describe(1e9, "Gbit/s")
 
 
 @needs_iperf3
@@ -138,6 +152,6 @@ def test_rate_limited_link_agrees_with_iperf3_within_10_percent(netns):
                    ["ip", "-n", a, "link", "set", va, "up"], ["ip", "-n", b, "link", "set", vb, "up"],
                    ["ip", "netns", "exec", a, "tc", "qdisc", "add", "dev", va, "root", "tbf", "rate", "10mbit",
                     "burst", "32kbit", "latency", "50ms"]])
-    ratio, ours, theirs = compare("10.77.0.2", runs=3, duration_s=2, netns_client=a, netns_server=b)
-    assert 8e6 < theirs < 10.5e6, f"iperf3 sees the 10 Mbit/s shaping ({theirs / 1e6:.2f} Mbit/s)"
-    assert abs(ratio - 1) < 0.10, f"ours/iperf3 = {ratio:.3f} ({ours / 1e6:.2f} vs {theirs / 1e6:.2f} Mbit/s)"
+    result = compare("10.77.0.2", runs=3, duration_s=2, netns_client=a, netns_server=b)
+    assert all(8e6 < bps < 10.5e6 for bps in result.iperf3_bps), "iperf3 sees the 10 Mbit/s shaping"
+    assert abs(result.ratio - 1) < 0.10, result.describe(1e6, "Mbit/s")

@@ -1,0 +1,115 @@
+"""CPU and memory of the onboard agent with 50 Hz telemetry in and its log at 10 Hz (target: < 5 % of one core,
+< 80 MB RSS).
+
+A one-vehicle SITL runs in real time, pinned to one core; the agent (`nac-onboard agent`, a child process pinned
+to the other core) asks it for every stream at 50 Hz, logs telemetry at 10 Hz, writes the .tlog and publishes
+its peer state. A ground station flies the vehicle through a mission meanwhile so mode and mission events occur.
+CPU = (utime + stime) of the agent over the window / window; RSS = VmRSS at the end, VmHWM its peak.
+
+    python benchmarks/agent_load.py [--seconds 60] [--stream-hz 50] [--telemetry-hz 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from missions.model import MavCmd  # noqa: E402
+from nac_onboard.mavlink_client import VehicleClient  # noqa: E402
+from nac_onboard.process import AgentProcess  # noqa: E402
+from sitl.demo import waypoint_mission  # noqa: E402
+from sitl.process import SitlProcess  # noqa: E402
+from sitl.server import SitlConfig  # noqa: E402
+from tests.conftest import allocate_base_port, free_port  # noqa: E402
+
+CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def cpu_s(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+
+
+def memory_mb(pid: int) -> dict:
+    status = dict(line.split(":", 1) for line in Path(f"/proc/{pid}/status").read_text().splitlines())
+    return {key: int(status[key].split()[0]) / 1024 for key in ("VmRSS", "VmHWM")}
+
+
+def run(seconds: float, stream_hz: float, telemetry_hz: float) -> dict:
+    base = allocate_base_port(1)
+    config = SitlConfig(vehicles=1, speedup=1.0, gcs_base_port=base, companion_base_port=base + 1, tcp_base_port=0)
+    with tempfile.TemporaryDirectory() as tmp, SitlProcess(config) as sitl:
+        os.sched_setaffinity(sitl.pid, {0})
+        agent_toml = Path(tmp) / "agent.toml"
+        agent_toml.write_text(f"""
+[vehicle]
+id = "bench"
+role = "worker"
+sysid = 1
+[autopilot]
+uri = "udpin:127.0.0.1:{base + 1}"
+stream_hz = {stream_hz}
+[log]
+dir = "{tmp}"
+run_id = "bench"
+telemetry_hz = {telemetry_hz}
+tlog = true
+[peers]
+listen = "127.0.0.1:{free_port()}"
+send_to = ["127.0.0.1:{free_port()}"]
+[state_feed]
+listen = "127.0.0.1:{free_port()}"
+[throughput]
+bind = "127.0.0.1"
+port = {free_port()}
+""")
+        with AgentProcess(agent_toml) as agent:
+            os.sched_setaffinity(agent.pid, {1})
+            gcs = VehicleClient(f"udpin:127.0.0.1:{base}", sysid=1)
+            gcs.wait_heartbeat(10.0)
+            home = config.home
+            legs = [(30, 0), (30, 30), (0, 30), (0, 0)] * 3
+            assert gcs.upload(waypoint_mission(home.lat_deg, home.lon_deg, legs, alt_m=10.0)) == 0
+            gcs.command_ok(MavCmd.COMPONENT_ARM_DISARM, 1)
+            gcs.command_ok(MavCmd.MISSION_START, 0, 0)
+            time.sleep(3.0)  # let the stream-rate request take effect before the window opens
+            cpu0, t0 = cpu_s(agent.pid), time.monotonic()
+            end = t0 + seconds
+            while time.monotonic() < end:
+                gcs.poll(min(0.5, end - time.monotonic()))
+            cpu1, t1 = cpu_s(agent.pid), time.monotonic()
+            memory = memory_mb(agent.pid)
+            gcs.close()
+            agent.stop()
+        log = [json.loads(line) for line in (Path(tmp) / "bench" / "bench" / "agent.jsonl").read_text().splitlines()]
+        stopped = log[-1]
+        telemetry = [r for r in log if r["kind"] == "telemetry"]
+        frames_per_s = stopped["frames_in"] / (telemetry[-1]["t_s"] - log[0]["t_s"])
+    return {"cpu_pct_of_one_core": 100 * (cpu1 - cpu0) / (t1 - t0), "rss_mb": memory["VmRSS"],
+            "peak_rss_mb": memory["VmHWM"], "frames_in_per_s": frames_per_s,
+            "telemetry_records_per_s": len(telemetry) / (telemetry[-1]["t_s"] - telemetry[0]["t_s"])}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--stream-hz", type=float, default=50.0)
+    parser.add_argument("--telemetry-hz", type=float, default=10.0)
+    args = parser.parse_args()
+    result = run(args.seconds, args.stream_hz, args.telemetry_hz)
+    print(f"agent over {args.seconds:g} s, streams at {args.stream_hz:g} Hz, log at {args.telemetry_hz:g} Hz:")
+    print(f"  CPU {result['cpu_pct_of_one_core']:.2f} % of one core (target < 5 %)")
+    print(f"  RSS {result['rss_mb']:.1f} MB, peak {result['peak_rss_mb']:.1f} MB (target < 80 MB)")
+    print(f"  {result['frames_in_per_s']:.0f} MAVLink frames in per s, "
+          f"{result['telemetry_records_per_s']:.1f} telemetry records per s")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,36 @@
+"""Our throughput probe against iperf3 on plain loopback, where no link limits either tool and both are bound by
+the CPU: how close the Python probe comes to the C tool. Alternating runs, servers pinned to CPU 0 and clients
+to CPU 1, the same write size (1 MiB) for both; the test suite compares them on shaped paths instead.
+
+    python benchmarks/throughput_vs_iperf3.py [--runs 21] [--gib 1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from tests.integration.test_throughput import compare  # noqa: E402
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--runs", type=int, default=21)
+    parser.add_argument("--gib", type=float, default=1.0, help="bytes per run, GiB")
+    args = parser.parse_args()
+    result = compare("127.0.0.1", runs=args.runs, nbytes=int(args.gib * (1 << 30)))
+    for name, rates in (("nac probe", result.ours_bps), ("iperf3", result.iperf3_bps)):
+        gbps = sorted(r / 1e9 for r in rates)
+        print(f"{name:>9}: median {statistics.median(gbps):.1f} Gbit/s, range {gbps[0]:.1f}-{gbps[-1]:.1f} "
+              f"over {len(gbps)} runs")
+    ratios = sorted(a / b for a, b in zip(result.ours_bps, result.iperf3_bps, strict=True))
+    print(f"ours/iperf3 per adjacent pair: median {result.ratio:.3f}, quartiles {ratios[len(ratios) // 4]:.3f}-"
+          f"{ratios[3 * len(ratios) // 4]:.3f}")
+
+
+if __name__ == "__main__":
+    main()
