@@ -66,11 +66,11 @@ class Agent:
         self.notifier = notifier or SystemdNotifier()
         self.stop_event = threading.Event()
         self.stop_reason = ""
+        a = config.autopilot
+        self.signing_key = load_signing_key(a.signing_key_file) if a.signing_key_file else None
         self.log = JsonlLog(run_dir / "agent.jsonl")
         self.throughput_log = JsonlLog(run_dir / "throughput.jsonl")
         self.tlog = TlogWriter(run_dir / "mavlink.tlog") if config.log.tlog else None
-        a = config.autopilot
-        self.signing_key = load_signing_key(a.signing_key_file) if a.signing_key_file else None
         self.client: mav.MavlinkClient | None = None
         self.sysid = config.vehicle.sysid or None
         self.link_up = False
@@ -100,11 +100,14 @@ class Agent:
                 self.endpoints.append(mav.RawEndpoint(uri))
             except mav.LinkError as err:
                 self.log.write("routing_error", endpoint=uri, error=str(err))
-        self.peer_sock = _udp_socket(parse_host_port(c.peers.listen, "peers.listen"), broadcast=True)
-        self.feed_sock = _udp_socket(parse_host_port(c.state_feed.listen, "state_feed.listen"))
+        self.peer_sock = _udp_socket(c.peers.listen, "peers.listen", broadcast=True)
+        self.feed_sock = _udp_socket(c.state_feed.listen, "state_feed.listen")
         t = c.throughput
         if t.server:
-            self.throughput_server = ThroughputServer(t.bind, t.port).start()
+            try:
+                self.throughput_server = ThroughputServer(t.bind, t.port).start()
+            except OSError as err:
+                raise OSError(f"throughput.port: cannot listen on {t.bind}:{t.port}: {err.strerror}") from None
         if t.probe:
             self.scheduler = ProbeScheduler(t, c.vehicle.id, self._probe_targets, self.positions,
                                             self.throughput_log, self.stop_event).start()
@@ -399,12 +402,15 @@ class Agent:
         return [(p.id, p.host, p.probe_port) for p in live if p.role == "worker" and p.probe_port]
 
 
-def _udp_socket(address: tuple[str, int], broadcast: bool = False) -> socket.socket:
+def _udp_socket(address: str, key: str, broadcast: bool = False) -> socket.socket:
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     if broadcast:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
-    sock.bind(address)
+    try:
+        sock.bind(parse_host_port(address, key))
+    except OSError as err:
+        sock.close()
+        raise OSError(f"{key}: cannot listen on {address}: {err.strerror}") from None
     sock.setblocking(False)
     return sock
 
