@@ -1,0 +1,319 @@
+"""Networked airborne computing over MPI (DESIGN.md 5, Algorithm 1): rank 0 is the master, ranks 1..N workers.
+
+    mpiexec -n N+1 -bind-to core python -m mpi4py -m nac_onboard.compute --task matmul|linreg [options]
+
+Each iteration the master sends every worker in range its input (B for matmul, the weights for linreg), waits
+for the results until --timeout-s, and combines what arrived. With --emulate sleep (the research's method) the
+master sleeps I/C before each send and tells the worker the link's capacity C, so the worker sleeps before its
+answer too; C comes from the channel model at the two vehicles' distance, and below the model's minimum rate
+the worker is out of range: nothing is sent. A worker that misses an iteration is absent for it (linreg carries
+on with the gradients that arrived, weighted by shard size; matmul re-assigns the missing rows to live workers or
+marks the iteration incomplete, --on-missing) and takes part again as soon as it answers. A rank that dies or
+raises aborts the whole job (exit code != 0): the master's records, one line each, are all on disk by then.
+
+Records (JSON Lines, --out DIR/compute.jsonl): run_started, one `iteration` record per iteration, run_summary.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+import numpy as np
+
+from nac_onboard import kernels
+from nac_onboard.compute_config import ComputeOptions, build_source, parse_args
+from nac_onboard.flight_log import JsonlLog
+
+TAG_WORK, TAG_RESULT = 1, 2
+KIND_WORK, KIND_EXTRA, KIND_STOP, KIND_WARMUP = 1.0, 2.0, 3.0, 4.0
+HEADER = 4  # master -> worker: kind, iteration, rate_bps, rows of A that follow (extra work)
+RESULT_HEADER = 5  # worker -> master: iteration, compute_s, up_s, rows, sse
+BITS_PER_FLOAT = 64
+
+
+def matmul_inputs(seed: int, m: int, n: int, l: int, a_path: str | None = None):
+    """A (m x n) from the seed or a .npy file, and the generator of the B (n x l) sent each iteration."""
+    rng = np.random.default_rng(seed)
+    a = np.load(a_path) if a_path else rng.standard_normal((m, n))
+    return a, np.random.default_rng(seed + 1)
+
+
+class _Poller:
+    """Waits on MPI with a deadline: spins (yielding the core) for the first 2 ms, then naps, so that ranks
+    sharing a core neither starve each other nor add latency to fast exchanges."""
+
+    def __init__(self):
+        self.started = time.monotonic()
+
+    def pause(self) -> None:
+        if time.monotonic() - self.started < 0.002:
+            os.sched_yield()
+        else:
+            time.sleep(0.0005)
+
+
+def _receive(comm, mpi, source: int, tag: int, deadline: float):
+    """The next message from source (ANY_SOURCE allowed) with tag, or None at the deadline."""
+    status = mpi.Status()
+    poller = _Poller()
+    while not comm.Iprobe(source=source, tag=tag, status=status):
+        if time.monotonic() >= deadline:
+            return None, None
+        poller.pause()
+    buf = np.empty(status.Get_count(mpi.DOUBLE))
+    comm.Recv([buf, mpi.DOUBLE], source=status.Get_source(), tag=tag)
+    return buf, status.Get_source()
+
+
+# ---- workers ---------------------------------------------------------------------------------------------------
+def run_worker(comm, mpi, options: ComputeOptions) -> None:
+    rank = comm.Get_rank()
+    bounds = comm.bcast(None, root=0)
+    start, stop = bounds[rank - 1]
+    if options.task == "matmul":
+        a, _ = matmul_inputs(options.seed, options.m, options.n, options.l, options.a_path)
+        block = a[start:stop]
+    else:
+        from nac_onboard import forestfires
+
+        x, y = forestfires.load(forestfires.find_csv(options.data))
+        x_shard, y_shard = x[start:stop], y[start:stop]
+    while True:
+        message, _ = _receive(comm, mpi, 0, TAG_WORK, time.monotonic() + options.idle_timeout_s)
+        if message is None:
+            sys.stderr.write(f"worker {rank}: nothing from the master for {options.idle_timeout_s:g} s; aborting\n")
+            comm.Abort(3)
+        kind, iteration, rate_bps, extra_rows = message[:HEADER]
+        if kind == KIND_STOP:
+            return
+        if kind == KIND_WARMUP:
+            comm.Send([np.array([-1.0, 0.0, 0.0, 0.0, 0.0]), mpi.DOUBLE], dest=0, tag=TAG_RESULT)
+            continue
+        payload = message[HEADER:]
+        t0 = time.perf_counter()
+        if options.task == "matmul":
+            rows = int(extra_rows)
+            if kind == KIND_EXTRA:
+                a_rows, b = payload[:rows * options.n].reshape(rows, options.n), payload[rows * options.n:]
+                result = kernels.matmul_block(a_rows, b.reshape(options.n, options.l)).ravel()
+            else:
+                result = kernels.matmul_block(block, payload.reshape(options.n, options.l)).ravel()
+                rows = len(block)
+            sse = 0.0
+        else:
+            gradient, sse, rows = kernels.local_gradient(x_shard, y_shard, payload)
+            result = gradient
+        compute_s = time.perf_counter() - t0
+        up_s = result.size * BITS_PER_FLOAT / rate_bps if rate_bps > 0 else 0.0
+        if up_s:
+            time.sleep(up_s)
+        answer = np.concatenate([[iteration, compute_s, up_s, rows, sse], result])
+        comm.Send([answer, mpi.DOUBLE], dest=0, tag=TAG_RESULT)
+
+
+# ---- master ----------------------------------------------------------------------------------------------------
+class Master:
+    def __init__(self, comm, mpi, options: ComputeOptions, log: JsonlLog):
+        self.comm, self.mpi, self.options, self.log = comm, mpi, options, log
+        self.workers = list(range(1, comm.Get_size()))
+        self.source = build_source(options)
+        self.channel = options.channel_model()
+        self.stale_results = 0
+
+    def link(self, distances: dict) -> dict[int, dict]:
+        """Per worker: distance, emulated rate and whether it is in range this iteration."""
+        out = {}
+        for rank in self.workers:
+            d = distances.get(rank) if distances else None
+            entry = {"rank": rank, "vehicle": self.options.vehicle_of(rank), "distance_m": d, "rate_bps": None}
+            if self.options.emulate == "sleep":
+                if d is None:
+                    entry["absent"] = "no_position"
+                else:
+                    entry["rate_bps"] = self.channel.capacity_bps(d)
+                    if entry["rate_bps"] < self.channel.min_rate_bps:
+                        entry["absent"] = "out_of_range"
+            out[rank] = entry
+        return out
+
+    def allocation(self, rows: int) -> list[tuple[int, int]]:
+        shares = [1.0] * len(self.workers)
+        if self.options.allocation == "capacity":
+            links = self.link(self.source.distances_m(0, 0.0) if self.source else {})
+            shares = [links[r]["rate_bps"] or 0.0 for r in self.workers]
+            if sum(shares) <= 0:
+                shares = [1.0] * len(self.workers)
+        return kernels.split_rows(rows, shares)
+
+    def send(self, rank: int, kind: float, iteration: int, payload: np.ndarray, entry: dict, extra_rows: int = 0):
+        rate = entry.get("rate_bps") or 0.0
+        down_s = payload.size * BITS_PER_FLOAT / rate if rate > 0 else 0.0
+        if down_s:
+            time.sleep(down_s)  # the research's emulation: the transfer takes I/C before it happens
+        message = np.concatenate([[kind, iteration, rate, extra_rows], payload])
+        self.comm.Send([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
+        entry["bytes_down"] = entry.get("bytes_down", 0) + message.nbytes
+        entry["down_s"] = entry.get("down_s", 0.0) + down_s
+
+    def collect(self, iteration: int, waiting: set[int], links: dict, deadline: float) -> dict[int, np.ndarray]:
+        results = {}
+        while waiting:
+            buf, rank = _receive(self.comm, self.mpi, self.mpi.ANY_SOURCE, TAG_RESULT, deadline)
+            if buf is None:
+                break
+            if int(buf[0]) != iteration or rank not in waiting:
+                self.stale_results += 1  # an answer that came after its iteration was closed
+                continue
+            waiting.discard(rank)
+            entry = links[rank]
+            entry.update(compute_s=float(buf[1]), up_s=float(buf[2]), bytes_up=entry.get("bytes_up", 0) + buf.nbytes)
+            results[rank] = buf
+        for rank in waiting:
+            links[rank]["absent"] = "timeout"
+        return results
+
+    def run(self) -> int:
+        o = self.options
+        if o.task == "matmul":
+            a, b_rng = matmul_inputs(o.seed, o.m, o.n, o.l, o.a_path)
+            bounds = self.allocation(len(a))
+        else:
+            from nac_onboard import forestfires
+
+            x, y = forestfires.load(forestfires.find_csv(o.data))
+            bounds = self.allocation(len(y))
+            w = np.zeros(x.shape[1])
+        self.comm.bcast(bounds, root=0)
+        warmup_s = self.warm_up(o.n * o.l if o.task == "matmul" else x.shape[1])
+        self.log.write("run_started", warmup_s=warmup_s, task=o.task, workers=len(self.workers), shards=bounds,
+                       emulate=o.emulate, channel=self.channel.name if o.emulate == "sleep" else None,
+                       channel_validity=self.channel.validity() if o.emulate == "sleep" else None,
+                       iterations=o.iterations, duration_s=o.duration_s, timeout_s=o.timeout_s,
+                       on_missing=o.on_missing, allocation=o.allocation, pid=os.getpid())
+        saved: dict[str, np.ndarray] = {}
+        t_run = time.monotonic()
+        durations, complete_count, absences = [], 0, {r: 0 for r in self.workers}
+        iteration, cost, ended_by = 0, None, "iterations"
+        while True:
+            if o.iterations is not None and iteration >= o.iterations:
+                break
+            if o.duration_s is not None and time.monotonic() - t_run >= o.duration_s:
+                ended_by = "duration"
+                break
+            t_start, start_unix = time.monotonic(), time.time()
+            links = self.link(self.source.distances_m(iteration, t_start - t_run) if self.source else {})
+            present = [r for r in self.workers if "absent" not in links[r]]
+            record: dict = {}
+            if o.task == "matmul":
+                b = b_rng.standard_normal((o.n, o.l))
+                for rank in present:
+                    self.send(rank, KIND_WORK, iteration, b.ravel(), links[rank])
+                results = self.collect(iteration, set(present), links, t_start + o.timeout_s)
+                blocks = {r: results[r][RESULT_HEADER:].reshape(-1, o.l) for r in results}
+                missing = [r for r in self.workers if r not in blocks]
+                if missing and o.on_missing == "reassign" and blocks:
+                    record["reassigned"] = self.reassign(iteration, a, b, bounds, missing, blocks, links,
+                                                         t_start + 2 * o.timeout_s)
+                complete = all(r in blocks for r in self.workers)
+                record["complete"] = complete
+                if complete:
+                    complete_count += 1
+                    product = kernels.stack_blocks([blocks[r] for r in self.workers])
+                    if o.save_results:
+                        saved[f"B_{iteration}"], saved[f"C_{iteration}"] = b, product
+            else:
+                for rank in present:
+                    self.send(rank, KIND_WORK, iteration, w, links[rank])
+                results = self.collect(iteration, set(present), links, t_start + o.timeout_s)
+                if results:
+                    parts = [(buf[RESULT_HEADER:], float(buf[4]), int(buf[3])) for buf in results.values()]
+                    gradient, cost, rows = kernels.combine_gradients(parts)
+                    w = w - o.learning_rate * gradient
+                    record.update(cost=cost, rows_used=rows, complete=rows == len(y))
+                    complete_count += rows == len(y)
+                else:
+                    record.update(cost=None, rows_used=0, complete=False)
+            t_end = time.monotonic()
+            for rank in self.workers:
+                links[rank]["present"] = "absent" not in links[rank]
+                absences[rank] += not links[rank]["present"]
+            durations.append(t_end - t_start)
+            self.log.write("iteration", iteration=iteration, start_s=start_unix, end_s=start_unix + t_end - t_start,
+                           duration_s=t_end - t_start, workers=[links[r] for r in self.workers], **record)
+            iteration += 1
+        for rank in self.workers:
+            self.comm.Send([np.array([KIND_STOP, iteration, 0.0, 0.0]), self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
+        if o.task == "linreg":
+            saved["weights"] = w
+        if o.out and (o.save_results or o.task == "linreg"):
+            np.savez(os.path.join(o.out, "results.npz"), **saved)
+        d = np.array(durations) if durations else np.array([np.nan])
+        self.log.write("run_summary", task=o.task, iterations=iteration, complete_iterations=complete_count,
+                       ended_by=ended_by, elapsed_s=time.monotonic() - t_run, mean_duration_s=float(np.mean(d)),
+                       p95_duration_s=float(np.percentile(d, 95)), absent_iterations={str(r): n for r, n in
+                                                                                     absences.items()},
+                       final_cost=cost, stale_results=self.stale_results)
+        return 0
+
+    def warm_up(self, floats: int) -> float:
+        """One untimed exchange of an input-sized message with every worker: MPI sets up its connections and
+        buffers on first use, which would otherwise land in the first iteration's time."""
+        t0 = time.monotonic()
+        message = np.zeros(HEADER + floats)
+        message[0] = KIND_WARMUP
+        for rank in self.workers:
+            self.comm.Send([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
+        for rank in self.workers:
+            if _receive(self.comm, self.mpi, rank, TAG_RESULT, t0 + self.options.timeout_s)[0] is None:
+                raise TimeoutError(f"worker {rank} did not answer the warm-up within {self.options.timeout_s:g} s")
+        return time.monotonic() - t0
+
+    def reassign(self, iteration, a, b, bounds, missing, blocks, links, deadline) -> list[dict]:
+        """Send each missing block's rows of A, with B, to a worker that answered; wait for those answers."""
+        helpers = [r for r in self.workers if r in blocks]
+        plan = {}
+        for k, rank in enumerate(missing):
+            helper = helpers[k % len(helpers)]
+            start, stop = bounds[rank - 1]
+            payload = np.concatenate([a[start:stop].ravel(), b.ravel()])
+            self.send(helper, KIND_EXTRA, iteration, payload, links[helper], extra_rows=stop - start)
+            plan.setdefault(helper, []).append(rank)
+        done = []
+        for helper, ranks in plan.items():
+            for rank in ranks:
+                buf, _ = _receive(self.comm, self.mpi, helper, TAG_RESULT, deadline)
+                if buf is not None and int(buf[0]) == iteration:
+                    blocks[rank] = buf[RESULT_HEADER:].reshape(-1, self.options.l)
+                    done.append({"rows_of": rank, "by": helper})
+        return done
+
+
+def main(argv: list[str] | None = None) -> int:
+    options = parse_args(argv)  # bad input: exit 2 on every rank, before MPI starts any work
+    from mpi4py import MPI
+
+    comm = MPI.COMM_WORLD
+    if comm.Get_size() < 2:
+        sys.stderr.write("nac-onboard compute: needs at least 2 ranks (mpiexec -n N+1 ...): a master and a worker\n")
+        return 2
+    try:
+        os.makedirs(options.out, exist_ok=True)
+        if comm.Get_rank() == 0:
+            with JsonlLog(os.path.join(options.out, "compute.jsonl")) as log:
+                return Master(comm, MPI, options, log).run()
+        with JsonlLog(os.path.join(options.out, f"rank-{comm.Get_rank()}.jsonl")) as log:
+            log.write("worker_started", rank=comm.Get_rank(), pid=os.getpid(), host=MPI.Get_processor_name())
+            run_worker(comm, MPI, options)
+            log.write("worker_stopped", rank=comm.Get_rank())
+        return 0
+    except Exception as err:  # one failing rank must end the job, not leave the others waiting
+        sys.stderr.write(f"nac-onboard compute rank {comm.Get_rank()}: {type(err).__name__}: {err}\n")
+        sys.stderr.flush()
+        comm.Abort(1)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,161 @@
+"""`nac-onboard compute` under a real `mpiexec` (the mpich wheel), ranks pinned to cores as DESIGN.md 7 asks."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nac_onboard import forestfires, kernels
+from nac_onboard.channel import PRESETS
+from nac_onboard.compute import matmul_inputs
+from nac_onboard.flight_log import read_jsonl
+from tests.conftest import SHARED_DATA
+
+MPIEXEC = Path(sys.executable).parent / "mpiexec"
+ENV = dict(os.environ, NAC_DATA_DIR=str(SHARED_DATA))
+
+
+def mpi_command(ranks: int, *args: str) -> list[str]:
+    return [str(MPIEXEC), "-n", str(ranks), "-bind-to", "core", sys.executable, "-m", "mpi4py", "-m",
+            "nac_onboard.compute", *args]
+
+
+def run_mpi(ranks: int, *args: str, timeout_s: float = 120.0) -> subprocess.CompletedProcess:
+    return subprocess.run(mpi_command(ranks, *args), capture_output=True, text=True, timeout=timeout_s, env=ENV)
+
+
+def records(out: Path, kind: str) -> list[dict]:
+    read = read_jsonl(out / "compute.jsonl")
+    assert read.problems == []
+    return read.of_kind(kind)
+
+
+def test_matmul_on_three_workers_equals_a_times_b_every_iteration(tmp_path):
+    result = run_mpi(4, "--task", "matmul", "--iterations", "40", "--out", str(tmp_path), "--save-results",
+                     "--seed", "7")
+    assert result.returncode == 0, result.stderr
+    a, _ = matmul_inputs(7, 100, 10000, 1)
+    saved = np.load(tmp_path / "results.npz")
+    assert len([k for k in saved if k.startswith("C_")]) == 40
+    for k in range(40):
+        assert np.allclose(saved[f"C_{k}"], a @ saved[f"B_{k}"]), f"iteration {k}"
+    summary = records(tmp_path, "run_summary")[0]
+    assert summary["iterations"] == summary["complete_iterations"] == 40
+    started = records(tmp_path, "run_started")[0]
+    assert started["shards"] == [[0, 33], [33, 67], [67, 100]]
+
+
+def test_linreg_on_two_workers_equals_single_process_gradient_descent(tmp_path):
+    result = run_mpi(3, "--task", "linreg", "--iterations", "200", "--learning-rate", "0.05", "--out", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    x, y = forestfires.load(SHARED_DATA / "forestfires.csv")
+    w, costs = kernels.gradient_descent(x, y, np.zeros(x.shape[1]), 0.05, 200)
+    assert np.allclose(np.load(tmp_path / "results.npz")["weights"], w, rtol=0, atol=1e-9)
+    logged = [r["cost"] for r in records(tmp_path, "iteration")]
+    assert np.allclose(logged, costs, rtol=1e-12)
+    assert all(b < a for a, b in zip(logged, logged[1:], strict=False)), "the cost decreases"
+
+
+def test_emulated_iterations_last_the_predicted_transfer_plus_compute_time(tmp_path):
+    distances = [6.0, 9.0, 12.0]
+    result = run_mpi(4, "--task", "matmul", "--iterations", "10", "--out", str(tmp_path), "--emulate", "sleep",
+                     "--channel", "wifi-flight", "--positions", "fixed", "--distances", ",".join(map(str, distances)))
+    assert result.returncode == 0, result.stderr
+    wifi = PRESETS["wifi-flight"]
+    for r in records(tmp_path, "iteration"):
+        workers = r["workers"]
+        for w, d in zip(workers, distances, strict=True):
+            assert w["present"] and w["distance_m"] == d
+            assert w["rate_bps"] == pytest.approx(wifi.capacity_bps(d))
+            assert w["down_s"] == pytest.approx(w["bytes_down"] * 8 / w["rate_bps"], rel=0.01)
+        # The master sends in turn (one radio); each worker computes and answers as soon as it has its input.
+        sent_at, predicted = 0.0, 0.0
+        for w in workers:
+            sent_at += w["down_s"]
+            predicted = max(predicted, sent_at + w["compute_s"] + w["up_s"])
+        assert abs(r["duration_s"] - predicted) / predicted < 0.10, (r["iteration"], r["duration_s"], predicted)
+        assert predicted > 0.05, "the emulated transfers dominate (B is 640 kbit)"
+
+
+def test_worker_out_of_range_is_absent_and_rejoins_while_training_continues(tmp_path):
+    script = tmp_path / "flight.json"
+    script.write_text(json.dumps({"by": "iteration", "distances_m": {
+        "1": [[0, 8.0]], "2": [[0, 8.0], [50, 30.0], [80, 8.0]]}}))  # wifi-flight range is about 22 m
+    result = run_mpi(3, "--task", "linreg", "--iterations", "120", "--out", str(tmp_path), "--emulate", "sleep",
+                     "--channel", "wifi-flight", "--positions", "script", "--positions-script", str(script))
+    assert result.returncode == 0, result.stderr
+    its = records(tmp_path, "iteration")
+    assert len(its) == 120
+    second = [next(w for w in r["workers"] if w["rank"] == 2) for r in its]
+    absent = [r["iteration"] for r, w in zip(its, second, strict=True) if not w["present"]]
+    assert absent == list(range(50, 80))
+    assert all(w["absent"] == "out_of_range" and "bytes_down" not in w for w in second[50:80])
+    assert all(r["rows_used"] == 258 and not r["complete"] for r in its[50:80]), "shard 1 alone while 2 is away"
+    assert all(r["rows_used"] == 517 for r in its[:50] + its[80:]), "rejoined"
+    costs = [r["cost"] for r in its]
+    assert costs[-1] < costs[79] < costs[50] < costs[0], "training went on with the worker still in range"
+    assert records(tmp_path, "run_summary")[0]["absent_iterations"] == {"1": 0, "2": 30}
+
+
+def test_matmul_reassigns_an_absent_workers_rows(tmp_path):
+    result = run_mpi(4, "--task", "matmul", "--iterations", "5", "--out", str(tmp_path), "--emulate", "sleep",
+                     "--channel", "wifi-flight", "--positions", "fixed", "--distances", "5,5,40",
+                     "--on-missing", "reassign", "--save-results", "--m", "30", "--n", "200")
+    assert result.returncode == 0, result.stderr
+    a, _ = matmul_inputs(0, 30, 200, 1)
+    saved = np.load(tmp_path / "results.npz")
+    for r in records(tmp_path, "iteration"):
+        assert r["complete"] and r["reassigned"] == [{"rows_of": 3, "by": 1}]
+        assert np.allclose(saved[f"C_{r['iteration']}"], a @ saved[f"B_{r['iteration']}"])
+    incomplete_dir = tmp_path / "incomplete"
+    result = run_mpi(4, "--task", "matmul", "--iterations", "3", "--out", str(incomplete_dir), "--emulate", "sleep",
+                     "--channel", "wifi-flight", "--positions", "fixed", "--distances", "5,5,40", "--m", "30",
+                     "--n", "200")
+    assert result.returncode == 0, result.stderr
+    assert [r["complete"] for r in records(incomplete_dir, "iteration")] == [False] * 3
+
+
+def test_a_killed_worker_ends_the_job_and_the_masters_records_are_intact(tmp_path):
+    proc = subprocess.Popen(mpi_command(3, "--task", "linreg", "--iterations", "100000", "--out", str(tmp_path),
+                                        "--emulate", "sleep", "--channel", "wifi-flight", "--positions", "fixed",
+                                        "--distances", "15,15"),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 30
+        while len(read_jsonl(tmp_path / "compute.jsonl").of_kind("iteration")
+                   if (tmp_path / "compute.jsonl").exists() else []) < 5:
+            assert time.monotonic() < deadline and proc.poll() is None, "the job should be running"
+            time.sleep(0.05)
+        worker = read_jsonl(tmp_path / "rank-2.jsonl").of_kind("worker_started")[0]
+        os.kill(worker["pid"], signal.SIGKILL)
+        code = proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert code != 0
+    read = read_jsonl(tmp_path / "compute.jsonl")
+    assert read.problems == [] and len(read.of_kind("iteration")) >= 5
+
+
+def test_a_failing_rank_aborts_the_job_instead_of_hanging(tmp_path):
+    bad = tmp_path / "bad.csv"
+    lines = (SHARED_DATA / "forestfires.csv").read_text().splitlines()
+    bad.write_text("\n".join(lines[:10] + ["1,2,mar,fri,not-a-number,0,0,0,0,0,0,0,0"]))
+    started = time.monotonic()
+    result = run_mpi(3, "--task", "linreg", "--data", str(bad), "--out", str(tmp_path), timeout_s=60)
+    assert result.returncode != 0 and time.monotonic() - started < 30
+    assert "bad.csv: line 11: a numeric field is not a number" in result.stderr
+
+
+def test_bad_options_exit_2_before_any_work(tmp_path):
+    result = run_mpi(2, "--task", "matmul", "--emulate", "sleep", "--out", str(tmp_path))
+    assert result.returncode == 2 and "--emulate sleep needs positions" in result.stderr
+    result = run_mpi(2, "--task", "matmul", "--channel", "moon", "--out", str(tmp_path))
+    assert result.returncode == 2 and "not a preset" in result.stderr
