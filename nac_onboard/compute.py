@@ -33,7 +33,7 @@ RESULT_HEADER = 5  # worker -> master: iteration, compute_s, up_s, rows, sse
 BITS_PER_FLOAT = 64
 
 
-def matmul_inputs(seed: int, m: int, n: int, l: int, a_path: str | None = None):
+def matmul_inputs(seed: int, m: int, n: int, a_path: str | None = None):
     """A (m x n) from the seed or a .npy file, and the generator of the B (n x l) sent each iteration."""
     rng = np.random.default_rng(seed)
     a = np.load(a_path) if a_path else rng.standard_normal((m, n))
@@ -73,7 +73,7 @@ def run_worker(comm, mpi, options: ComputeOptions) -> None:
     bounds = comm.bcast(None, root=0)
     start, stop = bounds[rank - 1]
     if options.task == "matmul":
-        a, _ = matmul_inputs(options.seed, options.m, options.n, options.l, options.a_path)
+        a, _ = matmul_inputs(options.seed, options.m, options.n, options.a_path)
         block = a[start:stop]
     else:
         from nac_onboard import forestfires
@@ -177,7 +177,7 @@ class Master:
     def run(self) -> int:
         o = self.options
         if o.task == "matmul":
-            a, b_rng = matmul_inputs(o.seed, o.m, o.n, o.l, o.a_path)
+            a, b_rng = matmul_inputs(o.seed, o.m, o.n, o.a_path)
             bounds = self.allocation(len(a))
         else:
             from nac_onboard import forestfires

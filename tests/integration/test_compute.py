@@ -40,7 +40,7 @@ def test_matmul_on_three_workers_equals_a_times_b_every_iteration(tmp_path):
     result = run_mpi(4, "--task", "matmul", "--iterations", "40", "--out", str(tmp_path), "--save-results",
                      "--seed", "7")
     assert result.returncode == 0, result.stderr
-    a, _ = matmul_inputs(7, 100, 10000, 1)
+    a, _ = matmul_inputs(7, 100, 10000)
     saved = np.load(tmp_path / "results.npz")
     assert len([k for k in saved if k.startswith("C_")]) == 40
     for k in range(40):
@@ -108,7 +108,7 @@ def test_matmul_reassigns_an_absent_workers_rows(tmp_path):
                      "--channel", "wifi-flight", "--positions", "fixed", "--distances", "5,5,40",
                      "--on-missing", "reassign", "--save-results", "--m", "30", "--n", "200")
     assert result.returncode == 0, result.stderr
-    a, _ = matmul_inputs(0, 30, 200, 1)
+    a, _ = matmul_inputs(0, 30, 200)
     saved = np.load(tmp_path / "results.npz")
     for r in records(tmp_path, "iteration"):
         assert r["complete"] and r["reassigned"] == [{"rows_of": 3, "by": 1}]
