@@ -5,6 +5,8 @@
     nac-onboard throughput probe HOST [--port N] [-t S | -n BYTES]   like `iperf3 -c HOST -J`
     nac-onboard log check FILE...                                   read flight logs, report damaged lines
     nac-onboard state [--feed HOST:PORT]                             what the agent knows of everyone now
+    nac-onboard compute --task matmul|linreg ...                     one MPI rank (run under mpiexec)
+    nac-onboard data fetch [--url URL]                               the Forest Fires CSV into the user cache
 
 Exit codes: 0 ok, 1 the operation failed, 2 bad input.
 """
@@ -52,10 +54,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     state = sub.add_parser("state", help="ask the local agent for everyone's position")
     state.add_argument("--feed", default="127.0.0.1:47200")
+    sub.add_parser("compute", help="one rank of the MPI job: mpiexec -n N+1 -bind-to core nac-onboard compute ... "
+                                   "(see nac-onboard compute --help)", add_help=False)
+    data = sub.add_parser("data", help="the Forest Fires data set")
+    dsub = data.add_subparsers(dest="action", required=True, metavar="ACTION")
+    fetch = dsub.add_parser("fetch", help="download the UCI archive, check the CSV's sha256, keep it in the cache")
+    fetch.add_argument("--url", default=None, help="archive URL (default: the UCI repository's)")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["compute"]:  # its own parser, shared with `python -m nac_onboard.compute`
+        from nac_onboard.compute import main as compute_main
+
+        return compute_main(argv[1:])
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(message)s")
     try:
@@ -65,6 +78,12 @@ def main(argv: list[str] | None = None) -> int:
             return throughput_command(args)
         if args.command == "log":
             return log_check(args.files)
+        if args.command == "data":
+            from nac_onboard import forestfires
+
+            path = forestfires.fetch(args.url or forestfires.UCI_ARCHIVE_URL)
+            print(f"stored {path} (sha256 {forestfires.CSV_SHA256})")
+            return 0
         if args.command == "state":
             from nac_onboard.state_feed import fetch_state
 

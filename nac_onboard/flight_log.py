@@ -18,6 +18,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 _TLOG_STAMP = struct.Struct(">Q")
+# One encoder for every record: json.dumps with options builds a new encoder per call, a third of its cost.
+_STRICT = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
+_LENIENT = json.JSONEncoder(separators=(",", ":"))
 
 
 def _finite(value):
@@ -72,7 +75,11 @@ class JsonlLog(_AppendFile):
 
     def write(self, kind: str, t_s: float | None = None, **fields) -> dict:
         record = {"t_s": time.time() if t_s is None else t_s, "kind": kind, **fields}
-        self._write((json.dumps(_finite(record), separators=(",", ":")) + "\n").encode())
+        try:
+            line = _STRICT.encode(record)
+        except ValueError:  # a NaN or infinity somewhere: the slower walk that writes them as null
+            line = _LENIENT.encode(_finite(record))
+        self._write((line + "\n").encode())
         return record
 
 

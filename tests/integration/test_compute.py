@@ -36,6 +36,12 @@ def records(out: Path, kind: str) -> list[dict]:
     return read.of_kind(kind)
 
 
+def per_worker(record: dict) -> list[dict]:
+    """An iteration record's columnar `workers` as one dict per worker."""
+    columns = record["workers"]
+    return [dict(zip(columns, values, strict=True)) for values in zip(*columns.values(), strict=True)]
+
+
 def test_matmul_on_three_workers_equals_a_times_b_every_iteration(tmp_path):
     result = run_mpi(4, "--task", "matmul", "--iterations", "40", "--out", str(tmp_path), "--save-results",
                      "--seed", "7")
@@ -69,7 +75,7 @@ def test_emulated_iterations_last_the_predicted_transfer_plus_compute_time(tmp_p
     assert result.returncode == 0, result.stderr
     wifi = PRESETS["wifi-flight"]
     for r in records(tmp_path, "iteration"):
-        workers = r["workers"]
+        workers = per_worker(r)
         for w, d in zip(workers, distances, strict=True):
             assert w["present"] and w["distance_m"] == d
             assert w["rate_bps"] == pytest.approx(wifi.capacity_bps(d))
@@ -92,10 +98,10 @@ def test_worker_out_of_range_is_absent_and_rejoins_while_training_continues(tmp_
     assert result.returncode == 0, result.stderr
     its = records(tmp_path, "iteration")
     assert len(its) == 120
-    second = [next(w for w in r["workers"] if w["rank"] == 2) for r in its]
+    second = [next(w for w in per_worker(r) if w["rank"] == 2) for r in its]
     absent = [r["iteration"] for r, w in zip(its, second, strict=True) if not w["present"]]
     assert absent == list(range(50, 80))
-    assert all(w["absent"] == "out_of_range" and "bytes_down" not in w for w in second[50:80])
+    assert all(w["absent"] == "out_of_range" and w["bytes_down"] == 0 for w in second[50:80])
     assert all(r["rows_used"] == 258 and not r["complete"] for r in its[50:80]), "shard 1 alone while 2 is away"
     assert all(r["rows_used"] == 517 for r in its[:50] + its[80:]), "rejoined"
     costs = [r["cost"] for r in its]
@@ -159,3 +165,50 @@ def test_bad_options_exit_2_before_any_work(tmp_path):
     assert result.returncode == 2 and "--emulate sleep needs positions" in result.stderr
     result = run_mpi(2, "--task", "matmul", "--channel", "moon", "--out", str(tmp_path))
     assert result.returncode == 2 and "not a preset" in result.stderr
+
+
+def test_emulation_takes_distances_from_the_masters_agent(start_sitl, start_agent, tmp_path):
+    from tests.conftest import free_port
+    from tests.integration.agents import agent_toml, kind, wait_for_record
+
+    sim = start_sitl(vehicles=3, speedup=5.0, spacing_m=8.0)
+    ports, feed = [free_port() for _ in range(3)], f"127.0.0.1:{free_port()}"
+    for i in range(3):
+        uri = f"udpin:127.0.0.1:{sim.config.companion_base_port + sim.config.port_step * i}"
+        extra = {"state_feed": {"listen": feed}} if i == 0 else {}
+        start_agent(agent_toml(f"uav{i + 1}", "master" if i == 0 else "worker", i + 1, uri, tmp_path / "runs",
+                               ports[i], [p for p in ports if p != ports[i]], **extra), name=f"uav{i + 1}")
+    for i in (2, 3):
+        wait_for_record(tmp_path / "runs/test/uav1/agent.jsonl", kind("peer_seen", peer=f"uav{i}"))
+    out = tmp_path / "compute"
+    result = run_mpi(3, "--task", "linreg", "--iterations", "20", "--out", str(out), "--emulate", "sleep",
+                     "--channel", "wifi-flight", "--positions", "feed", "--feed", feed, "--vehicles", "uav1,uav2,uav3")
+    assert result.returncode == 0, result.stderr
+    for r in records(out, "iteration"):
+        workers = per_worker(r)
+        assert [w["vehicle"] for w in workers] == ["uav2", "uav3"]
+        assert [round(w["distance_m"], 2) for w in workers] == [8.0, 16.0]
+        assert [w["present"] for w in workers] == [True, True], "both within wifi-flight's ~22 m"
+        assert workers[0]["rate_bps"] > workers[1]["rate_bps"]
+
+
+def test_capacity_allocation_gives_the_nearer_worker_more_rows_and_duration_limits_the_run(tmp_path):
+    result = run_mpi(3, "--task", "linreg", "--duration-s", "1.0", "--out", str(tmp_path), "--emulate", "sleep",
+                     "--channel", "wifi-flight", "--positions", "fixed", "--distances", "8,16",
+                     "--allocation", "capacity")
+    assert result.returncode == 0, result.stderr
+    started = records(tmp_path, "run_started")[0]
+    (a0, a1), (b0, b1) = started["shards"]
+    wifi = PRESETS["wifi-flight"]
+    share = wifi.capacity_bps(8.0) / (wifi.capacity_bps(8.0) + wifi.capacity_bps(16.0))
+    assert a0 == 0 and b1 == 517 and a1 == b0 and abs(a1 - 517 * share) <= 1
+    summary = records(tmp_path, "run_summary")[0]
+    assert summary["ended_by"] == "duration" and 0.9 < summary["elapsed_s"] < 2.0
+
+
+def test_the_nac_onboard_command_runs_a_rank_too(tmp_path):
+    command = [str(MPIEXEC), "-n", "2", "-bind-to", "core", sys.executable, "-m", "nac_onboard.cli", "compute",
+               "--task", "linreg", "--iterations", "5", "--out", str(tmp_path)]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=60, env=ENV)
+    assert result.returncode == 0, result.stderr
+    assert records(tmp_path, "run_summary")[0]["iterations"] == 5

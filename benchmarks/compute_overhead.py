@@ -1,0 +1,106 @@
+"""Iterations per second of `nac-onboard compute --task linreg --emulate none` with 2 and 4 workers on this
+machine, against a bare mpi4py loop that sends the same messages (the same header + weights down, the same
+header + gradient up, blocking Send/Recv, no records, no timeouts), in the same run, alternating.
+Targets: ratio >= 0.8, and >= 1000 iterations/s with 2 workers. Ranks pinned to cores (-bind-to core).
+
+    python benchmarks/compute_overhead.py [--iterations 3000] [--repeats 3]
+    (with --bare-loop, this file is the bare loop itself, run by mpiexec)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+WORKERS = tuple(int(w) for w in os.environ.get("NAC_BENCH_WORKERS", "").split(",") if w)
+MPIEXEC = Path(sys.executable).parent / "mpiexec"
+
+
+def bare_loop(iterations: int) -> None:
+    import numpy as np
+    from mpi4py import MPI
+
+    from nac_onboard import forestfires, kernels
+
+    comm = MPI.COMM_WORLD
+    rank, workers = comm.Get_rank(), comm.Get_size() - 1
+    x, y = forestfires.load(forestfires.find_csv())
+    bounds = kernels.split_rows(len(y), [1.0] * workers)
+    d = x.shape[1]
+    if rank == 0:
+        w = np.zeros(d)
+        answer = np.empty(5 + d)
+        t0 = time.perf_counter()
+        for it in range(iterations):
+            message = np.concatenate([[1.0, it, 0.0, 0.0], w])
+            for r in range(1, workers + 1):
+                comm.Send([message, MPI.DOUBLE], dest=r, tag=1)
+            parts = []
+            for r in range(1, workers + 1):
+                comm.Recv([answer, MPI.DOUBLE], source=r, tag=2)
+                parts.append((answer[5:].copy(), float(answer[4]), int(answer[3])))
+            gradient, _, _ = kernels.combine_gradients(parts)
+            w = w - 0.05 * gradient
+        print(json.dumps({"iterations_per_s": iterations / (time.perf_counter() - t0)}))
+        for r in range(1, workers + 1):
+            comm.Send([np.array([3.0, 0, 0, 0]), MPI.DOUBLE], dest=r, tag=1)
+    else:
+        start, stop = bounds[rank - 1]
+        xs, ys = x[start:stop], y[start:stop]
+        message = np.empty(4 + d)
+        while True:
+            comm.Recv([message, MPI.DOUBLE], source=0, tag=1)
+            if message[0] == 3.0:
+                break
+            gradient, sse, rows = kernels.local_gradient(xs, ys, message[4:])
+            comm.Send([np.concatenate([[message[1], 0.0, 0.0, rows, sse], gradient]), MPI.DOUBLE], dest=0, tag=2)
+
+
+def run(ranks: int, args: list[str], env: dict) -> subprocess.CompletedProcess:
+    command = [str(MPIEXEC), "-n", str(ranks), "-bind-to", "core", sys.executable, "-m", "mpi4py", *args]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600, env=env, cwd=ROOT)
+    if result.returncode != 0:
+        raise SystemExit(f"{' '.join(command)} failed: {result.stderr}")
+    return result
+
+
+def measure(workers: int, iterations: int, env: dict) -> tuple[float, float]:
+    bare = json.loads(run(workers + 1, [__file__, "--bare-loop", "--iterations", str(iterations)], env)
+                      .stdout.strip().splitlines()[-1])["iterations_per_s"]
+    with tempfile.TemporaryDirectory() as out:
+        run(workers + 1, ["-m", "nac_onboard.compute", "--task", "linreg", "--iterations", str(iterations),
+                          "--out", out], env)
+        records = [json.loads(line) for line in Path(out, "compute.jsonl").read_text().splitlines()]
+    summary = records[-1]
+    return summary["iterations"] / summary["elapsed_s"], bare
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--iterations", type=int, default=3000)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--bare-loop", action="store_true")
+    args = parser.parse_args()
+    if args.bare_loop:
+        bare_loop(args.iterations)
+        return
+    env = dict(os.environ)
+    env.setdefault("NAC_DATA_DIR", str(ROOT.parent / "shared" / "data"))
+    for workers in (WORKERS or (2, 4)):
+        ours, bare = zip(*(measure(workers, args.iterations, env) for _ in range(args.repeats)), strict=True)
+        ratio = statistics.median(o / b for o, b in zip(ours, bare, strict=True))
+        print(f"{workers} workers: nac compute {statistics.median(ours):7.0f} it/s, bare mpi4py loop "
+              f"{statistics.median(bare):7.0f} it/s, ratio {ratio:.2f} (median of {args.repeats})")
+
+
+if __name__ == "__main__":
+    main()
