@@ -190,6 +190,9 @@ class Master:
         self.source = build_source(options)
         self.channel = options.channel_model()
         self.stale_results = 0
+        self.inbox: Inbox | None = None  # posted once the shards are known
+        self.pending: dict | None = None  # the last iteration's record, not yet written
+        self.saved: dict[str, np.ndarray] = {}  # --save-results
 
     def link(self, distances: dict) -> IterationLinks:
         """Per worker: distance, emulated rate and whether it is in range this iteration."""
@@ -261,24 +264,26 @@ class Master:
         if o.task == "matmul":
             a, b_rng = matmul_inputs(o.seed, o.m, o.n, o.a_path)
             bounds = self.allocation(len(a))
+            matmul_state = {"a": a, "b_rng": b_rng, "bounds": bounds}
+            input_floats = o.n * o.l
         else:
             from nac_onboard import forestfires
 
             x, y = forestfires.load(forestfires.find_csv(o.data))
             bounds = self.allocation(len(y))
-            w = np.zeros(x.shape[1])
+            linreg_state = {"w": np.zeros(x.shape[1]), "rows": len(y), "cost": None}
+            input_floats = x.shape[1]
         self.comm.bcast(bounds, root=0)
         self.inbox = Inbox(self.comm, self.mpi, self.workers, TAG_RESULT, largest_result(o, bounds))
-        warmup_s = self.warm_up(o.n * o.l if o.task == "matmul" else x.shape[1])
+        warmup_s = self.warm_up(input_floats)
         self.log.write("run_started", warmup_s=warmup_s, task=o.task, workers=len(self.workers), shards=bounds,
                        emulate=o.emulate, channel=self.channel.name if o.emulate == "sleep" else None,
                        channel_validity=self.channel.validity() if o.emulate == "sleep" else None,
                        iterations=o.iterations, duration_s=o.duration_s, timeout_s=o.timeout_s,
                        on_missing=o.on_missing, allocation=o.allocation, pid=os.getpid())
-        saved: dict[str, np.ndarray] = {}
         t_run = time.monotonic()
         durations, complete_count, absences = [], 0, {r: 0 for r in self.workers}
-        iteration, cost, ended_by, pending = 0, None, "iterations", None
+        iteration, ended_by = 0, "iterations"
         while True:
             if o.iterations is not None and iteration >= o.iterations:
                 break
@@ -288,64 +293,75 @@ class Master:
             t_start, start_unix = time.monotonic(), time.time()
             links = self.link(self.source.distances_m(iteration, t_start - t_run) if self.source else {})
             present = [r for r in self.workers if links.present(r)]
-            record: dict = {}
             if o.task == "matmul":
-                b = b_rng.standard_normal((o.n, o.l))
-                self.send_all(present, iteration, b.ravel(), links)
-                pending = self.write_pending(pending)
-                results = self.collect(iteration, set(present), links, t_start + o.timeout_s)
-                blocks = {r: results[r][RESULT_HEADER:].reshape(-1, o.l) for r in results}
-                missing = [r for r in self.workers if r not in blocks]
-                if missing and o.on_missing == "reassign" and blocks:
-                    record["reassigned"] = self.reassign(iteration, a, b, bounds, missing, blocks, links,
-                                                         t_start + 2 * o.timeout_s)
-                complete = all(r in blocks for r in self.workers)
-                record["complete"] = complete
-                if complete:
-                    complete_count += 1
-                    product = kernels.stack_blocks([blocks[r] for r in self.workers])
-                    if o.save_results:
-                        saved[f"B_{iteration}"], saved[f"C_{iteration}"] = b, product
+                record = self.matmul_iteration(iteration, present, links, t_start, matmul_state)
             else:
-                self.send_all(present, iteration, w, links)
-                pending = self.write_pending(pending)
-                results = self.collect(iteration, set(present), links, t_start + o.timeout_s)
-                if results:
-                    parts = [(buf[RESULT_HEADER:], float(buf[4]), int(buf[3])) for buf in results.values()]
-                    gradient, cost, rows = kernels.combine_gradients(parts)
-                    w = w - o.learning_rate * gradient
-                    record.update(cost=cost, rows_used=rows, complete=rows == len(y))
-                    complete_count += rows == len(y)
-                else:
-                    record.update(cost=None, rows_used=0, complete=False)
+                record = self.linreg_iteration(iteration, present, links, t_start, linreg_state)
+            complete_count += record["complete"]
             t_end = time.monotonic()
             for rank in self.workers:
                 absences[rank] += not links.present(rank)
             durations.append(t_end - t_start)
-            pending = dict(iteration=iteration, start_s=start_unix, end_s=start_unix + t_end - t_start,
-                           duration_s=t_end - t_start, workers=links.record(self.workers, self.vehicles), **record)
+            self.pending = dict(iteration=iteration, start_s=start_unix, end_s=start_unix + t_end - t_start,
+                                duration_s=t_end - t_start, workers=links.record(self.workers, self.vehicles),
+                                **record)
             iteration += 1
-        self.write_pending(pending)
+        self.write_pending()
         for rank in self.workers:
             self.comm.Send([np.array([KIND_STOP, iteration, 0.0, 0.0]), self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
         self.inbox.close()
         if o.task == "linreg":
-            saved["weights"] = w
-        if o.out and (o.save_results or o.task == "linreg"):
-            np.savez(os.path.join(o.out, "results.npz"), **saved)
+            self.saved["weights"] = linreg_state["w"]
+        if o.save_results or o.task == "linreg":
+            np.savez(os.path.join(o.out, "results.npz"), **self.saved)
         d = np.array(durations) if durations else np.array([np.nan])
         self.log.write("run_summary", task=o.task, iterations=iteration, complete_iterations=complete_count,
                        ended_by=ended_by, elapsed_s=time.monotonic() - t_run, mean_duration_s=float(np.mean(d)),
                        p95_duration_s=float(np.percentile(d, 95)), absent_iterations={str(r): n for r, n in
                                                                                      absences.items()},
-                       final_cost=cost, stale_results=self.stale_results)
+                       final_cost=linreg_state["cost"] if o.task == "linreg" else None,
+                       stale_results=self.stale_results)
         return 0
 
-    def write_pending(self, record: dict | None) -> None:
-        """An iteration's record is written while the next iteration's workers compute: the encoding then costs
-        no time on the critical path. A crash still loses only the iteration in flight."""
-        if record is not None:
-            self.log.write("iteration", t_s=record["end_s"], **record)
+    def write_pending(self) -> None:
+        """The previous iteration's record, written once this iteration's inputs are out: its encoding overlaps
+        the workers' computing. A crash still loses only the iteration in flight."""
+        if self.pending is not None:
+            self.log.write("iteration", t_s=self.pending["end_s"], **self.pending)
+            self.pending = None
+
+    def matmul_iteration(self, iteration: int, present: list[int], links: IterationLinks, t_start: float,
+                         state: dict) -> dict:
+        o = self.options
+        b = state["b_rng"].standard_normal((o.n, o.l))
+        self.send_all(present, iteration, b.ravel(), links)
+        self.write_pending()
+        results = self.collect(iteration, set(present), links, t_start + o.timeout_s)
+        blocks = {r: results[r][RESULT_HEADER:].reshape(-1, o.l) for r in results}
+        record = {}
+        missing = [r for r in self.workers if r not in blocks]
+        if missing and o.on_missing == "reassign" and blocks:
+            record["reassigned"] = self.reassign(iteration, state["a"], b, state["bounds"], missing, blocks, links,
+                                                 t_start + 2 * o.timeout_s)
+        record["complete"] = all(r in blocks for r in self.workers)
+        if record["complete"] and o.save_results:
+            self.saved[f"B_{iteration}"] = b
+            self.saved[f"C_{iteration}"] = kernels.stack_blocks([blocks[r] for r in self.workers])
+        return record
+
+    def linreg_iteration(self, iteration: int, present: list[int], links: IterationLinks, t_start: float,
+                         state: dict) -> dict:
+        o = self.options
+        self.send_all(present, iteration, state["w"], links)
+        self.write_pending()
+        results = self.collect(iteration, set(present), links, t_start + o.timeout_s)
+        if not results:
+            return {"cost": None, "rows_used": 0, "complete": False}
+        parts = [(buf[RESULT_HEADER:], float(buf[4]), int(buf[3])) for buf in results.values()]
+        gradient, cost, rows = kernels.combine_gradients(parts)
+        state["w"] = state["w"] - o.learning_rate * gradient
+        state["cost"] = cost
+        return {"cost": cost, "rows_used": rows, "complete": rows == state["rows"]}
 
     def warm_up(self, floats: int) -> float:
         """One untimed exchange of an input-sized message with every worker: MPI sets up its connections and
