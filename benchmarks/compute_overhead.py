@@ -3,7 +3,7 @@ machine, against a bare mpi4py loop that sends the same messages (the same heade
 header + gradient up, blocking Send/Recv, no records, no timeouts), in the same run, alternating.
 Targets: ratio >= 0.8, and >= 1000 iterations/s with 2 workers. Ranks pinned to cores (-bind-to core).
 
-    python benchmarks/compute_overhead.py [--iterations 3000] [--repeats 3]
+    python benchmarks/compute_overhead.py [--iterations 3000] [--repeats 3] [--workers 2 4]
     (with --bare-loop, this file is the bare loop itself, run by mpiexec)
 """
 
@@ -21,7 +21,6 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-WORKERS = tuple(int(w) for w in os.environ.get("NAC_BENCH_WORKERS", "").split(",") if w)
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
 
 
@@ -88,6 +87,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--iterations", type=int, default=3000)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--workers", type=int, nargs="+", default=[2, 4])
     parser.add_argument("--bare-loop", action="store_true")
     args = parser.parse_args()
     if args.bare_loop:
@@ -95,7 +95,7 @@ def main() -> None:
         return
     env = dict(os.environ)
     env.setdefault("NAC_DATA_DIR", str(ROOT.parent / "shared" / "data"))
-    for workers in (WORKERS or (2, 4)):
+    for workers in args.workers:
         ours, bare = zip(*(measure(workers, args.iterations, env) for _ in range(args.repeats)), strict=True)
         ratio = statistics.median(o / b for o, b in zip(ours, bare, strict=True))
         print(f"{workers} workers: nac compute {statistics.median(ours):7.0f} it/s, bare mpi4py loop "

@@ -318,7 +318,7 @@ class Agent:
             for frame in endpoint.read_frames():
                 if self.client is not None:
                     try:
-                        mav.write_frame(self.client.links[0], frame)
+                        self.client.links[0].write_frame(frame)
                     except OSError:
                         pass
                 for other in self.endpoints:

@@ -40,7 +40,6 @@ class _AppendFile:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
         self._lock = threading.Lock()
-        self.records = 0
 
     def _write(self, data: bytes) -> None:
         with self._lock:
@@ -49,7 +48,6 @@ class _AppendFile:
             view = memoryview(data)
             while view:  # a regular file takes it whole; the loop covers a signal cutting a write short
                 view = view[os.write(self._fd, view):]
-            self.records += 1
 
     def sync(self) -> None:
         with self._lock:

@@ -162,9 +162,6 @@ class RawFrame:
     def get_srcComponent(self) -> int:  # noqa: N802
         return frame_source(self._frame)[1]
 
-    def get_header(self):
-        return None
-
 
 class Link:
     def __init__(self, uri: str, index: int, source_system: int, source_component: int, signing_key: bytes | None,
@@ -216,6 +213,10 @@ class Link:
                     out.append(self.conn.mav.decode(bytearray(frame)))
                 except M.MAVError as err:
                     out.append(M.MAVLink_bad_data(bytearray(frame), err.message))
+
+    def write_frame(self, frame: bytes) -> None:
+        """Send a frame someone else built (routed) on this link, unchanged."""
+        self.conn.write(frame)
 
     def _closed(self):
         raise LinkClosed(f"{self.uri}: the other end closed the connection")
@@ -536,11 +537,6 @@ class RawEndpoint:
 
     def close(self) -> None:
         self.conn.close()
-
-
-def write_frame(link: Link, frame: bytes) -> None:
-    """Send a frame someone else built (routed) on a link, unchanged."""
-    link.conn.write(frame)
 
 
 class VehicleClient(MavlinkClient):

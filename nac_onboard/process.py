@@ -11,6 +11,7 @@ import os
 import selectors
 import signal
 import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -113,8 +114,6 @@ class AgentProcess(ReadyProcess):
 
     def __init__(self, config_path, extra_args: list[str] | None = None, env: dict | None = None,
                  ready_timeout_s: float = 20.0):
-        import sys
-
         command = [sys.executable, "-m", "nac_onboard.cli", "agent", "--config", str(config_path),
                    *(extra_args or [])]
         super().__init__(command, "nac-onboard agent", f"agent ({config_path})", ready_timeout_s,

@@ -201,8 +201,7 @@ def _read_answer(sock: socket.socket, where: str) -> dict:
 class ThroughputServer:
     """Accepts probes on a TCP port, one at a time, in a background thread (or serve_forever); stop() closes it."""
 
-    def __init__(self, bind: str = "0.0.0.0", port: int = DEFAULT_PORT, on_result=None):
-        self.on_result = on_result  # called with (peer address, receiver summary) after each probe
+    def __init__(self, bind: str = "0.0.0.0", port: int = DEFAULT_PORT):
         self.sock = socket.create_server((bind, port), reuse_port=False)
         self.port = self.sock.getsockname()[1]
         self._stop = threading.Event()
@@ -253,8 +252,6 @@ class ThroughputServer:
                 conn.sendall(json.dumps(answer).encode() + b"\n")
             except OSError as err:
                 log.warning("could not answer the probe from %s:%s: %s", addr[0], addr[1], err)
-            if self.on_result is not None:
-                self.on_result(addr, answer)
 
 
 def receive_probe(conn: socket.socket) -> dict:
