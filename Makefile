@@ -1,5 +1,7 @@
-# One command sets up and runs each job: `make demo` (a SITL flight) and `make test` (the suite).
+# One command sets up and runs each job: `make demo` (the research's flight test in SITL, moving and static,
+# with their report) and `make test` (the suite).
 PYTHON ?= python3
+DATA_DIR ?= ../shared/data
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
@@ -15,7 +17,8 @@ $(STAMP): pyproject.toml | $(BIN)/python
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/python -m sitl.demo
+	@test -f "$${NAC_DATA_DIR:-$(DATA_DIR)}/forestfires.csv" || $(BIN)/nac-onboard data fetch
+	NAC_DATA_DIR=$${NAC_DATA_DIR:-$(DATA_DIR)} $(BIN)/python -m sitl.demo
 
 test: $(STAMP)
 	$(BIN)/ruff check .
@@ -26,6 +29,8 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/mission_upload.py
 	$(BIN)/python benchmarks/agent_load.py
 	$(BIN)/python benchmarks/throughput_vs_iperf3.py
+	$(BIN)/python benchmarks/compute_overhead.py
+	$(BIN)/python benchmarks/log_parse.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .ruff_cache

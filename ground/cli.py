@@ -58,10 +58,76 @@ def build_parser() -> argparse.ArgumentParser:
     monitor = sub.add_parser("monitor", help="live table of every vehicle heard (Ctrl-C to stop)")
     monitor.add_argument("--refresh-s", type=float, default=1.0)
     monitor.add_argument("--duration-s", type=float, help="stop after this long (default: until Ctrl-C)")
+    _add_logs_parser(sub)
     return parser
 
 
+def _add_logs_parser(sub) -> None:
+    logs = sub.add_parser("logs", help="analyse run directories: tables, figures, report; calibrate a channel")
+    lsub = logs.add_subparsers(dest="action", required=True, metavar="ACTION")
+    analyze = lsub.add_parser("analyze", help="tables (CSV), figures (PNG) and report.md of one run")
+    analyze.add_argument("run_dir", type=Path)
+    analyze.add_argument("--out", type=Path, help="where to write (default RUN_DIR/analysis)")
+    compare = lsub.add_parser("compare", help="two runs side by side (e.g. static vs moving)")
+    compare.add_argument("run_a", type=Path)
+    compare.add_argument("run_b", type=Path)
+    compare.add_argument("--out", type=Path, required=True, help="where to write the comparison")
+    for p in (analyze, compare):
+        p.add_argument("--master", help="the master's vehicle id (default: the vehicle whose agent says master)")
+        p.add_argument("--bin-m", type=float, default=2.0, help="distance bin width for throughput vs distance")
+        p.add_argument("--threshold-mbps", type=float, default=1.0,
+                       help="throughput counted as 'in range' for the summary's range figure")
+    calibrate = lsub.add_parser("calibrate", help="fit a log-distance channel preset to measured throughput")
+    calibrate.add_argument("run_dir", type=Path)
+    calibrate.add_argument("--out", type=Path, help="TOML to write (default RUN_DIR/calibrated-RUN.toml)")
+    calibrate.add_argument("--base", default="wifi-flight",
+                           help="preset or TOML giving the radio (bandwidth, noise, power, rate limits)")
+    calibrate.add_argument("--name", help="the preset's name (default calibrated-RUN)")
+
+
+def run_logs(args: argparse.Namespace, out=sys.stdout) -> int:
+    from ground import report  # pandas and matplotlib only for the commands that use them
+    from ground.runlog import RunDirError
+    from nac_onboard.channel import ChannelError
+
+    try:
+        return _run_logs(report, args, out)
+    except (RunDirError, report.CalibrationError, ChannelError) as err:
+        raise UsageError(str(err)) from None
+
+
+def _run_logs(report, args: argparse.Namespace, out) -> int:
+    if args.action == "analyze":
+        tables = report.analyze_run(args.run_dir, args.out, args.master, args.bin_m, args.threshold_mbps)
+        where = args.out or args.run_dir / "analysis"
+        print(f"{where / 'report.md'}: {_brief(tables.summary)}", file=out)
+        for line in tables.missing:
+            print(f"  missing: {line}", file=out)
+    elif args.action == "compare":
+        runs = report.compare_runs(args.run_a, args.run_b, args.out, args.master, args.bin_m, args.threshold_mbps)
+        print(f"{args.out / 'report.md'}", file=out)
+        for tables in runs:
+            print(f"  {tables.name}: {_brief(tables.summary)}", file=out)
+    else:
+        model, fit, path = report.calibrate_run(args.run_dir, args.out, args.base, args.name)
+        print(f"{path}: log-distance exponent {fit['exponent']:.2f}, PL(d0) {fit['ref_loss_db']:.1f} dB from "
+              f"{fit['samples']} probes at {fit['distance_min_m']:.1f}-{fit['distance_max_m']:.1f} m "
+              f"(rms {fit['rms_error_db']:.2f} dB); range {model.range_m():.1f} m", file=out)
+    return 0
+
+
+def _brief(summary: dict) -> str:
+    parts = [f"{summary.get('vehicles', 0)} vehicles"]
+    if "iterations" in summary:
+        parts.append(f"{summary['iterations']} iterations, mean {summary['mean_iteration_s']:.3f} s")
+    if "probes" in summary:
+        parts.append(f"{summary['probes']} probes, mean {summary['mean_throughput_mbps']:.2f} Mbit/s")
+    return ", ".join(parts)
+
+
 def run(args: argparse.Namespace, out=sys.stdout) -> int:
+    if args.command == "logs":
+        return run_logs(args, out)
     key = (args.command, getattr(args, "action", None))
     if key == ("mission", "validate"):
         ops.mission_validate(args.file, out)

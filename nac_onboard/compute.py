@@ -122,6 +122,7 @@ def run_worker(comm, mpi, options: ComputeOptions) -> None:
         x, y = forestfires.load(forestfires.find_csv(options.data))
         x_shard, y_shard = x[start:stop], y[start:stop]
     inbox = Inbox(comm, mpi, [0], TAG_WORK, largest_input(options, bounds))
+    channel = options.channel_model()
     while True:
         _, message = inbox.receive(time.monotonic() + options.idle_timeout_s)
         if message is None:
@@ -149,7 +150,7 @@ def run_worker(comm, mpi, options: ComputeOptions) -> None:
             gradient, sse, rows = kernels.local_gradient(x_shard, y_shard, payload)
             result = gradient
         compute_s = time.perf_counter() - t0
-        up_s = result.size * BITS_PER_FLOAT / rate_bps if rate_bps > 0 else 0.0
+        up_s = channel.transfer_s(result.size * BITS_PER_FLOAT, rate_bps)
         if up_s:
             time.sleep(up_s)
         answer = np.concatenate([[iteration, compute_s, up_s, rows, sse], result])
@@ -223,7 +224,7 @@ class Master:
         """Send one input; `message` is a reusable buffer whose payload part is already filled."""
         k = rank - 1
         rate = links.rate_bps[k] or 0.0
-        down_s = payload.size * BITS_PER_FLOAT / rate if rate > 0 else 0.0
+        down_s = self.channel.transfer_s(payload.size * BITS_PER_FLOAT, rate)
         if down_s:
             time.sleep(down_s)  # the research's emulation: the transfer takes I/C before it happens
         if message is None:

@@ -78,6 +78,9 @@ class ThroughputSection:
     interval_s: float = 0.5
     rate_bps: float = 0.0  # cap on the probe's sending rate; 0 = as fast as the path allows
     targets: tuple[str, ...] = ()  # "id=host:port"; empty = every worker in the peer table
+    # SITL only: a channel preset or TOML; each probe is then paced at the model's capacity for the pair's distance
+    # (and fails below its minimum rate), so loopback behaves like the radio. "" = measure the real network.
+    emulate_channel: str = ""
 
     @property
     def duty_cycle(self) -> float:
@@ -194,6 +197,10 @@ def _check(c: AgentConfig) -> None:
             if not eq or not name:
                 raise ValueError(f"throughput.targets: expected ID=HOST:PORT, got {target!r}")
             parse_host_port(address, "throughput.targets")
+        if t.emulate_channel:
+            from nac_onboard.channel import load_channel
+
+            load_channel(t.emulate_channel)
     except (ValueError, RuntimeError) as err:
         raise ConfigError(f"{src}: {err}") from None
 
@@ -208,3 +215,22 @@ def load_agent_config(path: str | Path) -> AgentConfig:
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{path}: not valid TOML: {err}") from None
     return parse_agent_config(data, str(path))
+
+
+def dump_toml(sections: dict[str, dict]) -> str:
+    """A config as TOML text (sections of scalars and lists: what the agent's config holds)."""
+    lines = []
+    for name, values in sections.items():
+        lines.append(f"[{name}]")
+        lines += [f"{key} = {_toml_value(value)}" for key, value in values.items()]
+    return "\n".join(lines) + "\n"
+
+
+def _toml_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return '"' + str(value).replace("\\", "\\\\").replace('"', '\\"') + '"'

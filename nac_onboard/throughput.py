@@ -23,6 +23,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 5201  # iperf3's
 BLOCK_BYTES = 1024 * 1024  # per write: on a CPU-bound path (loopback) fewer, larger writes go faster
+PACING_S = 0.005
 RECV_BYTES = 1024 * 1024
 HEADER_LIMIT_BYTES = 4096
 IDLE_TIMEOUT_S = 10.0
@@ -108,6 +109,9 @@ def probe(host: str, port: int = DEFAULT_PORT, duration_s: float | None = 1.0, n
     """
     if (duration_s is None) == (nbytes is None):
         raise ValueError("give exactly one of duration_s and nbytes")
+    if rate_bps:
+        # paced writes of at most PACING_S worth of data: one 1 MiB burst would overshoot a slow cap many times over
+        block_bytes = min(block_bytes, max(1024, int(rate_bps / 8 * PACING_S)))
     where = f"{host}:{port}"
     try:
         sock = socket.create_connection((host, port), timeout=connect_timeout_s)

@@ -62,6 +62,14 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--signing-key-file", type=Path,
                      help="MAVLink 2 signing: 64 hex characters or a passphrase; unsigned input is refused")
     run.add_argument("-v", "--verbose", action="store_true")
+    exp = sub.add_parser("experiment", help="run a scenario end to end: SITL, agents, missions, MPI job, report")
+    exp.add_argument("scenario", help="scenario TOML, or the name of a shipped one (sitl/scenarios/)")
+    exp.add_argument("--speedup", type=float, help="simulated seconds per wall-clock second (default: the "
+                                                   "scenario's, real time unless it says otherwise)")
+    exp.add_argument("--out", type=Path, help="run directory (default runs/SCENARIO-YYYYmmddTHHMMSS)")
+    exp.add_argument("--base-port", type=int, default=14550, help="first UDP port; each vehicle uses 10")
+    exp.add_argument("--no-analysis", action="store_true", help="leave the run directory unanalysed")
+    exp.add_argument("-v", "--verbose", action="store_true")
     return parser
 
 
@@ -120,11 +128,31 @@ def _wait(sim: Sitl, stop: threading.Event | None) -> None:
             raise SitlError("the simulation loop stopped on an internal error (see the log above)")
 
 
+def experiment(args: argparse.Namespace, out=sys.stdout) -> int:
+    from sitl.experiment import run_scenario
+    from sitl.scenario import ScenarioError, load_scenario
+
+    try:
+        scenario = load_scenario(args.scenario)
+    except ScenarioError as err:
+        raise UsageError(str(err)) from None
+    speedup = args.speedup or scenario.default_speedup
+    if not 0 < speedup <= scenario.max_speedup:
+        raise UsageError(f"{scenario.name}: --speedup {speedup:g} is outside what this scenario allows "
+                         f"(up to {scenario.max_speedup:g}x: {' '.join(scenario.notes) or 'fidelity'})")
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    result = run_scenario(scenario, args.out, speedup, args.base_port, out, stop, analyze=not args.no_analysis)
+    return result.outcome.exit_code
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
+        if args.command == "experiment":
+            return experiment(args)
         run(config_from_args(args))
     except (UsageError, ParamError) as err:
         print(f"nac-sitl: {err}", file=sys.stderr)

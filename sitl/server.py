@@ -40,6 +40,7 @@ class SitlConfig:
     speedup: float = 1.0
     home: Home = Home(47.397742, 8.545594, 488.0)
     spacing_m: float = 5.0  # vehicle i's home is i * spacing_m east of `home`
+    vehicle_homes: tuple = ()  # one Home per vehicle, overriding home and spacing_m (e.g. from mission plans)
     seed: int = 0
     params: dict = field(default_factory=dict)
     host: str = "127.0.0.1"  # where the UDP links are sent
@@ -151,7 +152,10 @@ class Sitl:
         n = config.vehicles
         if n < 1:
             raise SitlError("need at least one vehicle")
-        self.homes = [offset_home(config.home, i * config.spacing_m, 0.0) for i in range(n)]
+        if config.vehicle_homes and len(config.vehicle_homes) != n:
+            raise SitlError(f"vehicle_homes: {len(config.vehicle_homes)} homes for {n} vehicles")
+        self.homes = list(config.vehicle_homes) or [offset_home(config.home, i * config.spacing_m, 0.0)
+                                                    for i in range(n)]
         self._home_lat = np.array([h.lat_deg for h in self.homes])
         self._home_lon = np.array([h.lon_deg for h in self.homes])
         self._home_alt = np.array([h.alt_m for h in self.homes])

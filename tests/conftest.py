@@ -19,11 +19,12 @@ def _free(port: int, kind: int) -> bool:
     return True
 
 
-def allocate_base_port(vehicles: int, step: int = 10) -> int:
-    """A base port B such that B+step*i (+1 for the companion link) are free for every vehicle, UDP and TCP."""
+def allocate_base_port(vehicles: int, step: int = 10, slots: int = 2) -> int:
+    """A base port B with B+step*i+k free (UDP and TCP) for every vehicle i and slot k < slots (ground, companion,
+    ...)."""
     for _ in range(200):
         base = random.randrange(20000, 60000 - step * vehicles, 2)
-        ports = [base + step * i + k for i in range(vehicles) for k in (0, 1)]
+        ports = [base + step * i + k for i in range(vehicles) for k in range(slots)]
         if all(_free(p, socket.SOCK_DGRAM) and _free(p, socket.SOCK_STREAM) for p in ports):
             return base
     raise RuntimeError("no free port range found")

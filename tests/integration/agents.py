@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from nac_onboard.config import dump_toml
 from nac_onboard.flight_log import read_jsonl
 from tests.conftest import free_port
 
@@ -23,21 +24,7 @@ def agent_toml(vehicle_id: str, role: str, sysid: int, autopilot_uri: str, log_d
     }
     for name, values in sections.items():
         config.setdefault(name, {}).update(values)
-    lines = []
-    for name, values in config.items():
-        lines.append(f"[{name}]")
-        lines += [f"{key} = {_toml(value)}" for key, value in values.items()]
-    return "\n".join(lines) + "\n"
-
-
-def _toml(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (int, float)):
-        return repr(value)
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml(v) for v in value) + "]"
-    return '"' + str(value).replace("\\", "\\\\").replace('"', '\\"') + '"'
+    return dump_toml(config)
 
 
 def wait_for_record(path: Path, predicate, timeout_s: float = 10.0) -> dict:

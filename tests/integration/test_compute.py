@@ -1,5 +1,6 @@
 """`nac-onboard compute` under a real `mpiexec` (the mpich wheel), ranks pinned to cores as DESIGN.md 7 asks."""
 
+import dataclasses
 import json
 import os
 import signal
@@ -12,13 +13,20 @@ import numpy as np
 import pytest
 
 from nac_onboard import forestfires, kernels
-from nac_onboard.channel import PRESETS
+from nac_onboard.channel import PRESETS, save_channel
 from nac_onboard.compute import matmul_inputs
 from nac_onboard.flight_log import read_jsonl
 from tests.conftest import SHARED_DATA
 
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
 ENV = dict(os.environ, NAC_DATA_DIR=str(SHARED_DATA))
+
+
+def wifi(tmp_path: Path, overhead_bits: float = 0.0) -> str:
+    """wifi-flight's link with a chosen per-transfer overhead (the preset's 2 Mbit makes iterations ~0.3 s)."""
+    path = tmp_path / f"wifi-{overhead_bits:g}.toml"
+    save_channel(dataclasses.replace(PRESETS["wifi-flight"], name="wifi-test", overhead_bits=overhead_bits), path)
+    return str(path)
 
 
 def mpi_command(ranks: int, *args: str) -> list[str]:
@@ -69,17 +77,18 @@ def test_linreg_on_two_workers_equals_single_process_gradient_descent(tmp_path):
 
 
 def test_emulated_iterations_last_the_predicted_transfer_plus_compute_time(tmp_path):
-    distances = [6.0, 9.0, 12.0]
+    distances, overhead_bits = [6.0, 9.0, 12.0], 2e5
     result = run_mpi(4, "--task", "matmul", "--iterations", "10", "--out", str(tmp_path), "--emulate", "sleep",
-                     "--channel", "wifi-flight", "--positions", "fixed", "--distances", ",".join(map(str, distances)))
+                     "--channel", wifi(tmp_path, overhead_bits), "--positions", "fixed",
+                     "--distances", ",".join(map(str, distances)))
     assert result.returncode == 0, result.stderr
-    wifi = PRESETS["wifi-flight"]
+    preset = PRESETS["wifi-flight"]
     for r in records(tmp_path, "iteration"):
         workers = per_worker(r)
         for w, d in zip(workers, distances, strict=True):
             assert w["present"] and w["distance_m"] == d
-            assert w["rate_bps"] == pytest.approx(wifi.capacity_bps(d))
-            assert w["down_s"] == pytest.approx(w["bytes_down"] * 8 / w["rate_bps"], rel=0.01)
+            assert w["rate_bps"] == pytest.approx(preset.capacity_bps(d))
+            assert w["down_s"] == pytest.approx((w["bytes_down"] * 8 + overhead_bits) / w["rate_bps"], rel=0.01)
         # The master sends in turn (one radio); each worker computes and answers as soon as it has its input.
         sent_at, predicted = 0.0, 0.0
         for w in workers:
@@ -94,7 +103,7 @@ def test_worker_out_of_range_is_absent_and_rejoins_while_training_continues(tmp_
     script.write_text(json.dumps({"by": "iteration", "distances_m": {
         "1": [[0, 8.0]], "2": [[0, 8.0], [50, 30.0], [80, 8.0]]}}))  # wifi-flight range is about 22 m
     result = run_mpi(3, "--task", "linreg", "--iterations", "120", "--out", str(tmp_path), "--emulate", "sleep",
-                     "--channel", "wifi-flight", "--positions", "script", "--positions-script", str(script))
+                     "--channel", wifi(tmp_path), "--positions", "script", "--positions-script", str(script))
     assert result.returncode == 0, result.stderr
     its = records(tmp_path, "iteration")
     assert len(its) == 120
@@ -111,7 +120,7 @@ def test_worker_out_of_range_is_absent_and_rejoins_while_training_continues(tmp_
 
 def test_matmul_reassigns_an_absent_workers_rows(tmp_path):
     result = run_mpi(4, "--task", "matmul", "--iterations", "5", "--out", str(tmp_path), "--emulate", "sleep",
-                     "--channel", "wifi-flight", "--positions", "fixed", "--distances", "5,5,40",
+                     "--channel", wifi(tmp_path), "--positions", "fixed", "--distances", "5,5,40",
                      "--on-missing", "reassign", "--save-results", "--m", "30", "--n", "200")
     assert result.returncode == 0, result.stderr
     a, _ = matmul_inputs(0, 30, 200)
@@ -121,7 +130,7 @@ def test_matmul_reassigns_an_absent_workers_rows(tmp_path):
         assert np.allclose(saved[f"C_{r['iteration']}"], a @ saved[f"B_{r['iteration']}"])
     incomplete_dir = tmp_path / "incomplete"
     result = run_mpi(4, "--task", "matmul", "--iterations", "3", "--out", str(incomplete_dir), "--emulate", "sleep",
-                     "--channel", "wifi-flight", "--positions", "fixed", "--distances", "5,5,40", "--m", "30",
+                     "--channel", wifi(tmp_path), "--positions", "fixed", "--distances", "5,5,40", "--m", "30",
                      "--n", "200")
     assert result.returncode == 0, result.stderr
     assert [r["complete"] for r in records(incomplete_dir, "iteration")] == [False] * 3
@@ -129,7 +138,7 @@ def test_matmul_reassigns_an_absent_workers_rows(tmp_path):
 
 def test_a_killed_worker_ends_the_job_and_the_masters_records_are_intact(tmp_path):
     proc = subprocess.Popen(mpi_command(3, "--task", "linreg", "--iterations", "100000", "--out", str(tmp_path),
-                                        "--emulate", "sleep", "--channel", "wifi-flight", "--positions", "fixed",
+                                        "--emulate", "sleep", "--channel", wifi(tmp_path), "--positions", "fixed",
                                         "--distances", "15,15"),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV, start_new_session=True)
     try:
@@ -182,7 +191,7 @@ def test_emulation_takes_distances_from_the_masters_agent(start_sitl, start_agen
         wait_for_record(tmp_path / "runs/test/uav1/agent.jsonl", kind("peer_seen", peer=f"uav{i}"))
     out = tmp_path / "compute"
     result = run_mpi(3, "--task", "linreg", "--iterations", "20", "--out", str(out), "--emulate", "sleep",
-                     "--channel", "wifi-flight", "--positions", "feed", "--feed", feed, "--vehicles", "uav1,uav2,uav3")
+                     "--channel", wifi(tmp_path), "--positions", "feed", "--feed", feed, "--vehicles", "uav1,uav2,uav3")
     assert result.returncode == 0, result.stderr
     for r in records(out, "iteration"):
         workers = per_worker(r)
@@ -194,13 +203,13 @@ def test_emulation_takes_distances_from_the_masters_agent(start_sitl, start_agen
 
 def test_capacity_allocation_gives_the_nearer_worker_more_rows_and_duration_limits_the_run(tmp_path):
     result = run_mpi(3, "--task", "linreg", "--duration-s", "1.0", "--out", str(tmp_path), "--emulate", "sleep",
-                     "--channel", "wifi-flight", "--positions", "fixed", "--distances", "8,16",
+                     "--channel", wifi(tmp_path), "--positions", "fixed", "--distances", "8,16",
                      "--allocation", "capacity")
     assert result.returncode == 0, result.stderr
     started = records(tmp_path, "run_started")[0]
     (a0, a1), (b0, b1) = started["shards"]
-    wifi = PRESETS["wifi-flight"]
-    share = wifi.capacity_bps(8.0) / (wifi.capacity_bps(8.0) + wifi.capacity_bps(16.0))
+    preset = PRESETS["wifi-flight"]
+    share = preset.capacity_bps(8.0) / (preset.capacity_bps(8.0) + preset.capacity_bps(16.0))
     assert a0 == 0 and b1 == 517 and a1 == b0 and abs(a1 - 517 * share) <= 1
     summary = records(tmp_path, "run_summary")[0]
     assert summary["ended_by"] == "duration" and 0.9 < summary["elapsed_s"] < 2.0

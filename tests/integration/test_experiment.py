@@ -1,0 +1,204 @@
+"""`nac-sitl experiment` end to end: simulator, agents, missions, MPI job and report, on a short sped-up scenario;
+its run directory is also what the log analysis and calibration are checked on (a real run, not a fixture)."""
+
+import dataclasses
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from ground import cli as ground_cli
+from missions import save_mission
+from nac_onboard.channel import PRESETS, load_channel, save_channel
+from nac_onboard.flight_log import read_jsonl
+from sitl.experiment import Experiment, Outcome
+from sitl.geodesy import enu_to_lla, lla_to_ecef
+from sitl.scenario import load_scenario
+from sitl.scenarios.generate import at, hover, route
+from tests.conftest import SHARED_DATA, allocate_base_port
+
+ENV = dict(os.environ, NAC_DATA_DIR=str(SHARED_DATA))
+TRUE_EXPONENT = 3.0
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def write_scenario(folder: Path, duration_s: float = 30.0) -> Path:
+    """Master hovering; w1 flies out from 5 m to 35 m at 2 m/s and w2 hovers 8 m away, over a log-distance
+    channel of known exponent (TRUE_EXPONENT) with a small per-transfer overhead so iterations are quick."""
+    folder.mkdir(parents=True, exist_ok=True)
+    channel = dataclasses.replace(PRESETS["wifi-flight"], name="known", exponent=TRUE_EXPONENT, ref_loss_db=75.0,
+                                  max_rate_bps=None, overhead_bits=2e5)
+    save_channel(channel, folder / "known.toml")
+    save_mission(hover(at(0, 0), 5.0), folder / "master.plan")
+    save_mission(route(at(5, 0), 5.0, [(30.0, 0.0)], speed_mps=2.0), folder / "w1.plan")
+    save_mission(hover(at(0, 8), 5.0), folder / "w2.plan")
+    (folder / "short.toml").write_text(f"""
+name = "short"
+duration_s = {duration_s}
+max_speedup = 10.0
+[channel]
+preset = "known.toml"
+[compute]
+task = "linreg"
+timeout_s = 2.0
+[throughput]
+period_s = 0.5
+duration_s = 0.2
+interval_s = 0.1
+[[vehicle]]
+id = "master"
+role = "master"
+mission = "master.plan"
+[[vehicle]]
+id = "w1"
+role = "worker"
+mission = "w1.plan"
+[[vehicle]]
+id = "w2"
+role = "worker"
+mission = "w2.plan"
+""")
+    return folder / "short.toml"
+
+
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory):
+    """One short experiment for the tests below: 30 s simulated at 4x, with the simulator's truth recorded."""
+    folder = tmp_path_factory.mktemp("experiment")
+    scenario = load_scenario(str(write_scenario(folder)))
+    os.environ.setdefault("NAC_DATA_DIR", str(SHARED_DATA))
+    log_path = folder / "console.txt"
+    with open(log_path, "w") as console:
+        experiment = Experiment(scenario, folder / "run", 4.0, allocate_base_port(3, slots=5), out=console)
+        trace: list = []
+        experiment.step_observers.append(lambda t, state: trace.append((time.time(), state.pos_m.copy())))
+        result = experiment.run()
+    return result, scenario, trace, log_path.read_text(), experiment
+
+
+def test_a_short_scenario_runs_end_to_end_and_leaves_a_report(short_run):
+    result, scenario, _, console, _ = short_run
+    assert result.outcome is Outcome.COMPLETED, console
+    run = result.run_dir
+    assert "it " in console and "Mbit/s" in console, "the live display shows iterations and throughput"
+    for vehicle in ("master", "w1", "w2"):
+        agent = read_jsonl(run / vehicle / "agent.jsonl")
+        assert agent.problems == [] and agent.records[-1]["kind"] == "agent_stopped"
+        assert [r["seq"] for r in agent.of_kind("mission_item_reached")][:1] == [1], "took off on its mission"
+    compute = read_jsonl(run / "compute" / "compute.jsonl")
+    assert compute.of_kind("run_summary")[0]["ended_by"] == "duration"
+    assert len(compute.of_kind("iteration")) > 20
+    s = result.summary
+    assert s["iterations"] > 20 and s["probes"] > 10 and s["final_cost"] < s["first_cost"]
+    report = (run / "report.md").read_text()
+    assert "speed-up: 4.0x" in report and "ended: completed" in report
+    experiment = short_run[4]
+    assert not any(agent.alive() for agent in experiment.agents) and experiment.mpi.poll() == 0
+    assert not experiment.sim.alive, "every part was stopped"
+
+
+def test_analysis_of_the_run_matches_the_simulators_truth(short_run):
+    result, scenario, trace, _, _ = short_run
+    analysis = result.run_dir / "analysis"
+    columns = {"distances": "t_s,t_rel_s,worker,distance_m",
+               "throughput_by_distance": "distance_from_m,distance_to_m,mean_mbps,std_mbps,count",
+               "iterations": "iteration,t_s,t_rel_s,duration_s,complete,workers_present,absent,cost",
+               "training_cost": "iteration,t_rel_s,elapsed_s,cost"}
+    for name, header in columns.items():
+        assert (analysis / f"{name}.csv").read_text().splitlines()[0] == header
+    for png in analysis.glob("*.png"):
+        data = png.read_bytes()
+        assert data[:8] == PNG_MAGIC and 10_000 < len(data) < 2_000_000, png.name
+    assert len(list(analysis.glob("*.png"))) == 6
+
+    # the truth: every vehicle's ECEF position after each simulator step, by wall-clock time
+    homes = [v.home for v in scenario.vehicles]
+    times = np.array([t for t, _ in trace])
+    ecef = np.array([[lla_to_ecef(*enu_to_lla(pos[i], homes[i])) for i in range(3)] for _, pos in trace[::5]])
+    times = times[::5]
+    distances = pd.read_csv(analysis / "distances.csv")
+    assert set(distances["worker"]) == {"w1", "w2"} and len(distances) > 100
+    errors = []
+    for row in distances.itertuples():
+        k = 1 if row.worker == "w1" else 2
+        true = [np.interp(row.t_s, times, np.linalg.norm(ecef[:, 0, :] - ecef[:, k, :], axis=1))]
+        errors.append(abs(row.distance_m - true[0]))
+    assert max(errors) < 0.5, f"worst distance is {max(errors):.2f} m from the truth"
+    w1 = distances[distances["worker"] == "w1"]["distance_m"]
+    assert w1.min() < 6.0 and w1.max() > 30.0, "the comparison covers w1's whole flight out"
+
+
+def test_calibrate_recovers_the_channel_the_run_was_made_with(short_run, tmp_path):
+    result, scenario, _, _, _ = short_run
+    preset = tmp_path / "fitted.toml"
+    assert ground_cli.main(["logs", "calibrate", str(result.run_dir), "--base", scenario.channel,
+                            "--out", str(preset)]) == 0
+    fitted = load_channel(str(preset))
+    assert fitted.exponent == pytest.approx(TRUE_EXPONENT, rel=0.10)
+    assert fitted.path_loss == "log-distance" and fitted.name == "calibrated-run"
+
+
+def test_ctrl_c_stops_everything_within_10_s_and_writes_a_partial_report(tmp_path):
+    scenario = write_scenario(tmp_path / "scenario", duration_s=600.0)
+    run = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "sitl.cli", "experiment", str(scenario), "--speedup", "4",
+                             "--out", str(run), "--base-port", str(allocate_base_port(3, slots=5))],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
+    lines: list[str] = []
+    started = threading.Event()
+
+    def read() -> None:
+        for line in proc.stdout:
+            lines.append(line)
+            if "MPI job started" in line:
+                started.set()
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        assert started.wait(60.0), "".join(lines)
+        compute_log = run / "compute" / "compute.jsonl"
+        deadline = time.monotonic() + 30.0
+        while not (compute_log.exists() and '"iteration"' in compute_log.read_text()):
+            assert time.monotonic() < deadline, "".join(lines)
+            time.sleep(0.1)
+        pids = children_of(proc.pid)
+        assert len(pids) >= 4, "agents and mpiexec are running"
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(10.0) == 130
+        assert time.monotonic() - t0 < 10.0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    reader.join(2.0)
+    alive = [pid for pid in pids if Path(f"/proc/{pid}").exists() and "Z" not in status_of(pid)]
+    assert alive == [], f"left running: {alive}"
+    assert "interrupted" in "".join(lines)
+    report = (run / "report.md").read_text()
+    assert "ended: interrupted" in report and "iterations done" in report
+
+
+def children_of(pid: int) -> list[int]:
+    """Every descendant of pid (agents, mpiexec and its ranks, in their own session)."""
+    out = subprocess.run(["ps", "-e", "-o", "pid=,ppid="], capture_output=True, text=True).stdout
+    parent = {int(a): int(b) for a, b in (line.split() for line in out.splitlines())}
+    found, frontier = [], {pid}
+    while frontier:
+        frontier = {p for p, pp in parent.items() if pp in frontier}
+        found += frontier
+    return found
+
+
+def status_of(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split()[2]
+    except OSError:
+        return "Z"

@@ -1,0 +1,180 @@
+"""Log analysis on files (no processes): the golden run's known numbers, damaged input, the autopilot-log readers
+and the path-loss fit."""
+
+import io
+import json
+import shutil
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ground import cli
+from ground.analysis import analyze
+from ground.flightlogs import dataflash_positions, read_tlog, tlog_positions, ulog_positions
+from ground.report import CalibrationError, analyze_run, fit_log_distance
+from ground.runlog import read_run
+from nac_onboard.channel import PRESETS, ChannelModel
+from nac_onboard.flight_log import TlogWriter
+from nac_onboard.mavlink_client import M
+from tests.logfiles import write_dataflash, write_ulog
+
+GOLDEN = Path(__file__).parents[1] / "data" / "golden-run"
+
+
+def rows(table, digits: int = 6) -> list[list]:
+    return [[round(v, digits) if isinstance(v, float) else v for v in row] for row in table.itertuples(index=False)]
+
+
+def test_golden_run_gives_exactly_the_known_tables():
+    t = analyze(read_run(GOLDEN))
+    assert t.master == "master" and t.t0_s == 1000.0
+    # w1 flies east at 2 m/s from 10 m; its samples are 0.05 s late, so at the master's whole seconds it is at
+    # 10 + 2 * (k - 0.05): the t=0 sample is before w1's first and is left out, not extrapolated.
+    assert rows(t.distances[["t_rel_s", "worker", "distance_m"]], 3) == [  # positions are stored to 0.1 mm
+        [1.0, "w1", 11.9], [2.0, "w1", 13.9], [3.0, "w1", 15.9], [4.0, "w1", 17.9]]
+    assert len(t.trajectories[t.trajectories["vehicle"] == "w1"]) == 5, "the repeated sample counted once"
+    assert rows(t.throughput[["t_rel_s", "distance_m", "throughput_mbps", "error"]]) == [
+        [0.0, 3.0, 40.0, ""], [1.0, 3.5, 60.0, ""], [2.0, 5.0, 30.0, ""], [3.0, 9.0, 10.0, ""],
+        [4.0, 9.5, 20.0, ""], [5.0, 21.0, 0.0, "unable to connect to server: timed out"]]
+    assert rows(t.throughput_by_distance) == [
+        [2.0, 4.0, 50.0, round(np.sqrt(200), 6), 2], [4.0, 6.0, 30.0, 0.0, 1],
+        [8.0, 10.0, 15.0, round(np.sqrt(50), 6), 2], [20.0, 22.0, 0.0, 0.0, 1]]
+    assert rows(t.iterations[["iteration", "t_rel_s", "duration_s", "workers_present", "absent", "cost"]]) == [
+        [0, 1.0, 0.5, 2, "", 10.0], [1, 1.5, 0.5, 2, "", 8.0], [2, 2.0, 1.0, 1, "w2:out_of_range", 7.0],
+        [3, 3.0, 0.5, 2, "", 6.5]]
+    assert rows(t.training_cost) == [[0, 1.0, 0.0, 10.0], [1, 1.5, 0.5, 8.0], [2, 2.0, 1.0, 7.0], [3, 3.0, 2.0, 6.5]]
+    s = t.summary
+    assert (s["iterations"], s["mean_iteration_s"], s["compute_span_s"], s["iterations_per_min"]) == (4, 0.625, 2.5,
+                                                                                                        96.0)
+    assert s["p95_iteration_s"] == pytest.approx(0.925)
+    assert s["absent_iterations"] == {"w2": 1} and s["failed_probes"] == 1
+    assert s["range_above_threshold_m"] == 10.0, "bins up to 8-10 m stay above 1 Mbit/s; 20-22 m is at 0"
+    assert t.missing == [] and t.problems == []
+
+
+def test_analyze_writes_tables_figures_and_a_report(tmp_path):
+    out = tmp_path / "out"
+    assert cli.main(["logs", "analyze", str(GOLDEN), "--out", str(out)]) == 0
+    for name in ("distances", "throughput", "throughput_by_distance", "iterations", "training_cost", "trajectories"):
+        assert (out / f"{name}.csv").stat().st_size > 0
+    report = (out / "report.md").read_text()
+    for figure in ("trajectories", "distances", "throughput_over_time", "throughput_vs_distance", "iteration_time",
+                   "training_cost"):
+        png = (out / f"{figure}.png").read_bytes()
+        assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+        assert f"]({figure}.png)" in report
+
+
+def test_damaged_and_missing_input_is_named_not_raised(tmp_path, caplog):
+    run = tmp_path / "run"
+    shutil.copytree(GOLDEN, run)
+    shutil.rmtree(run / "compute")
+    with open(run / "w1" / "agent.jsonl", "a") as f:
+        f.write('{"t_s": 1010.0, "kind": "telem')  # the agent was killed mid-record
+    (run / "w3").mkdir()
+    (run / "w3" / "agent.jsonl").write_text('{"t_s": 999.0, "kind": "agent_started", "role": "worker"}\n')
+    t = analyze_run(run)
+    assert any("w1/agent.jsonl: line 8: last record is incomplete" in p for p in t.problems)
+    assert "line 8" in caplog.text
+    assert "vehicle w3: no positions (no telemetry records and no autopilot log)" in t.missing
+    assert "compute: no iteration records (compute.jsonl)" in t.missing
+    report = (run / "analysis" / "report.md").read_text()
+    assert "vehicle w3: no positions" in report and "no compute iterations in this run" not in report
+    assert len(t.distances) == 4, "the intact records are all used"
+
+
+def test_an_empty_or_missing_directory_is_exit_2_with_a_sentence(tmp_path, capsys):
+    assert cli.main(["logs", "analyze", str(tmp_path)]) == 2
+    assert "no NAC logs here" in capsys.readouterr().err
+    assert cli.main(["logs", "analyze", str(tmp_path / "nope")]) == 2
+    assert "no such run directory" in capsys.readouterr().err
+
+
+def write_positions_tlog(path: Path, n: int, junk_every: int = 0) -> list[tuple]:
+    """A .tlog of n GLOBAL_POSITION_INT (with HEARTBEATs between) written through pymavlink's own encoder."""
+    mav = M.MAVLink(io.BytesIO(), srcSystem=3, srcComponent=1)
+    expected = []
+    with open(path, "wb") as f:
+        for k in range(n):
+            t_s = 1_700_000_000.0 + k * 0.1
+            lat, lon = 473977420 + 10 * k, 85455940 - 7 * k
+            for msg in (M.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3),
+                        M.MAVLink_global_position_int_message(100 * k, lat, lon, 500_000 + k, 10_000, 0, 0, 0, 0)):
+                f.write(struct.pack(">Q", int(t_s * 1e6)) + msg.pack(mav))
+            if junk_every and k % junk_every == 0:
+                f.write(b"\x00\x13garbage\xfd\x05")
+            expected.append((round(t_s, 6), lat / 1e7, lon / 1e7, (500_000 + k) / 1000))
+    return expected
+
+
+def test_tlogs_from_the_agent_and_from_pymavlink_give_the_same_positions(tmp_path):
+    expected = write_positions_tlog(tmp_path / "pymavlink.tlog", 50)
+    # the agent's writer: the same frames, its own stamps
+    frames = read_tlog(tmp_path / "pymavlink.tlog", wanted=("GLOBAL_POSITION_INT", "HEARTBEAT"))
+    writer = TlogWriter(tmp_path / "agent.tlog")
+    for t_s, msg in frames.messages:
+        writer.write(msg.get_msgbuf(), t_s)
+    writer.close()
+    for name in ("pymavlink.tlog", "agent.tlog"):
+        got, problems = tlog_positions(tmp_path / name, "uav3")
+        assert problems == []
+        assert [(round(r["t_s"], 6), r["lat_deg"], r["lon_deg"], r["alt_m"]) for r in got] == expected
+        assert {r["vehicle"] for r in got} == {"uav3"}
+
+
+def test_tlog_corruption_is_skipped_and_counted(tmp_path):
+    path = tmp_path / "damaged.tlog"
+    expected = write_positions_tlog(path, 40, junk_every=10)
+    data = bytearray(path.read_bytes())
+    data[300] ^= 0xFF  # one bit-flipped byte inside a frame: its checksum fails
+    path.write_bytes(bytes(data) + b"\x00\x00\x01")  # and a cut-off last record
+    read = read_tlog(path)
+    assert read.skipped_bytes == 4 * 11 and read.truncated_tail
+    assert read.bad_crc + len(read.messages) == 40 and read.bad_crc <= 1
+    assert len(read.problems) == 2 + (read.bad_crc > 0) and "corrupt bytes skipped" in read.problems[0]
+    got = {round(t, 6) for t, _ in read.messages}
+    assert got <= {e[0] for e in expected} and len(got) >= 39
+
+
+def test_dataflash_and_ulog_positions_on_unix_time(tmp_path):
+    boot = 1_700_000_000.25
+    samples = [(boot + 10 + 0.2 * k, 47.3977419 + 1e-5 * k, 8.5455938 - 1e-5 * k, 488.25 + k) for k in range(5)]
+    write_dataflash(tmp_path / "flight.bin", samples, boot)
+    write_ulog(tmp_path / "flight.ulg", samples, boot)
+    for reader, path in ((dataflash_positions, "flight.bin"), (ulog_positions, "flight.ulg")):
+        got, problems = reader(tmp_path / path, "uav1")
+        assert problems == []
+        assert len(got) == 5
+        for row, (t_s, lat, lon, alt) in zip(got, samples, strict=True):
+            assert row["t_s"] == pytest.approx(t_s, abs=1e-3)
+            assert (row["lat_deg"], row["lon_deg"]) == pytest.approx((lat, lon), abs=1e-7)
+            assert row["alt_m"] == pytest.approx(alt, abs=0.01)
+
+
+def test_a_vehicle_with_only_an_autopilot_log_gets_positions_from_it(tmp_path):
+    run, t0 = tmp_path / "run", 1_700_000_000.0
+    (run / "master").mkdir(parents=True)
+    (run / "w1").mkdir()
+    records = [{"t_s": t0, "kind": "agent_started", "role": "master"}] + [
+        {"t_s": t0 + k, "kind": "telemetry", "time_boot_ms": 1000 * k, "lat_deg": 47.0, "lon_deg": 8.0, "alt_m": 510}
+        for k in range(5)]
+    (run / "master" / "agent.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    write_dataflash(run / "w1" / "00000001.bin", [(t0 + k, 47.0, 8.0001 + 1e-5 * k, 510.0) for k in range(5)], t0 - 10)
+    t = analyze(read_run(run))
+    w1 = t.trajectories[t.trajectories["vehicle"] == "w1"]
+    assert len(w1) == 5 and w1["t_rel_s"].tolist() == [0.0, 1.0, 2.0, 3.0, 4.0]
+    assert np.allclose(np.diff(t.distances["distance_m"]), 0.7606, atol=1e-3), "1e-5 deg of longitude at 47 N"
+
+
+def test_log_distance_fit_recovers_the_model():
+    true = ChannelModel(name="truth", path_loss="log-distance", freq_mhz=2437.0, bandwidth_hz=20e6, tx_power_dbm=15,
+                        noise_w=PRESETS["wifi-flight"].noise_w, exponent=3.2, ref_loss_db=60.0)
+    rng = np.random.default_rng(1)
+    d = np.repeat([2.0, 5.0, 8.0, 11.0, 14.0, 17.0, 20.0, 23.0], 20)
+    rate = np.array([true.capacity_bps(x) for x in d]) * rng.uniform(0.9, 1.1, len(d))
+    fit = fit_log_distance(d, rate, true)
+    assert fit["exponent"] == pytest.approx(3.2, rel=0.05) and fit["ref_loss_db"] == pytest.approx(60.0, abs=1.5)
+    with pytest.raises(CalibrationError, match="3 or more distances"):
+        fit_log_distance([5.0, 5.0, 5.0], [1e6, 1e6, 1e6], true)
