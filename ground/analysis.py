@@ -221,6 +221,8 @@ def summarize(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, probes: pd.
                        mean_throughput_mbps=float(probes["throughput_mbps"].mean()),
                        std_throughput_mbps=float(probes["throughput_mbps"].std(ddof=1)) if len(probes) > 1 else 0.0,
                        max_throughput_mbps=float(ok["throughput_mbps"].max()) if not ok.empty else 0.0,
+                       std_throughput_per_link_mbps={str(k): float(v) for k, v in probes.groupby("server")[
+                           "throughput_mbps"].std(ddof=1).fillna(0.0).items()},
                        threshold_mbps=threshold_mbps, range_above_threshold_m=range_m(bins, threshold_mbps))
     if not dist.empty:
         summary["max_distance_m"] = {w: float(d["distance_m"].max()) for w, d in dist.groupby("worker")}

@@ -22,7 +22,9 @@ SUMMARY_LABELS = {
     "compute_span_s": "compute time (s)", "first_cost": "first training cost", "final_cost": "final training cost",
     "absent_iterations": "absent iterations per worker", "absence_reasons": "absence reasons",
     "probes": "throughput probes", "failed_probes": "failed probes", "mean_throughput_mbps": "mean throughput (Mbit/s)",
-    "std_throughput_mbps": "throughput std (Mbit/s)", "max_throughput_mbps": "max throughput (Mbit/s)",
+    "std_throughput_mbps": "throughput std, all probes (Mbit/s)",
+    "std_throughput_per_link_mbps": "throughput std per link (Mbit/s)",
+    "max_throughput_mbps": "max throughput (Mbit/s)",
     "range_above_threshold_m": "largest distance with throughput above threshold (m)",
     "threshold_mbps": "throughput threshold (Mbit/s)", "max_distance_m": "largest master-worker distance (m)",
 }

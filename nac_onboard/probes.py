@@ -57,6 +57,9 @@ class ProbeScheduler:
         before = self.positions()
         fields: dict = {"client": self.self_id, "server": peer_id, "host": host, "port": port}
         distance_m = distance_between(before, self.self_id, peer_id)
+        if self.channel is not None and distance_m is None:
+            # no distance, no emulated link: nothing was measured, so it is not a failed probe either
+            return self.out.write("probe_skipped", **fields, reason="no position for one of the pair yet")
         rate_bps = s.rate_bps or None
         try:
             if self.channel is not None:
@@ -73,9 +76,7 @@ class ProbeScheduler:
         fields["distance_end_m"] = distance_between(after, self.self_id, peer_id)
         return self.out.write("throughput", **fields, **result)
 
-    def _emulated_rate_bps(self, distance_m: float | None, cap_bps: float | None) -> float:
-        if distance_m is None:
-            raise ProbeError("no position for one of the pair: the emulated link has no distance")
+    def _emulated_rate_bps(self, distance_m: float, cap_bps: float | None) -> float:
         capacity = self.channel.capacity_bps(distance_m)
         if capacity < self.channel.min_rate_bps:
             # a real probe would wait out its connect timeout; the path is idle for the probe's slot either way

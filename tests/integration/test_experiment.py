@@ -2,6 +2,7 @@
 its run directory is also what the log analysis and calibration are checked on (a real run, not a fixture)."""
 
 import dataclasses
+import io
 import os
 import signal
 import subprocess
@@ -29,7 +30,7 @@ TRUE_EXPONENT = 3.0
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
-def write_scenario(folder: Path, duration_s: float = 30.0) -> Path:
+def write_scenario(folder: Path, duration_s: float = 30.0, extra: str = "") -> Path:
     """Master hovering; w1 flies out from 5 m to 35 m at 2 m/s and w2 hovers 8 m away, over a log-distance
     channel of known exponent (TRUE_EXPONENT) with a small per-transfer overhead so iterations are quick."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -64,7 +65,7 @@ mission = "w1.plan"
 id = "w2"
 role = "worker"
 mission = "w2.plan"
-""")
+""" + extra)
     return folder / "short.toml"
 
 
@@ -143,6 +144,37 @@ def test_calibrate_recovers_the_channel_the_run_was_made_with(short_run, tmp_pat
     fitted = load_channel(str(preset))
     assert fitted.exponent == pytest.approx(TRUE_EXPONENT, rel=0.10)
     assert fitted.path_loss == "log-distance" and fitted.name == "calibrated-run"
+
+
+def test_scheduled_faults_happen_and_a_dead_worker_fails_the_run_with_its_records_kept(tmp_path):
+    faults = """
+[[fault]]
+at_s = 3.0
+vehicle = "w2"
+kind = "link_down"
+duration_s = 18.0  # 4.5 s wall-clock at 4x: longer than the agent's 3 s link timeout
+[[fault]]
+at_s = 25.0
+vehicle = "w1"
+kind = "kill_worker"
+"""
+    scenario = load_scenario(str(write_scenario(tmp_path / "scenario", extra=faults)))
+    console = io.StringIO()
+    os.environ.setdefault("NAC_DATA_DIR", str(SHARED_DATA))
+    experiment = Experiment(scenario, tmp_path / "run", 4.0, allocate_base_port(3, slots=5), out=console)
+    result = experiment.run()
+    assert result.outcome is Outcome.COMPUTE_FAILED and result.outcome.exit_code == 1, console.getvalue()
+    assert "mpiexec exited" in result.detail
+    text = console.getvalue()
+    assert "fault: link_down on for w2" in text and "fault: link_down off for w2" in text
+    assert "fault: kill_worker on for w1" in text
+    w2 = read_jsonl(result.run_dir / "w2" / "agent.jsonl")
+    assert w2.of_kind("link_lost") and w2.of_kind("link_restored"), "the agent saw its autopilot link go and return"
+    compute = read_jsonl(result.run_dir / "compute" / "compute.jsonl")
+    assert compute.problems == [] and len(compute.of_kind("iteration")) > 5, "the master's records are intact"
+    report = (result.run_dir / "report.md").read_text()
+    assert "ended: compute_failed" in report
+    assert not any(agent.alive() for agent in experiment.agents) and not experiment.sim.alive
 
 
 def test_ctrl_c_stops_everything_within_10_s_and_writes_a_partial_report(tmp_path):

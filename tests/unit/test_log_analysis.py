@@ -1,6 +1,7 @@
 """Log analysis on files (no processes): the golden run's known numbers, damaged input, the autopilot-log readers
 and the path-loss fit."""
 
+import copy
 import io
 import json
 import shutil
@@ -12,6 +13,7 @@ import pytest
 
 from ground import cli
 from ground.analysis import analyze
+from ground.findings import research_findings
 from ground.flightlogs import dataflash_positions, read_tlog, tlog_positions, ulog_positions
 from ground.report import CalibrationError, analyze_run, fit_log_distance
 from ground.runlog import read_run
@@ -178,3 +180,18 @@ def test_log_distance_fit_recovers_the_model():
     assert fit["exponent"] == pytest.approx(3.2, rel=0.05) and fit["ref_loss_db"] == pytest.approx(60.0, abs=1.5)
     with pytest.raises(CalibrationError, match="3 or more distances"):
         fit_log_distance([5.0, 5.0, 5.0], [1e6, 1e6, 1e6], true)
+
+
+def test_findings_state_whether_they_hold_with_their_numbers():
+    moving = analyze(read_run(GOLDEN))
+    static = copy.deepcopy(moving)
+    static.name = "static"
+    static.summary.update(std_throughput_per_link_mbps={"w1": 0.5}, iterations_per_min=120.0)
+    lines = research_findings(moving, static)
+    assert lines[0].startswith("Throughput falls with distance (golden-run): **holds**; correlation -0.8")
+    assert "**holds**; per-link standard deviation 21.60 Mbit/s (golden-run) vs 0.50 Mbit/s (static)" in lines[1]
+    assert "**holds**; 120.0 (static) vs 96.0 (golden-run)" in lines[2]
+    assert "**holds**; 1 iterations (2-2, from t=2 s wall-clock) ran without w2, cost 7.0000; all workers back " \
+           "from iteration 3" in lines[3]
+    static.summary["iterations_per_min"] = 50.0
+    assert "**does not hold**" in research_findings(moving, static)[2]

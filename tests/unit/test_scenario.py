@@ -1,0 +1,61 @@
+"""Scenario files: the shipped ones load and agree with their missions; bad ones are refused by name and key."""
+
+
+import pytest
+
+from nac_onboard.geo import distance_m
+from sitl import cli
+from sitl.scenario import SCENARIO_DIR, ScenarioError, load_scenario
+
+SHIPPED = sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
+
+
+def test_the_shipped_scenarios_load_with_the_research_geometry():
+    assert SHIPPED == ["paper-flight-moving", "paper-flight-static", "paper-sim-moving", "paper-sim-static",
+                       "range-sweep"]
+    scenarios = {name: load_scenario(name) for name in SHIPPED}
+    for s in scenarios.values():
+        assert s.master.role == "master" and s.workers
+        for v in s.vehicles:
+            first = v.mission.items[0]
+            assert first.command == 22, f"{s.name}/{v.id}: takes off where it stands"
+    def spacing(name):
+        s = scenarios[name]
+        home = s.master.home
+        return [round(distance_m(vars(home), vars(w.home)), 2) for w in s.workers]
+    assert spacing("paper-sim-static") == [9.43, 12.8, 17.0]
+    assert spacing("paper-flight-static") == [9.8, 8.9]
+    assert scenarios["paper-sim-moving"].compute.iterations == 40 and scenarios["paper-sim-moving"].compute.task == \
+        "matmul"
+    assert scenarios["paper-flight-moving"].compute.task == "linreg" and scenarios["range-sweep"].compute is None
+    speeds = [i.p2 for i in scenarios["paper-flight-moving"].workers[0].mission.items if i.command == 178]
+    assert speeds == [0.67]
+
+
+@pytest.mark.parametrize("text, message", [
+    ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n",
+     "needs one [[vehicle]] with role \"master\" and at least one worker"),
+    ("[[vehicle]]\nid = 'a'\nrole = 'master'\n", "missing key 'duration_s'"),
+    ("duration_s = 'long'\n", "duration_s must be float"),
+    ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'pilot'\n", "vehicle 1: role must be"),
+    ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nmission = 'nope.plan'\n", "vehicle 1 (a): "),
+    ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
+     "role = 'worker'\nhome = [47, 8, 500]\n[channel]\npreset = 'tin-can'\n", "[channel] channel 'tin-can'"),
+    ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
+     "role = 'worker'\nhome = [47, 8, 500]\n[[fault]]\nat_s = 5\nvehicle = 'c'\nkind = 'link_down'\n",
+     "fault 1: no vehicle 'c'"),
+    ("duration_s = 10\n[compute\n", "not valid TOML"),
+])
+def test_bad_scenarios_name_the_file_and_the_key(tmp_path, text, message):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(str(path))
+    assert str(path) in str(err.value) and message in str(err.value)
+
+
+def test_the_cli_refuses_bad_scenarios_and_speedups_with_exit_2(tmp_path, capsys):
+    assert cli.main(["experiment", str(tmp_path / "missing.toml")]) == 2
+    assert "no such scenario file, nor a shipped scenario (paper-flight-moving" in capsys.readouterr().err
+    assert cli.main(["experiment", "range-sweep", "--speedup", "5"]) == 2
+    assert "--speedup 5 is outside what this scenario allows (up to 1x" in capsys.readouterr().err
