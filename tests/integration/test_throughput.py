@@ -8,12 +8,17 @@ import shutil
 import statistics
 import subprocess
 import sys
+import threading
 from dataclasses import dataclass
 
 import pytest
 
+from nac_onboard.channel import PRESETS
+from nac_onboard.config import ThroughputSection
+from nac_onboard.flight_log import JsonlLog, read_jsonl
+from nac_onboard.probes import ProbeScheduler
 from nac_onboard.process import ReadyProcess
-from nac_onboard.throughput import BLOCK_BYTES
+from nac_onboard.throughput import BLOCK_BYTES, ThroughputServer
 from tests.conftest import free_port
 
 needs_iperf3 = pytest.mark.skipif(shutil.which("iperf3") is None, reason="iperf3 not installed (.ci/run installs it)")
@@ -155,3 +160,37 @@ def test_rate_limited_link_agrees_with_iperf3_within_10_percent(netns):
     result = compare("10.77.0.2", runs=3, duration_s=2, netns_client=a, netns_server=b)
     assert all(8e6 < bps < 10.5e6 for bps in result.iperf3_bps), "iperf3 sees the 10 Mbit/s shaping"
     assert abs(result.ratio - 1) < 0.10, result.describe(1e6, "Mbit/s")
+
+
+def test_emulated_probes_follow_the_channel_model_at_the_live_distance(tmp_path):
+    """SITL's probes: paced at the model's capacity for the pair's distance, failing beyond its range, skipped
+    (not failed) while a position is unknown."""
+    server = ThroughputServer("127.0.0.1", free_port()).start()
+    east_m = {"value": 10.0}
+
+    def positions():
+        peer = None if east_m["value"] is None else {"lat_deg": 47.0, "lon_deg": 8.0 + east_m["value"] / 75_840.0,
+                                                      "alt_m": 500.0}
+        return {"self": {"id": "m", "lat_deg": 47.0, "lon_deg": 8.0, "alt_m": 500.0},
+                "peers": {"w": peer} if peer else {}}
+
+    settings = ThroughputSection(probe=True, duration_s=0.5, interval_s=0.1, emulate_channel="wifi-flight")
+    try:
+        with JsonlLog(tmp_path / "throughput.jsonl") as out:
+            scheduler = ProbeScheduler(settings, "m", lambda: [], positions, out, threading.Event())
+            near = scheduler.probe_once("w", "127.0.0.1", server.port)
+            east_m["value"] = 30.0
+            far = scheduler.probe_once("w", "127.0.0.1", server.port)
+            east_m["value"] = None
+            unknown = scheduler.probe_once("w", "127.0.0.1", server.port)
+    finally:
+        server.stop()
+    wifi = PRESETS["wifi-flight"]
+    capacity = wifi.capacity_bps(near["distance_m"])
+    assert 9.9 < near["distance_m"] < 10.1 and near["emulated_rate_bps"] == capacity
+    measured = near["end"]["sum_received"]["bits_per_second"]
+    assert abs(measured - capacity) / capacity < 0.05, (measured, capacity)
+    assert far["error"].startswith("out of range: wifi-flight gives") and far["distance_m"] > 29
+    assert unknown["kind"] == "probe_skipped"
+    kinds = [r["kind"] for r in read_jsonl(tmp_path / "throughput.jsonl").records]
+    assert kinds == ["throughput", "throughput", "probe_skipped"]
