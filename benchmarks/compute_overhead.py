@@ -1,9 +1,10 @@
 """Iterations per second of `nac-onboard compute --task linreg --emulate none` with 2 and 4 workers on this
 machine, against a bare mpi4py loop that sends the same messages (the same header + weights down, the same
 header + gradient up, blocking Send/Recv, no records, no timeouts), in the same run, alternating.
-Targets: ratio >= 0.8, and >= 1000 iterations/s with 2 workers. Ranks pinned to cores (-bind-to core).
+Targets: ratio >= 0.8, and >= 1000 iterations/s with 2 workers. Ranks pinned as `core_binding` says (with more
+ranks than cores: the master alone on core 0), the same for both programs; `--bind` overrides.
 
-    python benchmarks/compute_overhead.py [--iterations 3000] [--repeats 3] [--workers 2 4]
+    python benchmarks/compute_overhead.py [--iterations 3000] [--repeats 11] [--workers 2 4]
     (with --bare-loop, this file is the bare loop itself, run by mpiexec)
 """
 
@@ -21,7 +22,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from nac_onboard.compute_config import core_binding  # noqa: E402
+
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
+BIND = ""  # --bind: an mpiexec -bind-to value for both programs (default: nac_onboard's core_binding)
 
 
 def bare_loop(iterations: int) -> None:
@@ -65,7 +69,8 @@ def bare_loop(iterations: int) -> None:
 
 
 def run(ranks: int, args: list[str], env: dict) -> subprocess.CompletedProcess:
-    command = [str(MPIEXEC), "-n", str(ranks), "-bind-to", "core", sys.executable, "-m", "mpi4py", *args]
+    command = [str(MPIEXEC), "-n", str(ranks), "-bind-to", BIND or core_binding(ranks), sys.executable, "-m", "mpi4py",
+               *args]
     result = subprocess.run(command, capture_output=True, text=True, timeout=600, env=env, cwd=ROOT)
     if result.returncode != 0:
         raise SystemExit(f"{' '.join(command)} failed: {result.stderr}")
@@ -86,10 +91,13 @@ def measure(workers: int, iterations: int, env: dict) -> tuple[float, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--iterations", type=int, default=3000)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=11)
     parser.add_argument("--workers", type=int, nargs="+", default=[2, 4])
+    parser.add_argument("--bind", default="", help="mpiexec -bind-to value (default: core_binding(ranks))")
     parser.add_argument("--bare-loop", action="store_true")
     args = parser.parse_args()
+    global BIND
+    BIND = args.bind
     if args.bare_loop:
         bare_loop(args.iterations)
         return
@@ -97,9 +105,11 @@ def main() -> None:
     env.setdefault("NAC_DATA_DIR", str(ROOT.parent / "shared" / "data"))
     for workers in args.workers:
         ours, bare = zip(*(measure(workers, args.iterations, env) for _ in range(args.repeats)), strict=True)
-        ratio = statistics.median(o / b for o, b in zip(ours, bare, strict=True))
+        ratios = [o / b for o, b in zip(ours, bare, strict=True)]
+        low, mid, high = statistics.quantiles(ratios, n=4) if len(ratios) > 1 else (ratios[0],) * 3
         print(f"{workers} workers: nac compute {statistics.median(ours):7.0f} it/s, bare mpi4py loop "
-              f"{statistics.median(bare):7.0f} it/s, ratio {ratio:.2f} (median of {args.repeats})")
+              f"{statistics.median(bare):7.0f} it/s, ratio {statistics.median(ratios):.2f} (median of "
+              f"{args.repeats} alternating pairs; quartiles {low:.2f}-{high:.2f})")
 
 
 if __name__ == "__main__":

@@ -19,6 +19,7 @@ from __future__ import annotations
 import os
 import sys
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -72,15 +73,18 @@ class Inbox:
     def receive(self, deadline: float, source: int | None = None):
         """(source, message) of the next message (from `source` only, if given), or (None, None) at the deadline."""
         requests = self.requests if source is None else [self.requests[self.sources.index(source)]]
-        poller = _Poller()
+        testany, undefined, status = self.mpi.Request.Testany, self.mpi.UNDEFINED, self.status
+        poller = None  # made on the first miss: a message already there costs no clock reads
         while True:
-            index, done = self.mpi.Request.Testany(requests, self.status)
-            if done and index != self.mpi.UNDEFINED:
+            index, done = testany(requests, status)
+            if done and index != undefined:
                 k = index if source is None else self.sources.index(source)
-                message = self.buffers[k][:self.status.Get_count(self.mpi.DOUBLE)].copy()
+                message = self.buffers[k][:status.Get_count(self.mpi.DOUBLE)].copy()
                 self.requests[k] = self._post(k)
                 return self.sources[k], message
-            if time.monotonic() >= deadline:
+            if poller is None:
+                poller = _Poller()
+            elif time.monotonic() >= deadline:
                 return None, None
             poller.pause()
 
@@ -123,12 +127,13 @@ def run_worker(comm, mpi, options: ComputeOptions) -> None:
         x_shard, y_shard = x[start:stop], y[start:stop]
     inbox = Inbox(comm, mpi, [0], TAG_WORK, largest_input(options, bounds))
     channel = options.channel_model()
+    answers = {}  # reused answer buffers by result size: no allocation per iteration
     while True:
         _, message = inbox.receive(time.monotonic() + options.idle_timeout_s)
         if message is None:
             sys.stderr.write(f"worker {rank}: nothing from the master for {options.idle_timeout_s:g} s; aborting\n")
             comm.Abort(3)
-        kind, iteration, rate_bps, extra_rows = message[:HEADER]
+        kind, iteration, rate_bps, extra_rows = message[:HEADER].tolist()  # Python floats: cheaper to test
         if kind == KIND_STOP:
             inbox.close()
             return
@@ -153,7 +158,11 @@ def run_worker(comm, mpi, options: ComputeOptions) -> None:
         up_s = channel.transfer_s(result.size * BITS_PER_FLOAT, rate_bps)
         if up_s:
             time.sleep(up_s)
-        answer = np.concatenate([[iteration, compute_s, up_s, rows, sse], result])
+        answer = answers.get(result.size)
+        if answer is None:
+            answer = answers[result.size] = np.empty(RESULT_HEADER + result.size)
+        answer[:RESULT_HEADER] = (iteration, compute_s, up_s, rows, sse)
+        answer[RESULT_HEADER:] = result
         comm.Send([answer, mpi.DOUBLE], dest=0, tag=TAG_RESULT)
 
 
@@ -183,6 +192,15 @@ class IterationLinks:
         return out
 
 
+@dataclass
+class Tally:
+    """What the run summary adds up over the iterations."""
+
+    absences: dict[int, int]  # rank -> iterations absent
+    durations: list[float] = field(default_factory=list)
+    complete: int = 0
+
+
 class Master:
     def __init__(self, comm, mpi, options: ComputeOptions, log: JsonlLog):
         self.comm, self.mpi, self.options, self.log = comm, mpi, options, log
@@ -192,7 +210,8 @@ class Master:
         self.channel = options.channel_model()
         self.stale_results = 0
         self.inbox: Inbox | None = None  # posted once the shards are known
-        self.pending: dict | None = None  # the last iteration's record, not yet written
+        self.pending: tuple | None = None  # the last iteration, not yet tallied and written
+        self.tally = Tally({r: 0 for r in self.workers})
         self.saved: dict[str, np.ndarray] = {}  # --save-results
 
     def link(self, distances: dict) -> IterationLinks:
@@ -283,7 +302,6 @@ class Master:
                        iterations=o.iterations, duration_s=o.duration_s, timeout_s=o.timeout_s,
                        on_missing=o.on_missing, allocation=o.allocation, pid=os.getpid())
         t_run = time.monotonic()
-        durations, complete_count, absences = [], 0, {r: 0 for r in self.workers}
         iteration, ended_by = 0, "iterations"
         while True:
             if o.iterations is not None and iteration >= o.iterations:
@@ -298,14 +316,7 @@ class Master:
                 record = self.matmul_iteration(iteration, present, links, t_start, matmul_state)
             else:
                 record = self.linreg_iteration(iteration, present, links, t_start, linreg_state)
-            complete_count += record["complete"]
-            t_end = time.monotonic()
-            for rank in self.workers:
-                absences[rank] += not links.present(rank)
-            durations.append(t_end - t_start)
-            self.pending = dict(iteration=iteration, start_s=start_unix, end_s=start_unix + t_end - t_start,
-                                duration_s=t_end - t_start, workers=links.record(self.workers, self.vehicles),
-                                **record)
+            self.pending = (iteration, start_unix, time.monotonic() - t_start, links, record)
             iteration += 1
         self.write_pending()
         for rank in self.workers:
@@ -315,21 +326,32 @@ class Master:
             self.saved["weights"] = linreg_state["w"]
         if o.save_results or o.task == "linreg":
             np.savez(os.path.join(o.out, "results.npz"), **self.saved)
-        d = np.array(durations) if durations else np.array([np.nan])
-        self.log.write("run_summary", task=o.task, iterations=iteration, complete_iterations=complete_count,
+        t = self.tally
+        d = np.array(t.durations) if t.durations else np.array([np.nan])
+        self.log.write("run_summary", task=o.task, iterations=iteration, complete_iterations=t.complete,
                        ended_by=ended_by, elapsed_s=time.monotonic() - t_run, mean_duration_s=float(np.mean(d)),
                        p95_duration_s=float(np.percentile(d, 95)), absent_iterations={str(r): n for r, n in
-                                                                                     absences.items()},
+                                                                                     t.absences.items()},
                        final_cost=linreg_state["cost"] if o.task == "linreg" else None,
                        stale_results=self.stale_results)
         return 0
 
     def write_pending(self) -> None:
-        """The previous iteration's record, written once this iteration's inputs are out: its encoding overlaps
-        the workers' computing. A crash still loses only the iteration in flight."""
-        if self.pending is not None:
-            self.log.write("iteration", t_s=self.pending["end_s"], **self.pending)
-            self.pending = None
+        """The previous iteration's bookkeeping and record, done once this iteration's inputs are out: it overlaps
+        the workers' computing instead of delaying the next inputs. A crash loses only the iteration in flight."""
+        if self.pending is None:
+            return
+        iteration, start_unix, duration_s, links, record = self.pending
+        self.pending = None
+        t = self.tally
+        t.durations.append(duration_s)
+        t.complete += record["complete"]
+        for rank, why in zip(self.workers, links.absent, strict=True):
+            if why is not None:
+                t.absences[rank] += 1
+        end_s = start_unix + duration_s
+        self.log.write("iteration", t_s=end_s, iteration=iteration, start_s=start_unix, end_s=end_s,
+                       duration_s=duration_s, workers=links.record(self.workers, self.vehicles), **record)
 
     def matmul_iteration(self, iteration: int, present: list[int], links: IterationLinks, t_start: float,
                          state: dict) -> dict:

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from missions.model import MavCmd
+from nac_onboard.compute_config import core_binding
 from nac_onboard.config import dump_toml
 from nac_onboard.mavlink_client import CommandError, LinkError, M, MissionError, VehicleClient
 from nac_onboard.process import AgentProcess, ChildStartError
@@ -118,7 +119,7 @@ def mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, wall_limit_s: f
     mpiexec = bin_dir / "mpiexec"
     ids = [scenario.master.id, *(w.id for w in scenario.workers)]
     stop = ["--iterations", str(c.iterations)] if c.iterations else ["--duration-s", f"{wall_limit_s:.3f}"]
-    return [str(mpiexec if mpiexec.exists() else "mpiexec"), "-n", str(len(ids)), "-bind-to", "core",
+    return [str(mpiexec if mpiexec.exists() else "mpiexec"), "-n", str(len(ids)), "-bind-to", core_binding(len(ids)),
             sys.executable, "-m", "mpi4py", "-m", "nac_onboard.compute", "--task", c.task, *stop,
             "--out", str(run_dir / "compute"), "--emulate", "sleep", "--channel", scenario.channel,
             "--positions", "feed", "--feed", f"127.0.0.1:{ports.feed()}", "--vehicles", ",".join(ids),

@@ -10,6 +10,7 @@ import pytest
 
 from nac_onboard import forestfires, kernels
 from nac_onboard.channel import PRESETS, ChannelError, ChannelModel, load_channel, save_channel
+from nac_onboard.compute_config import core_binding
 from nac_onboard.positions import ScriptedDistances
 from tests.conftest import SHARED_DATA
 
@@ -149,3 +150,10 @@ def test_scripted_distances_are_piecewise_constant():
     assert script.distances_m(49, 0.0) == {1: 10.0, 2: 10.0}
     assert script.distances_m(50, 0.0)[2] == 40.0 and script.distances_m(79, 0.0)[2] == 40.0
     assert script.distances_m(80, 0.0)[2] == 10.0
+
+
+def test_core_binding_gives_the_master_its_own_core_when_ranks_share_cores():
+    assert core_binding(2, cores=2) == "core" and core_binding(3, cores=4) == "core"
+    assert core_binding(3, cores=2) == "user:0,1,1"
+    assert core_binding(5, cores=3) == "user:0,1,2,1,2"
+    assert core_binding(4, cores=1) == "core"
