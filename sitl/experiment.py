@@ -28,7 +28,7 @@ from nac_onboard.mavlink_client import CommandError, LinkError, M, MissionError,
 from nac_onboard.process import AgentProcess, ChildStartError
 from sitl.progress import Progress, follow, render_progress
 from sitl.scenario import Fault, Scenario
-from sitl.server import Sitl, SitlConfig
+from sitl.server import Sitl, SitlConfig, SitlError
 
 log = logging.getLogger(__name__)
 CLIENT_ERRORS = (OSError, LinkError, CommandError, MissionError)
@@ -43,6 +43,7 @@ class Outcome(enum.Enum):
     AGENT_FAILED = (1, "an agent failed")
     MISSION_FAILED = (1, "a mission could not be started")
     SITL_FAILED = (1, "the simulator stopped")
+    BAD_INPUT = (2, "the experiment cannot start")
 
     @property
     def exit_code(self) -> int:
@@ -152,6 +153,7 @@ class Experiment:
                            speedup=self.speedup, speedup_note=self._speedup_note(), duration_s=self.scenario.duration_s,
                            vehicles=[{"id": v.id, "role": v.role} for v in self.scenario.vehicles])
         try:
+            self._preflight()
             self._start()
             self._fly()
         except ExperimentError as err:
@@ -178,13 +180,26 @@ class Experiment:
         with open(self.run_dir / "experiment.json", "a") as f:
             f.write(json.dumps({"t_s": time.time(), "kind": kind, **fields}) + "\n")
 
+    def _preflight(self) -> None:
+        """What would only fail minutes later (the MPI job's data) is checked before anything starts."""
+        if self.scenario.compute and self.scenario.compute.task == "linreg":
+            from nac_onboard.forestfires import DataError, find_csv
+
+            try:
+                find_csv(None)
+            except DataError as err:
+                raise ExperimentError(Outcome.BAD_INPUT, str(err)) from None
+
     def _start(self) -> None:
         s = self.scenario
         config = SitlConfig(vehicles=len(s.vehicles), speedup=self.speedup,
                             vehicle_homes=tuple(v.home for v in s.vehicles),
                             gcs_base_port=self.ports.gcs(0), companion_base_port=self.ports.companion(0),
                             tcp_base_port=0, port_step=PORTS_PER_VEHICLE)
-        self.sim = Sitl(config)
+        try:
+            self.sim = Sitl(config)
+        except (SitlError, OSError) as err:  # e.g. a base port already taken
+            raise ExperimentError(Outcome.SITL_FAILED, f"cannot start the simulator: {err}") from None
         self.sim.step_observers.extend(self.step_observers)
         self.sim.start()
         config_dir = self.run_dir / "config"

@@ -155,6 +155,11 @@ def load_scenario(name_or_path: str) -> Scenario:
         faults=tuple(_fault(f, ids, f"{where}: fault {k + 1}") for k, f in enumerate(data.get("fault", []))),
         max_speedup=float(speedup), default_speedup=float(data.get("default_speedup", 1.0)),
         notes=tuple(data.get("notes", [])))
+    for k, fault in enumerate(scenario.faults):
+        if fault.kind == "kill_worker" and (scenario.compute is None or fault.vehicle not in
+                                            [w.id for w in scenario.workers]):
+            raise ScenarioError(f"{where}: fault {k + 1}: kill_worker needs a worker of the MPI job ([compute]), "
+                                f"got {fault.vehicle!r}")
     if not 0 < scenario.default_speedup <= scenario.max_speedup:
         raise ScenarioError(f"{where}: default_speedup must be within (0, max_speedup]")
     return scenario

@@ -5,6 +5,7 @@ import dataclasses
 import io
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -234,3 +235,21 @@ def status_of(pid: int) -> str:
         return Path(f"/proc/{pid}/stat").read_text().split()[2]
     except OSError:
         return "Z"
+
+
+def test_a_taken_port_or_missing_data_fails_the_run_with_a_sentence(tmp_path, monkeypatch):
+    scenario = load_scenario(str(write_scenario(tmp_path / "scenario")))
+    base = allocate_base_port(3, slots=5)
+    monkeypatch.setenv("NAC_DATA_DIR", str(SHARED_DATA))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as squatter:
+        squatter.bind(("127.0.0.1", base + 2))  # where the master's agent listens for its peers
+        result = Experiment(scenario, tmp_path / "run", 4.0, base, out=io.StringIO()).run()
+    assert result.outcome is Outcome.AGENT_FAILED and result.outcome.exit_code == 1
+    assert "master: " in result.detail and str(base + 2) in result.detail, result.detail
+
+    monkeypatch.setenv("NAC_DATA_DIR", str(tmp_path / "empty"))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    t0 = time.monotonic()
+    result = Experiment(scenario, tmp_path / "run2", 4.0, base, out=io.StringIO()).run()
+    assert result.outcome is Outcome.BAD_INPUT and result.outcome.exit_code == 2
+    assert "Forest Fires CSV not found" in result.detail and time.monotonic() - t0 < 5.0

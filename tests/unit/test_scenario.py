@@ -44,6 +44,9 @@ def test_the_shipped_scenarios_load_with_the_research_geometry():
     ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
      "role = 'worker'\nhome = [47, 8, 500]\n[[fault]]\nat_s = 5\nvehicle = 'c'\nkind = 'link_down'\n",
      "fault 1: no vehicle 'c'"),
+    ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
+     "role = 'worker'\nhome = [47, 8, 500]\n[[fault]]\nat_s = 5\nvehicle = 'a'\nkind = 'kill_worker'\n",
+     "fault 1: kill_worker needs a worker of the MPI job"),
     ("duration_s = 10\n[compute\n", "not valid TOML"),
 ])
 def test_bad_scenarios_name_the_file_and_the_key(tmp_path, text, message):
