@@ -15,20 +15,11 @@ import numpy as np
 import pandas as pd
 
 from ground.runlog import RunLog
+from nac_onboard.geo import ecef_array_m
 
-_A_M, _F = 6378137.0, 1.0 / 298.257223563
-_E2 = _F * (2.0 - _F)
 MAX_GAP_S = 2.0  # no interpolation across a longer silence: that is a lost link, not a straight flight
 DEFAULT_BIN_M = 2.0
 DEFAULT_THRESHOLD_MBPS = 1.0
-
-
-def ecef_m(lat_deg, lon_deg, alt_m) -> np.ndarray:
-    lat, lon = np.radians(np.asarray(lat_deg, float)), np.radians(np.asarray(lon_deg, float))
-    alt = np.asarray(alt_m, float)
-    n = _A_M / np.sqrt(1.0 - _E2 * np.sin(lat) ** 2)
-    return np.stack([(n + alt) * np.cos(lat) * np.cos(lon), (n + alt) * np.cos(lat) * np.sin(lon),
-                     (n * (1.0 - _E2) + alt) * np.sin(lat)], axis=-1)
 
 
 def enu_m(ecef: np.ndarray, origin_lat_deg: float, origin_lon_deg: float, origin_ecef: np.ndarray) -> np.ndarray:
@@ -89,9 +80,9 @@ def trajectories(run: RunLog, t0_s: float) -> pd.DataFrame:
         rows = rows.assign(t_s=sample_times(rows.reset_index(drop=True)).to_numpy())
         frames.append(rows)
     table = pd.concat(frames, ignore_index=True)
-    ecef = ecef_m(table["lat_deg"], table["lon_deg"], table["alt_m"])
+    ecef = ecef_array_m(table["lat_deg"], table["lon_deg"], table["alt_m"])
     first = table.iloc[0]
-    local = enu_m(ecef, first["lat_deg"], first["lon_deg"], ecef_m(first["lat_deg"], first["lon_deg"],
+    local = enu_m(ecef, first["lat_deg"], first["lon_deg"], ecef_array_m(first["lat_deg"], first["lon_deg"],
                                                                    first["alt_m"]))
     table = table.assign(t_rel_s=table["t_s"] - t0_s, east_m=local[:, 0], north_m=local[:, 1], up_m=local[:, 2])
     return table[columns].reset_index(drop=True)
@@ -100,14 +91,14 @@ def trajectories(run: RunLog, t0_s: float) -> pd.DataFrame:
 def interpolate_positions(track: pd.DataFrame, times_s: np.ndarray) -> np.ndarray:
     """ECEF positions of one vehicle at times_s, NaN outside its samples or across gaps > MAX_GAP_S."""
     t = track["t_s"].to_numpy()
-    ecef = ecef_m(track["lat_deg"], track["lon_deg"], track["alt_m"])
+    ecef = ecef_array_m(track["lat_deg"], track["lon_deg"], track["alt_m"])
     out = np.stack([np.interp(times_s, t, ecef[:, k]) for k in range(3)], axis=-1)
-    after = np.searchsorted(t, times_s, side="left")
-    inside = (after > 0) & (after < len(t)) | np.isin(times_s, t)
+    within = (times_s >= t[0]) & (times_s <= t[-1])
+    after = np.searchsorted(t, times_s, side="left")  # the first sample at or after each time
+    between = (after > 0) & (after < len(t))
     gap = np.zeros(len(times_s), bool)
-    ok = (after > 0) & (after < len(t))
-    gap[ok] = (t[after[ok]] - t[after[ok] - 1]) > MAX_GAP_S
-    out[~inside | gap] = np.nan
+    gap[between] = (t[after[between]] - t[after[between] - 1]) > MAX_GAP_S
+    out[~within | gap] = np.nan
     return out
 
 
@@ -117,7 +108,7 @@ def distances(traj: pd.DataFrame, master: str | None, t0_s: float) -> pd.DataFra
         return pd.DataFrame(columns=columns)
     m = traj[traj["vehicle"] == master]
     times = m["t_s"].to_numpy()
-    master_ecef = ecef_m(m["lat_deg"], m["lon_deg"], m["alt_m"])
+    master_ecef = ecef_array_m(m["lat_deg"], m["lon_deg"], m["alt_m"])
     frames = []
     for worker in sorted(set(traj["vehicle"]) - {master}):
         w_ecef = interpolate_positions(traj[traj["vehicle"] == worker], times)
@@ -231,9 +222,8 @@ def summarize(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, probes: pd.
 
 def analyze(run: RunLog, master: str | None = None, bin_m: float = DEFAULT_BIN_M,
             threshold_mbps: float = DEFAULT_THRESHOLD_MBPS) -> RunTables:
-    starts = [p["t_s"] for p in run.positions[:1]] + [r["start_s"] for r in run.iterations[:1]] + \
-        [r["t_s"] for r in run.probes[:1]] + [r["t_s"] for r in run.compute_runs[:1]]
-    starts += [min(p["t_s"] for p in run.positions)] if run.positions else []
+    starts = [min(p["t_s"] for p in run.positions)] if run.positions else []
+    starts += [r["start_s"] for r in run.iterations[:1]] + [r["t_s"] for r in run.probes[:1] + run.compute_runs[:1]]
     t0_s = float(min(starts)) if starts else 0.0
     master = run.master(master)
     traj = trajectories(run, t0_s)

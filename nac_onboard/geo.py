@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 _A_M = 6378137.0
 _F = 1.0 / 298.257223563
 _E2 = _F * (2.0 - _F)
@@ -14,6 +16,15 @@ def ecef_m(lat_deg: float, lon_deg: float, alt_m: float) -> tuple[float, float, 
     n = _A_M / math.sqrt(1.0 - _E2 * math.sin(lat) ** 2)
     return ((n + alt_m) * math.cos(lat) * math.cos(lon), (n + alt_m) * math.cos(lat) * math.sin(lon),
             (n * (1.0 - _E2) + alt_m) * math.sin(lat))
+
+
+def ecef_array_m(lat_deg, lon_deg, alt_m) -> np.ndarray:
+    """ecef_m over arrays (log analysis): (..., 3) metres."""
+    lat, lon = np.radians(np.asarray(lat_deg, float)), np.radians(np.asarray(lon_deg, float))
+    alt = np.asarray(alt_m, float)
+    n = _A_M / np.sqrt(1.0 - _E2 * np.sin(lat) ** 2)
+    return np.stack([(n + alt) * np.cos(lat) * np.cos(lon), (n + alt) * np.cos(lat) * np.sin(lon),
+                     (n * (1.0 - _E2) + alt) * np.sin(lat)], axis=-1)
 
 
 def distance_m(a: dict, b: dict) -> float | None:
