@@ -19,8 +19,6 @@ from ground.flightlogs import READERS, FlightLogError
 from nac_onboard.flight_log import read_jsonl
 
 log = logging.getLogger(__name__)
-EVENT_KINDS = ("link_lost", "link_restored", "mission_item_reached", "mode", "armed", "landed_state", "peer_seen",
-               "peer_lost", "statustext")
 
 
 class RunDirError(ValueError):
@@ -32,11 +30,9 @@ class RunLog:
     path: Path
     vehicles: dict[str, str] = field(default_factory=dict)  # id -> role ("master", "worker", "?")
     positions: list[dict] = field(default_factory=list)
-    events: list[dict] = field(default_factory=list)
     probes: list[dict] = field(default_factory=list)
     iterations: list[dict] = field(default_factory=list)
     compute_runs: list[dict] = field(default_factory=list)  # run_started records
-    compute_summaries: list[dict] = field(default_factory=list)
     experiment: dict | None = None  # the runner's experiment.json, when there is one
     problems: list[str] = field(default_factory=list)
     missing: list[str] = field(default_factory=list)
@@ -77,7 +73,6 @@ def read_run(path: str | Path) -> RunLog:
         _warn(run, read.problems)
         run.compute_runs += read.of_kind("run_started")
         run.iterations += read.of_kind("iteration")
-        run.compute_summaries += read.of_kind("run_summary")
     if not run.vehicles and not run.iterations:
         raise RunDirError(f"{path}: no NAC logs here (expected VEHICLE/agent.jsonl, autopilot logs or "
                           "compute.jsonl); is this a run directory?")
@@ -113,8 +108,6 @@ def _read_vehicle(run: RunLog, vehicle_dir: Path) -> None:
                                       "mission_seq": r.get("mission_seq")})
             elif kind == "agent_started":
                 role = r.get("role", role)
-            elif kind in EVENT_KINDS:
-                run.events.append({"vehicle": vehicle, **r})
     run.vehicles[vehicle] = role
     if telemetry == 0:
         for flight_log in flight_logs:  # the autopilot's own record when the agent logged no positions
