@@ -18,7 +18,7 @@ $(STAMP): pyproject.toml | $(BIN)/python
 
 demo: $(STAMP)
 	@test -f "$${NAC_DATA_DIR:-$(DATA_DIR)}/forestfires.csv" || $(BIN)/nac-onboard data fetch
-	NAC_DATA_DIR=$${NAC_DATA_DIR:-$(DATA_DIR)} $(BIN)/python -m sitl.demo
+	NAC_DATA_DIR=$${NAC_DATA_DIR:-$(DATA_DIR)} $(BIN)/python -m sitl.experiment.demo
 
 test: $(STAMP)
 	$(BIN)/ruff check .

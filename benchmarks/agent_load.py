@@ -22,10 +22,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from missions.model import MavCmd  # noqa: E402
-from nac_onboard.mavlink_client import VehicleClient  # noqa: E402
-from nac_onboard.process import AgentProcess  # noqa: E402
-from sitl.demo import waypoint_mission  # noqa: E402
-from sitl.process import SitlProcess  # noqa: E402
+from nac_onboard.child_process import AgentProcess  # noqa: E402
+from nac_onboard.mavlink.client import VehicleClient  # noqa: E402
+from sitl.experiment.demo import waypoint_mission  # noqa: E402
+from sitl.launcher import SitlProcess  # noqa: E402
 from sitl.server import SitlConfig  # noqa: E402
 from tests.conftest import allocate_base_port, free_port  # noqa: E402
 

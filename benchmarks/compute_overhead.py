@@ -22,7 +22,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from nac_onboard.compute_config import core_binding  # noqa: E402
+from nac_onboard.compute.options import core_binding  # noqa: E402
 
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
 BIND = ""  # --bind: an mpiexec -bind-to value for both programs (default: nac_onboard's core_binding)
@@ -32,7 +32,7 @@ def bare_loop(iterations: int) -> None:
     import numpy as np
     from mpi4py import MPI
 
-    from nac_onboard import forestfires, kernels
+    from nac_onboard.compute import forestfires, kernels
 
     comm = MPI.COMM_WORLD
     rank, workers = comm.Get_rank(), comm.Get_size() - 1

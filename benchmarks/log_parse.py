@@ -22,7 +22,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
-from ground.flightlogs import read_tlog  # noqa: E402
+from ground.logs.autopilot_logs import read_tlog  # noqa: E402
 
 
 def write_tlog(path: Path, messages: int) -> int:

@@ -18,10 +18,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from nac_onboard.mavlink_client import M, VehicleClient  # noqa: E402
-from sitl.demo import waypoint_mission  # noqa: E402
-from sitl.geodesy import Home  # noqa: E402
-from sitl.process import SitlProcess  # noqa: E402
+from missions.geo import Home  # noqa: E402
+from nac_onboard.mavlink.client import M, VehicleClient  # noqa: E402
+from sitl.experiment.demo import waypoint_mission  # noqa: E402
+from sitl.launcher import SitlProcess  # noqa: E402
 from sitl.server import SitlConfig  # noqa: E402
 
 HOME = Home(47.397742, 8.545594, 488.0)

@@ -21,7 +21,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from sitl.process import SitlProcess  # noqa: E402
+from sitl.launcher import SitlProcess  # noqa: E402
 from sitl.server import SitlConfig  # noqa: E402
 
 SYSTEM_TIME_ID = 2

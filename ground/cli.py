@@ -11,10 +11,10 @@ import argparse
 import sys
 from pathlib import Path
 
-from ground import operations as ops
+from ground.operator import commands as ops
 from missions import MissionFileError, load_mission
-from nac_onboard.mavlink_client import COPTER_MODES, DEFAULT_URI, CommandError, LinkError, MavlinkClient, MissionError
-from nac_onboard.signing import SigningKeyError, load_signing_key
+from nac_onboard.mavlink.client import COPTER_MODES, DEFAULT_URI, CommandError, LinkError, MavlinkClient, MissionError
+from nac_onboard.mavlink.signing import SigningKeyError, load_signing_key
 
 
 class UsageError(ValueError):
@@ -86,9 +86,9 @@ def _add_logs_parser(sub) -> None:
 
 
 def run_logs(args: argparse.Namespace, out=sys.stdout) -> int:
-    from ground import report  # pandas and matplotlib only for the commands that use them
-    from ground.runlog import RunDirError
-    from nac_onboard.channel import ChannelError
+    from ground.logs import report  # pandas and matplotlib only for the commands that use them
+    from ground.logs.runlog import RunDirError
+    from nac_onboard.link.channel import ChannelError
 
     try:
         return _run_logs(report, args, out)

@@ -19,8 +19,8 @@ import json
 import logging
 import sys
 
-from nac_onboard.config import ConfigError, load_agent_config
-from nac_onboard.throughput import DEFAULT_PORT
+from nac_onboard.agent.config import ConfigError, load_agent_config
+from nac_onboard.link.throughput import DEFAULT_PORT
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -66,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["compute"]:  # its own parser, shared with `python -m nac_onboard.compute`
-        from nac_onboard.compute import main as compute_main
+        from nac_onboard.compute.runner import main as compute_main
 
         return compute_main(argv[1:])
     args = build_parser().parse_args(argv)
@@ -79,13 +79,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "log":
             return log_check(args.files)
         if args.command == "data":
-            from nac_onboard import forestfires
+            from nac_onboard.compute import forestfires
 
             path = forestfires.fetch(args.url or forestfires.UCI_ARCHIVE_URL)
             print(f"stored {path} (sha256 {forestfires.CSV_SHA256})")
             return 0
         if args.command == "state":
-            from nac_onboard.state_feed import fetch_state
+            from nac_onboard.agent.state_feed import fetch_state
 
             print(json.dumps(fetch_state(args.feed), indent=2))
             return 0
@@ -101,8 +101,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def agent_command(args) -> int:
-    from nac_onboard.agent import run_agent
-    from nac_onboard.signing import SigningKeyError
+    from nac_onboard.agent.daemon import run_agent
+    from nac_onboard.mavlink.signing import SigningKeyError
 
     config = load_agent_config(args.config)
     if args.log_dir:
@@ -117,7 +117,7 @@ def agent_command(args) -> int:
 
 
 def throughput_command(args) -> int:
-    from nac_onboard.throughput import ThroughputServer, probe
+    from nac_onboard.link.throughput import ThroughputServer, probe
 
     if args.action == "server":
         try:

@@ -12,10 +12,10 @@ import sys
 import threading
 from pathlib import Path
 
-from nac_onboard.signing import SigningKeyError, load_signing_key
-from sitl.geodesy import Home
-from sitl.params import ParamError, parse_param_file
+from missions.geo import Home
+from nac_onboard.mavlink.signing import SigningKeyError, load_signing_key
 from sitl.server import Sitl, SitlConfig, SitlError
+from sitl.vehicle.params import ParamError, parse_param_file
 
 log = logging.getLogger(__name__)
 
@@ -129,8 +129,8 @@ def _wait(sim: Sitl, stop: threading.Event | None) -> None:
 
 
 def experiment(args: argparse.Namespace, out=sys.stdout) -> int:
-    from sitl.experiment import run_scenario
-    from sitl.scenario import ScenarioError, load_scenario
+    from sitl.experiment.runner import run_scenario
+    from sitl.experiment.scenario import ScenarioError, load_scenario
 
     try:
         scenario = load_scenario(args.scenario)

@@ -16,12 +16,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from sitl.flight import Check, CopterMode, Fleet
-from sitl.geodesy import Home, enu_to_lla, enu_to_lla_many, lla_to_enu, offset_home
-from sitl.mavlink_codec import new_parser, parse_datagram
-from sitl.params import ParamTable
-from sitl.physics import Motion, VehicleState, attitude_rad, gps_noise_m, step
-from sitl.vehicle_link import DEFAULT_INTERVALS_S, STREAM_IDS, VehicleLink
+from missions.geo import Home, enu_to_lla, enu_to_lla_many, lla_to_enu, offset_home
+from sitl.mavlink.codec import new_parser, parse_datagram
+from sitl.mavlink.vehicle_protocol import DEFAULT_INTERVALS_S, STREAM_IDS, VehicleLink
+from sitl.vehicle.flight import Check, CopterMode, Fleet
+from sitl.vehicle.params import ParamTable
+from sitl.vehicle.physics import Motion, VehicleState, attitude_rad, gps_noise_m, step
 
 log = logging.getLogger(__name__)
 

@@ -9,16 +9,15 @@ mission takes off where the vehicle stands and lands at its last point, so `nac-
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
-from missions import Frame, MavCmd, Mission, MissionItem, PlannedHome, load_mission, save_mission
+from missions import Mission, PlannedHome, load_mission, save_mission
+from missions.builder import Builder, offset
+from missions.geo import distance_m
 
 SITL_HOME = PlannedHome(47.397742, 8.545594, 488.0)
 SPACING_M = 5.0
 MAX_RANGE_M = 300.0  # every point stays this close to the flying vehicle's home
-WGS84_A_M = 6378137.0
-WGS84_E2 = 6.69437999014e-3
 HERE = Path(__file__).resolve().parent
 
 PAPER_SIM_ALT_M = 10.0
@@ -27,57 +26,12 @@ FLIGHT_TEST_SPEED_MPS = 0.67  # the paper's flight-test ground speed (1.5 mph)
 FLIGHT_TEST_HOLD_S = 60.0
 
 
-def offset(origin: PlannedHome, east_m: float, north_m: float) -> PlannedHome:
-    """A point east_m/north_m from origin on the local tangent plane (mm-exact at these distances)."""
-    s = math.sin(math.radians(origin.lat_deg))
-    w = math.sqrt(1.0 - WGS84_E2 * s * s)
-    meridian_m = WGS84_A_M * (1.0 - WGS84_E2) / w ** 3
-    normal_m = WGS84_A_M / w
-    lat = origin.lat_deg + math.degrees(north_m / meridian_m)
-    lon = origin.lon_deg + math.degrees(east_m / (normal_m * math.cos(math.radians(origin.lat_deg))))
-    return PlannedHome(round(lat, 8), round(lon, 8), origin.alt_m)  # 1e-8 deg ~ 1 mm: readable files
 
 
 def vehicle_home(i: int) -> PlannedHome:
     return offset(SITL_HOME, SPACING_M * i, 0.0)
 
 
-class Builder:
-    """Items numbered 1..n in the order added; NaN yaw means 'keep heading', as QGC writes it."""
-
-    def __init__(self, home: PlannedHome):
-        self.home, self.items = home, []
-
-    def _add(self, command: int, frame: int, *params: float, at: PlannedHome | None = None, alt_m: float = 0.0):
-        lat, lon = (at.lat_deg, at.lon_deg) if at else (0.0, 0.0)
-        p = [float(x) for x in (*params, 0.0, 0.0, 0.0, 0.0)[:4]]
-        self.items.append(MissionItem(len(self.items) + 1, command, frame, *p, lat_deg=lat, lon_deg=lon, alt_m=alt_m))
-
-    def takeoff(self, alt_m: float) -> Builder:
-        self._add(MavCmd.NAV_TAKEOFF, Frame.GLOBAL_RELATIVE_ALT, 0, 0, 0, math.nan, at=self.home, alt_m=alt_m)
-        return self
-
-    def speed(self, ground_speed_mps: float) -> Builder:
-        self._add(MavCmd.DO_CHANGE_SPEED, Frame.MISSION, 1, ground_speed_mps, -1, 0)  # type 1 = ground speed
-        return self
-
-    def waypoint(self, east_m: float, north_m: float, alt_m: float) -> Builder:
-        self._add(MavCmd.NAV_WAYPOINT, Frame.GLOBAL_RELATIVE_ALT, 0, 0, 0, math.nan,
-                  at=offset(self.home, east_m, north_m), alt_m=alt_m)
-        return self
-
-    def hold(self, east_m: float, north_m: float, alt_m: float, seconds: float) -> Builder:
-        self._add(MavCmd.NAV_LOITER_TIME, Frame.GLOBAL_RELATIVE_ALT, seconds, 0, 0, 0,
-                  at=offset(self.home, east_m, north_m), alt_m=alt_m)
-        return self
-
-    def land(self, east_m: float, north_m: float) -> Builder:
-        self._add(MavCmd.NAV_LAND, Frame.GLOBAL_RELATIVE_ALT, 0, 0, 0, math.nan,
-                  at=offset(self.home, east_m, north_m), alt_m=0.0)
-        return self
-
-    def mission(self) -> Mission:
-        return Mission(home=self.home, items=self.items)
 
 
 def leg(home: PlannedHome, alt_m: float, east_m: float, north_m: float) -> Mission:
@@ -112,10 +66,6 @@ def flight_test() -> dict[str, Mission]:
             "flight-test-worker2.plan": worker(2)}
 
 
-def distance_m(a: PlannedHome, b: PlannedHome) -> float:
-    north = math.radians(b.lat_deg - a.lat_deg) * WGS84_A_M
-    east = math.radians(b.lon_deg - a.lon_deg) * WGS84_A_M * math.cos(math.radians(a.lat_deg))
-    return math.hypot(east, north)
 
 
 def examples() -> dict[str, Mission]:
@@ -133,7 +83,8 @@ def write_examples(out_dir: Path = HERE) -> list[Path]:
         if not back.same_items_as(mission):
             raise RuntimeError(f"{path}: did not read back item for item")
         for item in back.items:
-            far_m = distance_m(back.home, PlannedHome(item.lat_deg, item.lon_deg, 0.0)) if item.lat_deg else 0.0
+            point = {"lat_deg": item.lat_deg, "lon_deg": item.lon_deg, "alt_m": back.home.alt_m}
+            far_m = distance_m(vars(back.home), point) if item.lat_deg else 0.0
             if far_m > MAX_RANGE_M:
                 raise RuntimeError(f"{path}: item {item.seq} is {far_m:.0f} m from home (limit {MAX_RANGE_M:g} m)")
         paths.append(path)

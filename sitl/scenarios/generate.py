@@ -10,7 +10,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from missions import Mission, PlannedHome
-from missions.examples.generate import FLIGHT_TEST_ALT_M, FLIGHT_TEST_SPEED_MPS, PAPER_SIM_ALT_M, Builder, offset
+from missions.builder import Builder, offset
+from missions.examples.generate import FLIGHT_TEST_ALT_M, FLIGHT_TEST_SPEED_MPS, PAPER_SIM_ALT_M
 from missions.files import load_mission, save_mission
 
 ORIGIN = PlannedHome(47.397742, 8.545594, 488.0)

@@ -7,7 +7,7 @@ tests/unit/test_log_analysis.py for the values it must give). Kept to show how t
 import json
 from pathlib import Path
 
-from sitl.geodesy import Home, enu_to_lla
+from missions.geo import Home, enu_to_lla
 
 HOME = Home(47.0, 8.0, 500.0)
 OUT = Path(__file__).parent / "golden-run"

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from nac_onboard.config import dump_toml
+from nac_onboard.agent.config import dump_toml
 from nac_onboard.flight_log import read_jsonl
 from tests.conftest import free_port
 

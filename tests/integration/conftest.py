@@ -46,7 +46,7 @@ def gcs_for():
 @pytest.fixture
 def start_agent(tmp_path):
     """Factory: `nac-onboard agent` child processes from config text, each stopped (SIGTERM) at the end."""
-    from nac_onboard.process import AgentProcess
+    from nac_onboard.child_process import AgentProcess
 
     started: list[AgentProcess] = []
 

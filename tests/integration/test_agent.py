@@ -10,14 +10,14 @@ from pathlib import Path
 import numpy as np
 from pymavlink import mavutil
 
+from missions.builder import waypoint_mission
+from missions.geo import lla_to_enu
 from missions.model import MavCmd
+from nac_onboard.agent.state_feed import fetch_state
 from nac_onboard.flight_log import read_jsonl
-from nac_onboard.mavlink_client import M
-from nac_onboard.state_feed import fetch_state
-from sitl.geodesy import lla_to_enu
+from nac_onboard.mavlink.client import M
 from tests.conftest import free_port
 from tests.integration.agents import agent_toml, kind, wait_for_record
-from tests.integration.gcs import waypoint_mission
 
 LEGS_M = [(12, 0), (12, 12), (0, 12)]
 
@@ -168,7 +168,7 @@ def test_two_agents_see_each_other_within_2_s_and_log_peer_lost(start_sitl, star
         peer = state["peers"].get("uav2", {})
         if peer.get("lat_deg") is not None and state["self"]["lat_deg"] is not None or time.monotonic() > deadline:
             break
-    from nac_onboard.state_feed import distance_between
+    from nac_onboard.agent.state_feed import distance_between
 
     assert abs(distance_between(state, "uav1", "uav2") - 7.0) < 0.05
     assert peer["role"] == "worker" and peer["age_s"] < 1.0 and not peer["lost"]

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nac_onboard import forestfires, kernels
-from nac_onboard.channel import PRESETS, save_channel
-from nac_onboard.compute import matmul_inputs
+from nac_onboard.compute import forestfires, kernels
+from nac_onboard.compute.runner import matmul_inputs
 from nac_onboard.flight_log import read_jsonl
+from nac_onboard.link.channel import PRESETS, save_channel
 from tests.conftest import SHARED_DATA
 
 MPIEXEC = Path(sys.executable).parent / "mpiexec"

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from nac_onboard.config import load_agent_config
+from nac_onboard.agent.config import load_agent_config
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 HOST_UNITS = Path("/usr/lib/systemd/system")

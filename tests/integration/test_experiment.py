@@ -18,11 +18,11 @@ import pytest
 
 from ground import cli as ground_cli
 from missions import save_mission
-from nac_onboard.channel import PRESETS, load_channel, save_channel
+from missions.geo import enu_to_lla, lla_to_ecef
 from nac_onboard.flight_log import read_jsonl
-from sitl.experiment import Experiment, Outcome
-from sitl.geodesy import enu_to_lla, lla_to_ecef
-from sitl.scenario import load_scenario
+from nac_onboard.link.channel import PRESETS, load_channel, save_channel
+from sitl.experiment.runner import Experiment, Outcome
+from sitl.experiment.scenario import load_scenario
 from sitl.scenarios.generate import at, hover, route
 from tests.conftest import SHARED_DATA, allocate_base_port
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from missions import load_mission
-from nac_onboard.signing import load_signing_key
+from nac_onboard.mavlink.signing import load_signing_key
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "missions" / "examples"
 SCENARIOS = {  # vehicle index -> example file, as missions/examples/README.md assigns them
@@ -126,7 +126,7 @@ def test_several_vehicles_through_one_link(start_sitl):
 
 
 def test_client_sets_the_current_item_and_reads_telemetry_state(start_sitl):
-    from nac_onboard.mavlink_client import CommandError, MavlinkClient
+    from nac_onboard.mavlink.client import CommandError, MavlinkClient
 
     sim = start_sitl(speedup=5.0)
     with MavlinkClient(link(sim, 0)) as client:

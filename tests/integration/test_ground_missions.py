@@ -6,8 +6,8 @@ import sys
 
 import pytest
 
+from missions.builder import waypoint_mission
 from missions.model import MavCmd
-from tests.integration.gcs import waypoint_mission
 
 HOME = [47.397742, 8.545594, 488.0]
 

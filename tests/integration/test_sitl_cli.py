@@ -4,7 +4,7 @@ import subprocess
 import sys
 
 from missions.model import MavCmd
-from sitl.process import SitlProcess
+from sitl.launcher import SitlProcess
 from sitl.server import SitlConfig
 from tests.integration.gcs import Gcs
 

@@ -12,7 +12,7 @@ from mavsdk.plugins.action import Action, ActionResult  # noqa: E402
 from mavsdk.plugins.mission_raw import MissionItem, MissionRaw, MissionRawResult  # noqa: E402
 from mavsdk.plugins.telemetry import LandedState, Telemetry  # noqa: E402
 
-from sitl.geodesy import enu_to_lla  # noqa: E402
+from missions.geo import enu_to_lla  # noqa: E402
 
 
 def call(start_async, timeout_s: float):

@@ -4,9 +4,10 @@ import threading
 
 import numpy as np
 
+from missions.builder import waypoint_mission
+from missions.geo import lla_to_enu
 from missions.model import MavCmd
-from sitl.geodesy import lla_to_enu
-from tests.integration.gcs import M, waypoint_mission
+from tests.integration.gcs import M
 
 LEGS_M = [
     [(15, 10), (30, 0), (20, -15), (0, -20), (-10, 0)],

@@ -3,8 +3,9 @@
 import math
 import time
 
+from missions.builder import waypoint_mission
 from missions.model import Frame, MavCmd, MissionItem
-from tests.integration.gcs import M, waypoint_mission
+from tests.integration.gcs import M
 
 
 def long_mission(sim, n_items: int) -> list[MissionItem]:
@@ -189,7 +190,7 @@ def test_messages_for_another_system_are_ignored(start_sitl, gcs_for):
 
 
 def test_guided_goto_by_position_target_and_reposition(start_sitl, gcs_for):
-    from sitl.geodesy import offset_home
+    from missions.geo import offset_home
     from tests.integration.gcs import take_off
 
     sim = start_sitl(speedup=20.0)

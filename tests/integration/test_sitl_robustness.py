@@ -4,7 +4,7 @@ import random
 import socket
 
 from missions.model import MavCmd
-from sitl.mavlink_codec import mavlink
+from sitl.mavlink.codec import mavlink
 from tests.integration.gcs import M, take_off
 
 INT_RANGES = {"int8_t": (-128, 127), "uint8_t": (0, 255), "int16_t": (-32768, 32767), "uint16_t": (0, 65535),

@@ -1,7 +1,7 @@
 """MAVLink 2 signing: with a key, the vehicle signs what it sends and refuses unsigned or wrongly signed input."""
 
 from missions.model import MavCmd
-from nac_onboard.signing import load_signing_key
+from nac_onboard.mavlink.signing import load_signing_key
 from tests.integration.gcs import Gcs, M
 
 

@@ -13,12 +13,12 @@ from dataclasses import dataclass
 
 import pytest
 
-from nac_onboard.channel import PRESETS
-from nac_onboard.config import ThroughputSection
+from nac_onboard.agent.config import ThroughputSection
+from nac_onboard.agent.probes import ProbeScheduler
+from nac_onboard.child_process import ReadyProcess
 from nac_onboard.flight_log import JsonlLog, read_jsonl
-from nac_onboard.probes import ProbeScheduler
-from nac_onboard.process import ReadyProcess
-from nac_onboard.throughput import BLOCK_BYTES, ThroughputServer
+from nac_onboard.link.channel import PRESETS
+from nac_onboard.link.throughput import BLOCK_BYTES, ThroughputServer
 from tests.conftest import free_port
 
 needs_iperf3 = pytest.mark.skipif(shutil.which("iperf3") is None, reason="iperf3 not installed (.ci/run installs it)")

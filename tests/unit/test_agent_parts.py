@@ -7,13 +7,12 @@ import struct
 
 import pytest
 
-from nac_onboard.config import ConfigError, load_agent_config, parse_agent_config
+from missions.geo import Home, distance_m, enu_to_lla
+from nac_onboard.agent.config import ConfigError, load_agent_config, parse_agent_config
+from nac_onboard.agent.peers import PeerMessageError, PeerState, PeerTable, decode_peer_state, encode_peer_state
+from nac_onboard.agent.state_feed import distance_between
+from nac_onboard.agent.systemd_notify import SystemdNotifier
 from nac_onboard.flight_log import JsonlLog, TlogWriter, read_jsonl
-from nac_onboard.geo import distance_m
-from nac_onboard.peers import PeerMessageError, PeerState, PeerTable, decode_peer_state, encode_peer_state
-from nac_onboard.state_feed import distance_between
-from nac_onboard.systemd_notify import SystemdNotifier
-from sitl.geodesy import Home, enu_to_lla
 
 MINIMAL = {"vehicle": {"id": "uav1", "role": "worker"}}
 

@@ -8,10 +8,10 @@ import zipfile
 import numpy as np
 import pytest
 
-from nac_onboard import forestfires, kernels
-from nac_onboard.channel import PRESETS, ChannelError, ChannelModel, load_channel, save_channel
-from nac_onboard.compute_config import core_binding
-from nac_onboard.positions import ScriptedDistances
+from nac_onboard.compute import forestfires, kernels
+from nac_onboard.compute.options import core_binding
+from nac_onboard.compute.positions import ScriptedDistances
+from nac_onboard.link.channel import PRESETS, ChannelError, ChannelModel, load_channel, save_channel
 from tests.conftest import SHARED_DATA
 
 CSV = SHARED_DATA / "forestfires.csv"

@@ -2,11 +2,11 @@
 
 import numpy as np
 
+from missions.geo import Home, enu_to_lla
 from missions.model import Frame, MavCmd, MissionItem
-from sitl.flight import Check, CopterMode, Fleet, MissionState, Result
-from sitl.geodesy import Home, enu_to_lla
-from sitl.params import ParamTable
-from sitl.physics import VehicleState, step
+from sitl.vehicle.flight import Check, CopterMode, Fleet, MissionState, Result
+from sitl.vehicle.params import ParamTable
+from sitl.vehicle.physics import VehicleState, step
 
 HOME = Home(47.397742, 8.545594, 488.0)
 

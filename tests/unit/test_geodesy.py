@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from sitl.geodesy import WGS84_A_M, WGS84_F, Home, enu_to_lla, lla_to_enu, offset_home
+from missions.geo import WGS84_A_M, WGS84_F, Home, enu_to_lla, lla_to_enu, offset_home
 
 
 def vincenty_distance_m(lat1, lon1, lat2, lon2):

@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 
 from ground import cli
-from ground.analysis import analyze
-from ground.findings import research_findings
-from ground.flightlogs import dataflash_positions, read_tlog, tlog_positions, ulog_positions
-from ground.report import CalibrationError, analyze_run, fit_log_distance
-from ground.runlog import read_run
-from nac_onboard.channel import PRESETS, ChannelModel
+from ground.logs.analysis import analyze
+from ground.logs.autopilot_logs import dataflash_positions, read_tlog, tlog_positions, ulog_positions
+from ground.logs.findings import research_findings
+from ground.logs.report import CalibrationError, analyze_run, fit_log_distance
+from ground.logs.runlog import read_run
 from nac_onboard.flight_log import TlogWriter
-from nac_onboard.mavlink_client import M
+from nac_onboard.link.channel import PRESETS, ChannelModel
+from nac_onboard.mavlink.client import M
 from tests.logfiles import write_dataflash, write_ulog
 
 GOLDEN = Path(__file__).parents[1] / "data" / "golden-run"

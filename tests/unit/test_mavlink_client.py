@@ -1,6 +1,6 @@
 import pytest
 
-from nac_onboard.mavlink_client import LinkError, mavutil_device
+from nac_onboard.mavlink.client import LinkError, mavutil_device
 
 
 def test_uris_map_to_pymavlink_devices():
@@ -18,7 +18,7 @@ def test_bad_uris_are_explained(uri):
 def test_frames_are_split_without_decoding_and_garbage_is_skipped():
     from pymavlink.dialects.v20 import all as dialect
 
-    from nac_onboard.mavframes import frame_msgid, frame_source, split_frames
+    from nac_onboard.mavlink.frames import frame_msgid, frame_source, split_frames
 
     mav = dialect.MAVLink(None, srcSystem=7, srcComponent=1)
     a = mav.heartbeat_encode(2, 3, 0, 0, 4).pack(mav)

@@ -1,4 +1,4 @@
-from sitl.mavlink_codec import FrameEncoder, mavlink, new_parser
+from sitl.mavlink.codec import FrameEncoder, mavlink, new_parser
 
 
 def test_fast_encoder_matches_pymavlink_byte_for_byte():

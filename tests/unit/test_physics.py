@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from sitl.physics import (
+from sitl.vehicle.physics import (
     Command,
     Motion,
     PhysicsParams,

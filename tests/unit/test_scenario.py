@@ -3,9 +3,9 @@
 
 import pytest
 
-from nac_onboard.geo import distance_m
+from missions.geo import distance_m
 from sitl import cli
-from sitl.scenario import SCENARIO_DIR, ScenarioError, load_scenario
+from sitl.experiment.scenario import SCENARIO_DIR, ScenarioError, load_scenario
 
 SHIPPED = sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
 

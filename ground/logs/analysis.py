@@ -1,0 +1,232 @@
+"""The tables of a run (pure: a RunLog in, pandas DataFrames out).
+
+One time axis: unix seconds (`t_s`) as every NAC record carries it, shown as `t_rel_s` from the run's first
+record. A telemetry position is dated by the autopilot's clock, not by when the agent happened to log it: the
+agent logs the latest position at its own pace, so the time a sample was *taken* is bounded above by the earliest
+log time of it or any later sample (a running minimum from the end, per boot of the autopilot). This keeps
+positions of fast (or sped-up) vehicles aligned without assuming the autopilot clock's rate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from ground.logs.runlog import RunLog
+from missions.geo import Home, ecef_to_enu, lla_to_ecef
+
+MAX_GAP_S = 2.0  # no interpolation across a longer silence: that is a lost link, not a straight flight
+DEFAULT_BIN_M = 2.0
+DEFAULT_THRESHOLD_MBPS = 1.0
+
+
+
+@dataclass
+class RunTables:
+    name: str
+    master: str | None
+    t0_s: float
+    trajectories: pd.DataFrame  # vehicle, t_s, t_rel_s, lat/lon/alt, east_m, north_m, up_m
+    distances: pd.DataFrame  # t_s, t_rel_s, worker, distance_m (master to worker)
+    throughput: pd.DataFrame  # one row per probe
+    throughput_by_distance: pd.DataFrame  # bins
+    iterations: pd.DataFrame  # one row per compute iteration
+    iteration_workers: pd.DataFrame  # one row per iteration and worker
+    training_cost: pd.DataFrame
+    summary: dict
+    problems: list[str] = field(default_factory=list)
+    missing: list[str] = field(default_factory=list)
+
+    def csv_tables(self) -> dict[str, pd.DataFrame]:
+        return {"trajectories": self.trajectories, "distances": self.distances, "throughput": self.throughput,
+                "throughput_by_distance": self.throughput_by_distance, "iterations": self.iterations,
+                "iteration_workers": self.iteration_workers, "training_cost": self.training_cost}
+
+
+def sample_times(positions: pd.DataFrame) -> pd.Series:
+    """When each position was taken, on the log's clock (see the module docstring)."""
+    out = positions["t_s"].astype(float).copy()
+    boot = positions["time_boot_ms"]
+    if boot.isna().any():
+        return out
+    boot = boot.astype(float).to_numpy()
+    reboot = np.concatenate([[0], np.cumsum(np.diff(boot) < 0)])
+    for segment in np.unique(reboot):
+        idx = np.flatnonzero(reboot == segment)
+        out.iloc[idx] = np.minimum.accumulate(out.iloc[idx].to_numpy()[::-1])[::-1]
+    return out
+
+
+def trajectories(run: RunLog, t0_s: float) -> pd.DataFrame:
+    columns = ["vehicle", "t_s", "t_rel_s", "lat_deg", "lon_deg", "alt_m", "east_m", "north_m", "up_m"]
+    if not run.positions:
+        return pd.DataFrame(columns=columns)
+    frames = []
+    raw = pd.DataFrame(run.positions).dropna(subset=["lat_deg", "lon_deg", "alt_m"])
+    for _, rows in raw.groupby("vehicle", sort=True):
+        # one row per autopilot sample: the agent may log the same sample twice when none newer arrived
+        rows = rows.sort_values("t_s", kind="stable")
+        if rows["time_boot_ms"].notna().all():
+            rows = rows.drop_duplicates(subset=["time_boot_ms", "lat_deg", "lon_deg", "alt_m"], keep="first")
+        rows = rows.assign(t_s=sample_times(rows.reset_index(drop=True)).to_numpy())
+        frames.append(rows)
+    table = pd.concat(frames, ignore_index=True)
+    ecef = lla_to_ecef(table["lat_deg"].to_numpy(), table["lon_deg"].to_numpy(), table["alt_m"].to_numpy())
+    first = table.iloc[0]
+    local = ecef_to_enu(ecef, Home(float(first["lat_deg"]), float(first["lon_deg"]), float(first["alt_m"])))
+    table = table.assign(t_rel_s=table["t_s"] - t0_s, east_m=local[:, 0], north_m=local[:, 1], up_m=local[:, 2])
+    return table[columns].reset_index(drop=True)
+
+
+def interpolate_positions(track: pd.DataFrame, times_s: np.ndarray) -> np.ndarray:
+    """ECEF positions of one vehicle at times_s, NaN outside its samples or across gaps > MAX_GAP_S."""
+    t = track["t_s"].to_numpy()
+    ecef = lla_to_ecef(track["lat_deg"].to_numpy(), track["lon_deg"].to_numpy(), track["alt_m"].to_numpy())
+    out = np.stack([np.interp(times_s, t, ecef[:, k]) for k in range(3)], axis=-1)
+    within = (times_s >= t[0]) & (times_s <= t[-1])
+    after = np.searchsorted(t, times_s, side="left")  # the first sample at or after each time
+    between = (after > 0) & (after < len(t))
+    gap = np.zeros(len(times_s), bool)
+    gap[between] = (t[after[between]] - t[after[between] - 1]) > MAX_GAP_S
+    out[~within | gap] = np.nan
+    return out
+
+
+def distances(traj: pd.DataFrame, master: str | None, t0_s: float) -> pd.DataFrame:
+    columns = ["t_s", "t_rel_s", "worker", "distance_m"]
+    if master is None or master not in set(traj["vehicle"]):
+        return pd.DataFrame(columns=columns)
+    m = traj[traj["vehicle"] == master]
+    times = m["t_s"].to_numpy()
+    master_ecef = lla_to_ecef(m["lat_deg"].to_numpy(), m["lon_deg"].to_numpy(), m["alt_m"].to_numpy())
+    frames = []
+    for worker in sorted(set(traj["vehicle"]) - {master}):
+        w_ecef = interpolate_positions(traj[traj["vehicle"] == worker], times)
+        d = np.linalg.norm(master_ecef - w_ecef, axis=1)
+        frames.append(pd.DataFrame({"t_s": times, "t_rel_s": times - t0_s, "worker": worker, "distance_m": d}))
+    table = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=columns)
+    return table.dropna(subset=["distance_m"]).reset_index(drop=True)
+
+
+def _received(record: dict) -> dict:
+    return (record.get("end") or {}).get("sum_received") or {}
+
+
+def throughput(run: RunLog, t0_s: float) -> pd.DataFrame:
+    rows = []
+    for r in run.probes:
+        got, sent = _received(r), (r.get("end") or {}).get("sum_sent") or {}
+        start = (r.get("start") or {}).get("timestamp", {}).get("timesecs")
+        t_s = float(start) if start is not None else r["t_s"]
+        failed = "error" in r
+        rows.append({"t_s": t_s, "t_rel_s": t_s - t0_s, "client": r.get("client"), "server": r.get("server"),
+                     "distance_m": r.get("distance_m"), "distance_end_m": r.get("distance_end_m"),
+                     "throughput_mbps": 0.0 if failed else got.get("bits_per_second", 0.0) / 1e6,
+                     "bytes": 0 if failed else got.get("bytes", 0), "seconds": got.get("seconds"),
+                     "retransmits": sent.get("retransmits"), "error": r.get("error", "")})
+    columns = ["t_s", "t_rel_s", "client", "server", "distance_m", "distance_end_m", "throughput_mbps", "bytes",
+               "seconds", "retransmits", "error"]
+    return pd.DataFrame(rows, columns=columns).sort_values("t_s", kind="stable").reset_index(drop=True)
+
+
+def throughput_by_distance(table: pd.DataFrame, bin_m: float = DEFAULT_BIN_M) -> pd.DataFrame:
+    """Mean, standard deviation and count of throughput per distance bin (failed probes count as 0)."""
+    columns = ["distance_from_m", "distance_to_m", "mean_mbps", "std_mbps", "count"]
+    known = table.dropna(subset=["distance_m"])
+    if known.empty:
+        return pd.DataFrame(columns=columns)
+    lower = np.floor(known["distance_m"].astype(float) / bin_m) * bin_m
+    grouped = known.groupby(lower)["throughput_mbps"]
+    out = pd.DataFrame({"distance_from_m": grouped.mean().index.astype(float),
+                        "mean_mbps": grouped.mean().to_numpy(), "std_mbps": grouped.std(ddof=1).fillna(0.0).to_numpy(),
+                        "count": grouped.count().to_numpy()})
+    out["distance_to_m"] = out["distance_from_m"] + bin_m
+    return out[columns]
+
+
+def iterations(run: RunLog, t0_s: float) -> tuple[pd.DataFrame, pd.DataFrame]:
+    rows, worker_rows = [], []
+    for r in sorted(run.iterations, key=lambda r: r["start_s"]):
+        w = r.get("workers") or {}
+        ranks = w.get("rank", [])
+        present = w.get("present", [])
+        absent = [f"{w['vehicle'][k]}:{w['absent'][k]}" for k in range(len(ranks)) if not present[k]]
+        rows.append({"iteration": r["iteration"], "t_s": r["start_s"], "t_rel_s": r["start_s"] - t0_s,
+                     "duration_s": r["duration_s"], "complete": bool(r.get("complete", True)),
+                     "workers_present": int(sum(present)), "absent": " ".join(absent), "cost": r.get("cost")})
+        for k, rank in enumerate(ranks):
+            worker_rows.append({"iteration": r["iteration"], "t_rel_s": r["start_s"] - t0_s, "rank": rank,
+                                **{key: w[key][k] for key in w if key != "rank"}})
+    it_columns = ["iteration", "t_s", "t_rel_s", "duration_s", "complete", "workers_present", "absent", "cost"]
+    return pd.DataFrame(rows, columns=it_columns), pd.DataFrame(worker_rows)
+
+
+def training_cost(its: pd.DataFrame) -> pd.DataFrame:
+    table = its.dropna(subset=["cost"])[["iteration", "t_rel_s", "cost"]] if not its.empty else its
+    if table.empty:
+        return pd.DataFrame(columns=["iteration", "t_rel_s", "elapsed_s", "cost"])
+    return table.assign(elapsed_s=table["t_rel_s"] - table["t_rel_s"].iloc[0])[
+        ["iteration", "t_rel_s", "elapsed_s", "cost"]].reset_index(drop=True)
+
+
+def range_m(bins: pd.DataFrame, threshold_mbps: float) -> float | None:
+    """The far edge of the last distance bin before the first whose mean falls below the threshold."""
+    reach = None
+    for _, b in bins.sort_values("distance_from_m").iterrows():
+        if b["mean_mbps"] < threshold_mbps:
+            break
+        reach = float(b["distance_to_m"])
+    return reach
+
+
+def summarize(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, probes: pd.DataFrame, bins: pd.DataFrame,
+              dist: pd.DataFrame, threshold_mbps: float) -> dict:
+    summary: dict = {"run": run.name, "vehicles": len(run.vehicles), "master": None}
+    if not its.empty:
+        span_s = float(its["t_s"].iloc[-1] + its["duration_s"].iloc[-1] - its["t_s"].iloc[0])
+        summary.update(iterations=len(its), complete_iterations=int(its["complete"].sum()),
+                       mean_iteration_s=float(its["duration_s"].mean()),
+                       p95_iteration_s=float(its["duration_s"].quantile(0.95)),
+                       compute_span_s=span_s, iterations_per_min=60.0 * len(its) / span_s if span_s > 0 else None)
+        cost = its["cost"].dropna()
+        if not cost.empty:
+            summary.update(first_cost=float(cost.iloc[0]), final_cost=float(cost.iloc[-1]))
+    if not workers.empty and "present" in workers:
+        absent = workers[~workers["present"].astype(bool)]
+        summary["absent_iterations"] = {str(v): int(n) for v, n in absent.groupby("vehicle").size().items()}
+        if "absent" in workers:
+            summary["absence_reasons"] = sorted(set(absent["absent"].dropna().astype(str)))
+    if not probes.empty:
+        ok = probes[probes["error"] == ""]
+        summary.update(probes=len(probes), failed_probes=int((probes["error"] != "").sum()),
+                       mean_throughput_mbps=float(probes["throughput_mbps"].mean()),
+                       std_throughput_mbps=float(probes["throughput_mbps"].std(ddof=1)) if len(probes) > 1 else 0.0,
+                       max_throughput_mbps=float(ok["throughput_mbps"].max()) if not ok.empty else 0.0,
+                       std_throughput_per_link_mbps={str(k): float(v) for k, v in probes.groupby("server")[
+                           "throughput_mbps"].std(ddof=1).fillna(0.0).items()},
+                       threshold_mbps=threshold_mbps, range_above_threshold_m=range_m(bins, threshold_mbps))
+    if not dist.empty:
+        summary["max_distance_m"] = {w: float(d["distance_m"].max()) for w, d in dist.groupby("worker")}
+    return summary
+
+
+def analyze(run: RunLog, master: str | None = None, bin_m: float = DEFAULT_BIN_M,
+            threshold_mbps: float = DEFAULT_THRESHOLD_MBPS) -> RunTables:
+    starts = [min(p["t_s"] for p in run.positions)] if run.positions else []
+    starts += [r["start_s"] for r in run.iterations[:1]] + [r["t_s"] for r in run.probes[:1] + run.compute_runs[:1]]
+    t0_s = float(min(starts)) if starts else 0.0
+    master = run.master(master)
+    traj = trajectories(run, t0_s)
+    dist = distances(traj, master, t0_s)
+    probes = throughput(run, t0_s)
+    bins = throughput_by_distance(probes, bin_m)
+    its, workers = iterations(run, t0_s)
+    summary = summarize(run, its, workers, probes, bins, dist, threshold_mbps)
+    summary["master"] = master
+    missing = list(run.missing)
+    if master is None:
+        missing.append("master: no vehicle logged role 'master' (give --master ID): no distances")
+    return RunTables(run.name, master, t0_s, traj, dist, probes, bins, its, workers, training_cost(its), summary,
+                     list(run.problems), missing)

@@ -1,0 +1,97 @@
+"""The figures of a run: one drawing function per figure, each on a given matplotlib Axes, so a report draws
+one run per figure and a comparison draws two runs side by side with the same code."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only: no display on a companion computer or in CI
+import matplotlib.pyplot as plt  # noqa: E402
+
+from ground.logs.analysis import RunTables  # noqa: E402
+
+
+def _empty(ax, what: str) -> None:
+    ax.text(0.5, 0.5, f"no {what} in this run", ha="center", va="center", transform=ax.transAxes)
+
+
+def trajectories(ax, t: RunTables) -> None:
+    ax.set(title="Trajectories (from above)", xlabel="east (m)", ylabel="north (m)")
+    if t.trajectories.empty:
+        return _empty(ax, "positions")
+    for vehicle, track in t.trajectories.groupby("vehicle"):
+        label = f"{vehicle} (master)" if vehicle == t.master else vehicle
+        line, = ax.plot(track["east_m"], track["north_m"], label=label)
+        ax.plot(track["east_m"].iloc[0], track["north_m"].iloc[0], "o", color=line.get_color())
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.legend(fontsize="small")
+
+
+def distances(ax, t: RunTables) -> None:
+    ax.set(title="Master-worker distance", xlabel="time (s)", ylabel="distance (m)")
+    if t.distances.empty:
+        return _empty(ax, "distances")
+    for worker, rows in t.distances.groupby("worker"):
+        ax.plot(rows["t_rel_s"], rows["distance_m"], label=f"{t.master} - {worker}")
+    ax.legend(fontsize="small")
+
+
+def throughput_over_time(ax, t: RunTables) -> None:
+    ax.set(title="Throughput over time", xlabel="time (s)", ylabel="throughput (Mbit/s)")
+    if t.throughput.empty:
+        return _empty(ax, "throughput probes")
+    for (client, server), rows in t.throughput.groupby(["client", "server"]):
+        ax.plot(rows["t_rel_s"], rows["throughput_mbps"], ".-", label=f"{client} -> {server}")
+    ax.legend(fontsize="small")
+
+
+def throughput_vs_distance(ax, t: RunTables) -> None:
+    ax.set(title="Throughput vs distance (mean ± std per bin)", xlabel="distance (m)", ylabel="throughput (Mbit/s)")
+    if t.throughput_by_distance.empty:
+        return _empty(ax, "throughput probes with distances")
+    b = t.throughput_by_distance
+    ax.errorbar((b["distance_from_m"] + b["distance_to_m"]) / 2, b["mean_mbps"], yerr=b["std_mbps"], fmt="o-",
+                capsize=3)
+    ax.set_xlim(left=0)
+    ax.set_ylim(bottom=0)
+
+
+def iteration_time(ax, t: RunTables) -> None:
+    ax.set(title="Iteration time", xlabel="time (s)", ylabel="iteration duration (s)")
+    if t.iterations.empty:
+        return _empty(ax, "compute iterations")
+    its = t.iterations
+    ax.plot(its["t_rel_s"], its["duration_s"], ".", markersize=3, label="all workers present")
+    partial = its[its["absent"] != ""]
+    if not partial.empty:
+        ax.plot(partial["t_rel_s"], partial["duration_s"], "x", color="tab:red", label="a worker absent")
+    ax.legend(fontsize="small")
+
+
+def training_cost(ax, t: RunTables) -> None:
+    ax.set(title="Training cost", xlabel="iteration", ylabel="cost (mean squared error / 2)")
+    if t.training_cost.empty:
+        return _empty(ax, "training cost (linear regression)")
+    ax.plot(t.training_cost["iteration"], t.training_cost["cost"])
+
+
+FIGURES = {"trajectories": trajectories, "distances": distances, "throughput_over_time": throughput_over_time,
+           "throughput_vs_distance": throughput_vs_distance, "iteration_time": iteration_time,
+           "training_cost": training_cost}
+
+
+def draw(name: str, runs: list[RunTables], path: Path) -> Path:
+    """One figure file: the named plot for each run, side by side with shared axes when there are several."""
+    fig, axes = plt.subplots(1, len(runs), figsize=(6.4 * len(runs), 4.8), squeeze=False,
+                             sharex=len(runs) > 1 and name != "trajectories", sharey=len(runs) > 1)
+    for ax, run in zip(axes[0], runs, strict=True):
+        FIGURES[name](ax, run)
+        ax.grid(alpha=0.3)
+        if len(runs) > 1:
+            ax.set_title(f"{run.name}: {ax.get_title()}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

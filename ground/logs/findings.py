@@ -1,0 +1,73 @@
+"""The research's findings checked against two runs' numbers (moving vs static), each line saying whether it
+holds and by which figures, so a report states its evidence rather than its hopes."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ground.logs.analysis import RunTables
+
+
+def _verdict(ok: bool) -> str:
+    return "**holds**" if ok else "**does not hold**"
+
+
+def falls_with_distance(t: RunTables) -> str:
+    probes = t.throughput.dropna(subset=["distance_m"])
+    if len(probes) < 3 or probes["distance_m"].nunique() < 2:
+        return f"Throughput vs distance: not enough probes in {t.name} to tell."
+    rho = float(np.corrcoef(probes["distance_m"].astype(float), probes["throughput_mbps"])[0, 1])
+    bins = t.throughput_by_distance
+    near, far = bins.iloc[0], bins.iloc[-1]
+    return (f"Throughput falls with distance ({t.name}): {_verdict(rho < 0 and far['mean_mbps'] < near['mean_mbps'])}"
+            f"; correlation {rho:.2f}, {near['mean_mbps']:.1f} Mbit/s at {near['distance_from_m']:g}-"
+            f"{near['distance_to_m']:g} m vs {far['mean_mbps']:.1f} Mbit/s at {far['distance_from_m']:g}-"
+            f"{far['distance_to_m']:g} m.")
+
+
+def pair_std_mbps(t: RunTables) -> float | None:
+    """Mean over master-worker pairs of each pair's throughput standard deviation: pooling the pairs would
+    count two steady links at different distances as variation."""
+    stds = t.summary.get("std_throughput_per_link_mbps")
+    return float(sum(stds.values()) / len(stds)) if stds else None
+
+
+def variance_larger_moving(moving: RunTables, static: RunTables) -> str:
+    a, b = pair_std_mbps(moving), pair_std_mbps(static)
+    if a is None or b is None:
+        return "Throughput variance: a run has too few probes."
+    return (f"Throughput varies more moving than static: {_verdict(a > b)}; per-link standard deviation "
+            f"{a:.2f} Mbit/s ({moving.name}) vs {b:.2f} Mbit/s ({static.name}), averaged over the links.")
+
+
+def static_more_iterations(moving: RunTables, static: RunTables) -> str:
+    a, b = moving.summary.get("iterations_per_min"), static.summary.get("iterations_per_min")
+    if a is None or b is None:
+        return "Iterations per minute: a run has no compute iterations."
+    return (f"Static completes more iterations per minute: {_verdict(b > a)}; {b:.1f} ({static.name}) vs "
+            f"{a:.1f} ({moving.name}), wall-clock minutes of computing.")
+
+
+def trains_through_link_loss(moving: RunTables) -> str:
+    its = moving.iterations
+    partial = its[its["absent"] != ""] if not its.empty else its
+    if partial.empty:
+        return f"Link loss: no worker was out of range in {moving.name}, so there was nothing to train through."
+    first, last = int(partial["iteration"].iloc[0]), int(partial["iteration"].iloc[-1])
+    during = its[(its["iteration"] >= first) & (its["iteration"] <= last)]
+    cost = during["cost"].dropna()
+    kept_learning = len(cost) < 2 or cost.iloc[-1] < cost.iloc[0]  # one iteration: nothing to compare within
+    after = its[its["iteration"] > last]
+    rejoined = f"; all workers back from iteration {last + 1}" if not after.empty else ""
+    absent = sorted({a.split(":")[0] for cell in partial["absent"] for a in cell.split()})
+    cost_text = ("no cost logged" if cost.empty else f"cost {cost.iloc[0]:.4f}" if len(cost) == 1
+                 else f"cost {cost.iloc[0]:.4f} -> {cost.iloc[-1]:.4f}")
+    return (f"Training continues while a worker is out of range ({moving.name}): "
+            f"{_verdict(kept_learning)}; {len(partial)} iterations "
+            f"({first}-{last}, from t={partial['t_rel_s'].iloc[0]:.0f} s wall-clock) ran without {', '.join(absent)}, "
+            f"{cost_text}{rejoined}. The research's moving run stopped at its first link loss.")
+
+
+def research_findings(moving: RunTables, static: RunTables) -> list[str]:
+    return [falls_with_distance(moving), variance_larger_moving(moving, static),
+            static_more_iterations(moving, static), trains_through_link_loss(moving)]

@@ -1,0 +1,126 @@
+"""A run directory read into flat rows: what every vehicle logged, and what could not be read.
+
+    RUN_DIR/<vehicle>/agent.jsonl        telemetry and events (nac-onboard agent)
+    RUN_DIR/<vehicle>/throughput.jsonl   iperf3-shaped probe results (the master's agent)
+    RUN_DIR/<vehicle>/*.tlog|*.bin|*.ulg autopilot logs: positions when the agent logged none
+    RUN_DIR/**/compute.jsonl             per-iteration records (nac-onboard compute)
+
+Nothing here raises for damaged or missing data: each problem becomes a sentence in `problems` (a truncated
+last line, corrupt tlog bytes) or `missing` (a vehicle without positions, a record kind nobody wrote).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ground.logs.autopilot_logs import READERS, FlightLogError
+from nac_onboard.flight_log import read_jsonl
+
+log = logging.getLogger(__name__)
+
+
+class RunDirError(ValueError):
+    """Nothing to analyse: the directory is missing or holds no NAC logs."""
+
+
+@dataclass
+class RunLog:
+    path: Path
+    vehicles: dict[str, str] = field(default_factory=dict)  # id -> role ("master", "worker", "?")
+    positions: list[dict] = field(default_factory=list)
+    probes: list[dict] = field(default_factory=list)
+    iterations: list[dict] = field(default_factory=list)
+    compute_runs: list[dict] = field(default_factory=list)  # run_started records
+    experiment: dict | None = None  # the runner's experiment.json, when there is one
+    problems: list[str] = field(default_factory=list)
+    missing: list[str] = field(default_factory=list)
+
+    @property
+    def name(self) -> str:
+        return self.path.name
+
+    def master(self, requested: str | None = None) -> str | None:
+        if requested:
+            return requested
+        masters = sorted(v for v, role in self.vehicles.items() if role == "master")
+        return masters[0] if masters else None
+
+
+def _warn(run: RunLog, problems: list[str]) -> None:
+    for problem in problems:
+        log.warning("%s", problem)
+        run.problems.append(problem)
+
+
+def read_run(path: str | Path) -> RunLog:
+    path = Path(path)
+    if not path.is_dir():
+        raise RunDirError(f"{path}: no such run directory")
+    run = RunLog(path)
+    experiment = path / "experiment.json"
+    if experiment.exists():
+        read = read_jsonl(experiment)
+        _warn(run, read.problems)
+        run.experiment = {}
+        for record in read.records:  # the runner's start record, then its end record (outcome)
+            run.experiment.update(record)
+    for vehicle_dir in sorted(p for p in path.iterdir() if p.is_dir()):
+        _read_vehicle(run, vehicle_dir)
+    for compute_log in sorted(path.rglob("compute.jsonl")):
+        read = read_jsonl(compute_log)
+        _warn(run, read.problems)
+        run.compute_runs += read.of_kind("run_started")
+        run.iterations += read.of_kind("iteration")
+    if not run.vehicles and not run.iterations:
+        raise RunDirError(f"{path}: no NAC logs here (expected VEHICLE/agent.jsonl, autopilot logs or "
+                          "compute.jsonl); is this a run directory?")
+    for vehicle in run.vehicles:
+        if not any(p["vehicle"] == vehicle for p in run.positions):
+            run.missing.append(f"vehicle {vehicle}: no positions (no telemetry records and no autopilot log)")
+    if not run.probes:
+        run.missing.append("throughput: no probe records (throughput.jsonl)")
+    if not run.iterations:
+        run.missing.append("compute: no iteration records (compute.jsonl)")
+    return run
+
+
+def _read_vehicle(run: RunLog, vehicle_dir: Path) -> None:
+    vehicle = vehicle_dir.name
+    agent_log = vehicle_dir / "agent.jsonl"
+    flight_logs = sorted(p for p in vehicle_dir.iterdir() if p.suffix in READERS)
+    if not agent_log.exists() and not flight_logs:
+        return
+    role = "?"
+    telemetry = 0
+    if agent_log.exists():
+        read = read_jsonl(agent_log)
+        _warn(run, read.problems)
+        for r in read.records:
+            kind = r["kind"]
+            if kind == "telemetry":
+                telemetry += 1
+                run.positions.append({"vehicle": vehicle, "source": "agent", "t_s": r["t_s"],
+                                      "time_boot_ms": r.get("time_boot_ms"), "lat_deg": r.get("lat_deg"),
+                                      "lon_deg": r.get("lon_deg"), "alt_m": r.get("alt_m"),
+                                      "rel_alt_m": r.get("rel_alt_m"), "armed": r.get("armed"),
+                                      "mission_seq": r.get("mission_seq")})
+            elif kind == "agent_started":
+                role = r.get("role", role)
+    run.vehicles[vehicle] = role
+    if telemetry == 0:
+        for flight_log in flight_logs:  # the autopilot's own record when the agent logged no positions
+            try:
+                rows, problems = READERS[flight_log.suffix](flight_log, vehicle)
+            except FlightLogError as err:
+                rows, problems = [], [str(err)]
+            _warn(run, problems)
+            run.positions += rows
+            if rows:
+                break
+    throughput_log = vehicle_dir / "throughput.jsonl"
+    if throughput_log.exists():
+        read = read_jsonl(throughput_log)
+        _warn(run, read.problems)
+        run.probes += read.of_kind("throughput")

@@ -1,0 +1,236 @@
+"""The agent's configuration: a TOML file (deploy/*.toml) loaded into frozen dataclasses, checked at the edge.
+
+Every key has a default except the vehicle's id and role; an unknown key or a value of the wrong type is an error
+that names the file, the key and what was expected (a typo must not silently fall back to a default).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # Jetson images ship Python 3.10
+    import tomli as tomllib
+
+ROLES = ("master", "worker")
+
+
+class ConfigError(ValueError):
+    """The configuration file is unusable; the message names the file, the key and what was expected."""
+
+
+@dataclass(frozen=True)
+class VehicleSection:
+    id: str
+    role: str
+    sysid: int = 0  # the autopilot's system id; 0 = the first autopilot heard
+
+
+@dataclass(frozen=True)
+class AutopilotSection:
+    uri: str = "serial:/dev/ttyTHS2:921600"  # Jetson TX2 TELEM2; SITL: udpin:0.0.0.0:<companion port>
+    link_timeout_s: float = 3.0  # no heartbeat this long = link lost
+    reconnect_s: float = 2.0  # how often a lost serial/tcp link is reopened
+    stream_hz: float = 10.0  # telemetry rate asked of the autopilot (REQUEST_DATA_STREAM); 0 = leave as is
+    signing_key_file: str = ""
+
+
+@dataclass(frozen=True)
+class LogSection:
+    dir: str = "/var/log/nac"
+    run_id: str = ""  # "" = $NAC_RUN_ID or the start time (UTC)
+    telemetry_hz: float = 10.0
+    tlog: bool = True
+    fsync_s: float = 1.0  # how often logs are forced to disk (0 = never; the kernel still has every record)
+
+
+@dataclass(frozen=True)
+class RoutingSection:
+    endpoints: tuple[str, ...] = ()  # extra MAVLink endpoints sharing the autopilot link (MAVProxy, tools)
+
+
+@dataclass(frozen=True)
+class PeersSection:
+    listen: str = "0.0.0.0:47100"
+    send_to: tuple[str, ...] = ("255.255.255.255:47100",)
+    rate_hz: float = 2.0
+    timeout_s: float = 3.0
+
+
+@dataclass(frozen=True)
+class StateFeedSection:
+    listen: str = "127.0.0.1:47200"  # where the local compute job asks for positions
+
+
+@dataclass(frozen=True)
+class ThroughputSection:
+    server: bool = True
+    bind: str = "0.0.0.0"
+    port: int = 5201
+    probe: bool = False  # the master probes; workers only serve
+    period_s: float = 10.0  # one round of probes (every target once) starts every period_s
+    duration_s: float = 1.0
+    bytes: int = 0  # > 0: send this many bytes instead of for duration_s
+    interval_s: float = 0.5
+    rate_bps: float = 0.0  # cap on the probe's sending rate; 0 = as fast as the path allows
+    targets: tuple[str, ...] = ()  # "id=host:port"; empty = every worker in the peer table
+    # SITL only: a channel preset or TOML; each probe is then paced at the model's capacity for the pair's distance
+    # (and fails below its minimum rate), so loopback behaves like the radio. "" = measure the real network.
+    emulate_channel: str = ""
+
+    @property
+    def duty_cycle(self) -> float:
+        """Share of the time one target's path carries probe traffic (when probing by duration)."""
+        return self.duration_s / self.period_s if self.period_s > 0 else 1.0
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    vehicle: VehicleSection
+    autopilot: AutopilotSection = field(default_factory=AutopilotSection)
+    log: LogSection = field(default_factory=LogSection)
+    routing: RoutingSection = field(default_factory=RoutingSection)
+    peers: PeersSection = field(default_factory=PeersSection)
+    state_feed: StateFeedSection = field(default_factory=StateFeedSection)
+    throughput: ThroughputSection = field(default_factory=ThroughputSection)
+    source: str = "<config>"
+
+
+def parse_host_port(text: str, what: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ValueError(f"{what}: expected HOST:PORT, got {text!r}")
+    return host, int(port)
+
+
+def _section(cls, data: dict, name: str, source: str):
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: [{name}] must be a table")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    values = {}
+    for key, value in data.items():
+        if key not in fields:
+            raise ConfigError(f"{source}: unknown key {name}.{key} (known: {', '.join(fields)})")
+        want = fields[key].type
+        values[key] = _coerce(value, want, f"{source}: {name}.{key}")
+    missing = [f.name for f in fields.values()
+               if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+               and f.name not in values]
+    if missing:
+        raise ConfigError(f"{source}: [{name}] needs {', '.join(missing)}")
+    return cls(**values)
+
+
+def _coerce(value, type_name: str, where: str):
+    if type_name == "bool":
+        if isinstance(value, bool):
+            return value
+        raise ConfigError(f"{where}: expected true or false, got {value!r}")
+    if type_name == "int":
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise ConfigError(f"{where}: expected an integer, got {value!r}")
+    if type_name == "float":
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        raise ConfigError(f"{where}: expected a number, got {value!r}")
+    if type_name == "str":
+        if isinstance(value, str):
+            return value
+        raise ConfigError(f"{where}: expected a string, got {value!r}")
+    if type_name.startswith("tuple"):
+        if isinstance(value, list) and all(isinstance(v, str) for v in value):
+            return tuple(value)
+        raise ConfigError(f"{where}: expected a list of strings, got {value!r}")
+    raise AssertionError(type_name)
+
+
+SECTIONS = {"vehicle": VehicleSection, "autopilot": AutopilotSection, "log": LogSection,
+            "routing": RoutingSection, "peers": PeersSection, "state_feed": StateFeedSection,
+            "throughput": ThroughputSection}
+
+
+def parse_agent_config(data: dict, source: str = "<config>") -> AgentConfig:
+    unknown = set(data) - set(SECTIONS)
+    if unknown:
+        raise ConfigError(f"{source}: unknown section [{sorted(unknown)[0]}] (known: {', '.join(SECTIONS)})")
+    if "vehicle" not in data:
+        raise ConfigError(f"{source}: missing [vehicle] with id and role")
+    sections = {name: _section(cls, data[name], name, source) for name, cls in SECTIONS.items() if name in data}
+    config = AgentConfig(source=source, **sections)
+    _check(config)
+    return config
+
+
+def _check(c: AgentConfig) -> None:
+    src = c.source
+    if c.vehicle.role not in ROLES:
+        raise ConfigError(f"{src}: vehicle.role must be one of {', '.join(ROLES)}, got {c.vehicle.role!r}")
+    if not c.vehicle.id or not all(ch.isalnum() or ch in "-_." for ch in c.vehicle.id):
+        raise ConfigError(f"{src}: vehicle.id must be a non-empty name of letters, digits, '-', '_' or '.', "
+                          f"got {c.vehicle.id!r}")
+    positive = {"autopilot.link_timeout_s": c.autopilot.link_timeout_s, "autopilot.reconnect_s":
+                c.autopilot.reconnect_s, "log.telemetry_hz": c.log.telemetry_hz, "peers.rate_hz": c.peers.rate_hz,
+                "peers.timeout_s": c.peers.timeout_s, "throughput.period_s": c.throughput.period_s,
+                "throughput.duration_s": c.throughput.duration_s, "throughput.interval_s": c.throughput.interval_s}
+    for key, value in positive.items():
+        if not value > 0:
+            raise ConfigError(f"{src}: {key} must be > 0, got {value}")
+    t = c.throughput
+    if t.probe and t.bytes == 0 and t.duration_s > t.period_s:
+        raise ConfigError(f"{src}: throughput.duration_s ({t.duration_s}) exceeds throughput.period_s "
+                          f"({t.period_s}): the probe would never pause for other traffic")
+    try:
+        from nac_onboard.mavlink.client import mavutil_device  # the URI table lives with the MAVLink adapter
+
+        for uri in (c.autopilot.uri, *c.routing.endpoints):
+            mavutil_device(uri)
+        for key, text in [("peers.listen", c.peers.listen), ("state_feed.listen", c.state_feed.listen),
+                          *[("peers.send_to", s) for s in c.peers.send_to]]:
+            parse_host_port(text, key)
+        for target in t.targets:
+            name, eq, address = target.partition("=")
+            if not eq or not name:
+                raise ValueError(f"throughput.targets: expected ID=HOST:PORT, got {target!r}")
+            parse_host_port(address, "throughput.targets")
+        if t.emulate_channel:
+            from nac_onboard.link.channel import load_channel
+
+            load_channel(t.emulate_channel)
+    except (ValueError, RuntimeError) as err:
+        raise ConfigError(f"{src}: {err}") from None
+
+
+def load_agent_config(path: str | Path) -> AgentConfig:
+    path = Path(path)
+    try:
+        with path.open("rb") as f:
+            data = tomllib.load(f)
+    except OSError as err:
+        raise ConfigError(f"cannot read agent config {path}: {err.strerror}") from None
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{path}: not valid TOML: {err}") from None
+    return parse_agent_config(data, str(path))
+
+
+def dump_toml(sections: dict[str, dict]) -> str:
+    """A config as TOML text (sections of scalars and lists: what the agent's config holds)."""
+    lines = []
+    for name, values in sections.items():
+        lines.append(f"[{name}]")
+        lines += [f"{key} = {_toml_value(value)}" for key, value in values.items()]
+    return "\n".join(lines) + "\n"
+
+
+def _toml_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return '"' + str(value).replace("\\", "\\\\").replace('"', '\\"') + '"'

@@ -1,0 +1,438 @@
+"""The onboard agent: the companion computer's daemon (`nac-onboard agent --config FILE`, a systemd service).
+
+One select loop owns the autopilot link, the routing endpoints, the peer socket and the local state feed; the
+throughput server and the master's probes run in threads because a probe blocks for its whole duration.
+Everything it observes goes to the run directory `LOG_DIR/RUN_ID/VEHICLE_ID/`:
+  agent.jsonl       telemetry at log.telemetry_hz and events (link, mode, mission, peers)
+  throughput.jsonl  one iperf3-shaped record per probe, with both positions and their distance
+  mavlink.tlog      every MAVLink frame to and from the autopilot (log.tlog)
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import select
+import signal
+import socket
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from nac_onboard.agent.config import AgentConfig, parse_host_port
+from nac_onboard.agent.peers import (
+    MAX_DATAGRAM_BYTES,
+    PeerMessageError,
+    PeerState,
+    PeerTable,
+    decode_peer_state,
+    encode_peer_state,
+)
+from nac_onboard.agent.probes import ProbeScheduler
+from nac_onboard.agent.state_feed import encode_answer
+from nac_onboard.agent.systemd_notify import SystemdNotifier
+from nac_onboard.flight_log import JsonlLog, TlogWriter
+from nac_onboard.link.throughput import ThroughputServer
+from nac_onboard.mavlink import client as mav
+from nac_onboard.mavlink.signing import load_signing_key
+
+log = logging.getLogger(__name__)
+EXPIRE_CHECK_S = 0.1
+
+
+def run_directory(config: AgentConfig, run_id: str | None = None) -> Path:
+    run = run_id or config.log.run_id or os.environ.get("NAC_RUN_ID") or time.strftime("%Y%m%dT%H%M%SZ",
+                                                                                        time.gmtime())
+    return Path(config.log.dir) / run / config.vehicle.id
+
+
+@dataclass
+class _Timer:
+    period_s: float
+    due_s: float = 0.0
+
+    def fire(self, now_s: float) -> bool:
+        if now_s < self.due_s:
+            return False
+        # Keep the cadence without bursts after a stall.
+        self.due_s = max(self.due_s + self.period_s, now_s)
+        return True
+
+
+class Agent:
+    def __init__(self, config: AgentConfig, run_dir: Path, notifier: SystemdNotifier | None = None):
+        self.config, self.run_dir = config, run_dir
+        self.notifier = notifier or SystemdNotifier()
+        self.stop_event = threading.Event()
+        self.stop_reason = ""
+        a = config.autopilot
+        self.signing_key = load_signing_key(a.signing_key_file) if a.signing_key_file else None
+        self.log = JsonlLog(run_dir / "agent.jsonl")
+        self.throughput_log = JsonlLog(run_dir / "throughput.jsonl")
+        self.tlog = TlogWriter(run_dir / "mavlink.tlog") if config.log.tlog else None
+        self.client: mav.MavlinkClient | None = None
+        self.sysid = config.vehicle.sysid or None
+        self.link_up = False
+        self.link_ever_up = False
+        self.lost_since_s = 0.0
+        self.last_open_attempt_s = -1e9
+        self.open_failures = 0
+        self.endpoints: list[mav.RawEndpoint] = []
+        self.peers = PeerTable(config.vehicle.id, config.peers.timeout_s)
+        self.peer_sock = self.feed_sock = None
+        self.peer_targets = [parse_host_port(t, "peers.send_to") for t in config.peers.send_to]
+        self.throughput_server: ThroughputServer | None = None
+        self.scheduler: ProbeScheduler | None = None
+        self.counters = {"frames_in": 0, "frames_out": 0, "frames_routed": 0, "telemetry": 0, "peer_msgs": 0,
+                         "bad_peer_msgs": 0, "feed_requests": 0}
+        self._last = {"mode": None, "armed": None, "landed": None, "mission_seq": None, "mission_state": None}
+        self._state_lock = threading.Lock()  # the probe thread reads positions while the loop updates them
+
+    # ---- setup and teardown ----------------------------------------------------------------------------
+    def open(self) -> Agent:
+        c = self.config
+        self.log.write("agent_started", vehicle=c.vehicle.id, role=c.vehicle.role, config=c.source,
+                       autopilot=c.autopilot.uri, run_dir=str(self.run_dir), pid=os.getpid())
+        self._open_autopilot(time.monotonic())
+        for uri in c.routing.endpoints:
+            try:
+                self.endpoints.append(mav.RawEndpoint(uri))
+            except mav.LinkError as err:
+                self.log.write("routing_error", endpoint=uri, error=str(err))
+        self.peer_sock = _udp_socket(c.peers.listen, "peers.listen", broadcast=True)
+        self.feed_sock = _udp_socket(c.state_feed.listen, "state_feed.listen")
+        t = c.throughput
+        if t.server:
+            try:
+                self.throughput_server = ThroughputServer(t.bind, t.port).start()
+            except OSError as err:
+                raise OSError(f"throughput.port: cannot listen on {t.bind}:{t.port}: {err.strerror}") from None
+        if t.probe:
+            self.scheduler = ProbeScheduler(t, c.vehicle.id, self._probe_targets, self.positions,
+                                            self.throughput_log, self.stop_event).start()
+        self.log.write("agent_ready", peers_listen=c.peers.listen, state_feed=c.state_feed.listen,
+                       throughput_port=self.throughput_server.port if self.throughput_server else None,
+                       probing=t.probe, probe_duty_cycle=t.duty_cycle if t.probe else None)
+        self.notifier.ready(f"logging to {self.run_dir}")
+        return self
+
+    def close(self) -> None:
+        self.stop_event.set()
+        self.notifier.stopping()
+        if self.scheduler is not None:
+            self.scheduler.join(timeout_s=self.config.throughput.duration_s + 15.0)
+        if self.throughput_server is not None:
+            self.throughput_server.stop()
+        for closable in [*self.endpoints, self.client]:
+            if closable is not None:
+                closable.close()
+        for sock in (self.peer_sock, self.feed_sock):
+            if sock is not None:
+                sock.close()
+        self.log.write("agent_stopped", reason=self.stop_reason or "closed", **self.counters)
+        for f in (self.log, self.throughput_log, self.tlog):
+            if f is not None:
+                f.close()
+        self.notifier.close()
+
+    def _open_autopilot(self, now_s: float) -> None:
+        self.last_open_attempt_s = now_s
+        a = self.config.autopilot
+        try:
+            self.client = mav.MavlinkClient(a.uri, sysid=self.sysid, signing_key=self.signing_key,
+                                            source_system=self.config.vehicle.sysid or 1,
+                                            source_component=mav.M.MAV_COMP_ID_ONBOARD_COMPUTER,
+                                            mav_type=mav.M.MAV_TYPE_ONBOARD_CONTROLLER,
+                                            decode_only=mav.CLIENT_MESSAGES)
+        except mav.LinkError as err:
+            self.open_failures += 1
+            if self.open_failures == 1 or self.open_failures % 30 == 0:
+                self.log.write("link_open_failed", uri=a.uri, error=str(err), attempts=self.open_failures)
+            return
+        if self.open_failures:
+            self.log.write("link_opened", uri=a.uri, after_attempts=self.open_failures + 1)
+        self.open_failures = 0
+        if self.tlog is not None:
+            self.client.tap_sent(self._log_sent)
+
+    def _log_sent(self, frame: bytes) -> None:
+        self.counters["frames_out"] += 1
+        if self.tlog is not None:
+            self.tlog.write(frame)
+
+    # ---- the loop ----------------------------------------------------------------------------------------
+    def run(self) -> None:
+        c = self.config
+        telemetry = _Timer(1.0 / c.log.telemetry_hz)
+        publish = _Timer(1.0 / c.peers.rate_hz)
+        expire = _Timer(EXPIRE_CHECK_S)
+        sync = _Timer(c.log.fsync_s) if c.log.fsync_s > 0 else None
+        watchdog = _Timer(self.notifier.watchdog_period_s) if self.notifier.watchdog_period_s else None
+        while not self.stop_event.is_set():
+            now = time.monotonic()
+            due = [t.due_s for t in (telemetry, publish, expire, sync, watchdog) if t is not None]
+            readers = [s for s in (self.peer_sock, self.feed_sock) if s is not None] + self.endpoints
+            if self.client is not None:
+                readers += self.client.links
+            try:
+                ready, _, _ = select.select(readers, [], [], min(max(min(due) - now, 0.0), 0.5))
+            except (OSError, ValueError):
+                ready = readers  # a link closed under us: let each reader find out below
+            now = time.monotonic()
+            self._read_autopilot(now)
+            if self.endpoints and any(r in self.endpoints for r in ready):
+                self._read_endpoints()
+            if self.peer_sock in ready:
+                self._read_peers(now)
+            if self.feed_sock in ready:
+                self._answer_feed(now)
+            self._check_link(now)
+            if telemetry.fire(now):
+                self._log_telemetry()
+            if publish.fire(now):
+                self._publish_state()
+            if expire.fire(now):
+                for peer, silent_s in self.peers.expire(now):
+                    self.log.write("peer_lost", peer=peer.id, role=peer.role, host=peer.host,
+                                   silent_s=round(silent_s, 3))
+            if sync is not None and sync.fire(now):
+                for f in (self.log, self.throughput_log, self.tlog):
+                    if f is not None:
+                        f.sync()
+            if watchdog is not None and watchdog.fire(now):
+                self.notifier.watchdog()
+
+    def stop(self, reason: str) -> None:
+        self.stop_reason = reason
+        self.stop_event.set()
+
+    # ---- autopilot -----------------------------------------------------------------------------------------
+    def _read_autopilot(self, now: float) -> None:
+        if self.client is None:
+            return
+        try:
+            messages = self.client.poll(0.0)
+        except (OSError, mav.LinkError) as err:  # a serial adapter unplugged, a TCP peer gone
+            self.log.write("link_error", uri=self.config.autopilot.uri, error=str(err))
+            self._mark_lost(now, "error")
+            self.client.close()
+            self.client = None
+            return
+        if self.sysid is None:
+            autopilots = [s for s, v in self.client.vehicles.items() if v.autopilot != mav.M.MAV_AUTOPILOT_INVALID]
+            if autopilots:
+                self.sysid = self.client.sysid = autopilots[0]
+        frames = [msg.get_msgbuf() for msg in messages]
+        self.counters["frames_in"] += len(frames)
+        if self.tlog is not None:
+            self.tlog.write_many(frames)
+        for msg, frame in zip(messages, frames, strict=True):
+            for endpoint in self.endpoints:
+                if endpoint.write(frame):
+                    self.counters["frames_routed"] += 1
+            if msg.get_srcSystem() == self.sysid:
+                self._on_autopilot_message(msg, now)
+
+    def _on_autopilot_message(self, msg, now: float) -> None:
+        kind = msg.get_type()
+        if kind == "HEARTBEAT" and msg.get_srcComponent() == 1:
+            if not self.link_up:
+                self._link_came_up(msg, now)
+            self._note_change("mode", "mode", self.client.vehicles[self.sysid].mode)
+            self._note_change("armed", "armed", self.client.vehicles[self.sysid].armed)
+        elif kind == "MISSION_ITEM_REACHED":
+            self.log.write("mission_item_reached", seq=msg.seq)
+        elif kind == "MISSION_CURRENT":
+            state = self.client.vehicles[self.sysid]
+            self._note_change("mission_seq", "mission_current", msg.seq, total=state.mission_total)
+            if state.mission_state:
+                self._note_change("mission_state", "mission_state", state.mission_state)
+        elif kind == "EXTENDED_SYS_STATE":
+            self._note_change("landed", "landed_state", self.client.vehicles[self.sysid].landed)
+        elif kind == "STATUSTEXT":
+            self.log.write("statustext", severity=msg.severity, text=msg.text)
+
+    def _note_change(self, key: str, kind: str, value, **extra) -> None:
+        previous = self._last[key]
+        if value != previous:
+            self._last[key] = value
+            self.log.write(kind, value=value, previous=previous, **extra)
+
+    def _link_came_up(self, heartbeat, now: float) -> None:
+        self.link_up = True
+        if self.link_ever_up:
+            self.log.write("link_restored", sysid=self.sysid, outage_s=round(now - self.lost_since_s, 3))
+        else:
+            self.log.write("link_up", sysid=self.sysid, autopilot=heartbeat.autopilot, vehicle_type=heartbeat.type,
+                           mavlink_version=heartbeat.mavlink_version)
+        self.link_ever_up = True
+        self.notifier.status(f"autopilot {self.sysid} linked; logging to {self.run_dir}")
+        if self.config.autopilot.stream_hz > 0:
+            self.client.request_streams(self.config.autopilot.stream_hz, sysid=self.sysid)
+
+    def _check_link(self, now: float) -> None:
+        a = self.config.autopilot
+        if self.link_up and self.client is not None and self.sysid in self.client.vehicles:
+            silent_s = self.client.vehicles[self.sysid].link_age_s(now)
+            if silent_s > a.link_timeout_s:
+                self._mark_lost(now - silent_s, "silent", silent_s=round(silent_s, 3))
+        reopenable = not a.uri.startswith("udpin:")  # a listening UDP socket needs no reopening
+        if not self.link_up and now - self.last_open_attempt_s >= a.reconnect_s:
+            if self.client is None:
+                self._open_autopilot(now)
+            elif reopenable and self.link_ever_up:
+                self.last_open_attempt_s = now
+                try:
+                    self.client.reopen(0)
+                    if self.tlog is not None:
+                        self.client.tap_sent(self._log_sent)
+                except mav.LinkError:
+                    self.client.close()
+                    self.client = None
+
+    def _mark_lost(self, since_s: float, why: str, **extra) -> None:
+        if not self.link_up:
+            return
+        self.link_up = False
+        self.lost_since_s = since_s
+        self.log.write("link_lost", sysid=self.sysid, why=why, **extra)
+        self.notifier.status(f"autopilot link lost ({why}); retrying")
+
+    def _log_telemetry(self) -> None:
+        if not self.link_up or self.sysid not in self.client.vehicles:
+            return  # nothing fresh to say: a lost link's last position is not today's
+        v = self.client.vehicles[self.sysid]
+        if v.time_boot_ms < 0:
+            return
+        self.counters["telemetry"] += 1
+        self.log.write("telemetry", sysid=v.sysid, time_boot_ms=v.time_boot_ms, lat_deg=v.lat_deg,
+                       lon_deg=v.lon_deg, alt_m=v.alt_m, rel_alt_m=v.rel_alt_m, vel_ned_mps=v.vel_ned_mps,
+                       roll_deg=round(v.roll_deg, 3), pitch_deg=round(v.pitch_deg, 3), yaw_deg=round(v.yaw_deg, 3),
+                       battery_pct=v.battery_pct, voltage_v=v.voltage_v, mode=v.mode, armed=v.armed,
+                       landed=v.landed, mission_seq=v.mission_seq)
+
+    # ---- routing -------------------------------------------------------------------------------------------
+    def _read_endpoints(self) -> None:
+        for endpoint in self.endpoints:
+            for frame in endpoint.read_frames():
+                if self.client is not None:
+                    try:
+                        self.client.links[0].write_frame(frame)
+                    except OSError:
+                        pass
+                for other in self.endpoints:
+                    if other is not endpoint:
+                        other.write(frame)
+                self.counters["frames_routed"] += 1
+                if self.tlog is not None:
+                    self.tlog.write(frame)
+
+    # ---- peers and the state feed ----------------------------------------------------------------------------
+    def own_state(self) -> PeerState:
+        c = self.config
+        v = self.client.vehicles.get(self.sysid) if self.client is not None and self.sysid else None
+        known = v is not None and v.time_boot_ms >= 0
+        port = self.throughput_server.port if self.throughput_server else 0
+        if not known:
+            return PeerState(id=c.vehicle.id, role=c.vehicle.role, t_s=time.time(), sysid=self.sysid or 0,
+                             probe_port=port)
+        return PeerState(id=c.vehicle.id, role=c.vehicle.role, t_s=time.time(), sysid=v.sysid, lat_deg=v.lat_deg,
+                         lon_deg=v.lon_deg, alt_m=v.alt_m, vel_ned_mps=tuple(v.vel_ned_mps),
+                         battery_pct=v.battery_pct, probe_port=port)
+
+    def _publish_state(self) -> None:
+        data = encode_peer_state(self.own_state())
+        for target in self.peer_targets:
+            try:
+                self.peer_sock.sendto(data, target)
+            except OSError:
+                pass  # no route yet (Wi-Fi not associated): the next period tries again
+
+    def _read_peers(self, now: float) -> None:
+        while True:
+            try:
+                data, (host, _) = self.peer_sock.recvfrom(MAX_DATAGRAM_BYTES)
+            except (BlockingIOError, InterruptedError):
+                return
+            try:
+                peer = decode_peer_state(data, host)
+            except PeerMessageError:
+                self.counters["bad_peer_msgs"] += 1
+                continue
+            self.counters["peer_msgs"] += 1
+            with self._state_lock:
+                event = self.peers.update(peer, now)
+            if event:
+                self.log.write(event, peer=peer.id, role=peer.role, host=host, probe_port=peer.probe_port)
+
+    def positions(self) -> dict:
+        """The state feed's answer: this vehicle and every peer, with ages."""
+        own = self.own_state()
+        with self._state_lock:
+            peers = self.peers.snapshot(time.monotonic())
+        me = {k: getattr(own, k) for k in ("id", "role", "sysid", "lat_deg", "lon_deg", "alt_m", "vel_ned_mps",
+                                           "battery_pct")}
+        me["link_up"] = self.link_up
+        return {"t_s": time.time(), "self": me, "peers": peers}
+
+    def _answer_feed(self, now: float) -> None:
+        while True:
+            try:
+                _, sender = self.feed_sock.recvfrom(512)
+            except (BlockingIOError, InterruptedError):
+                return
+            self.counters["feed_requests"] += 1
+            try:
+                self.feed_sock.sendto(encode_answer(self.positions()), sender)
+            except (OSError, ValueError) as err:
+                log.warning("state feed answer to %s failed: %s", sender, err)
+
+    def _probe_targets(self) -> list[tuple[str, str, int]]:
+        t = self.config.throughput
+        if t.targets:
+            out = []
+            for target in t.targets:
+                name, _, address = target.partition("=")
+                host, port = parse_host_port(address, "throughput.targets")
+                out.append((name, host, port))
+            return out
+        with self._state_lock:
+            live = self.peers.live()
+        return [(p.id, p.host, p.probe_port) for p in live if p.role == "worker" and p.probe_port]
+
+
+def _udp_socket(address: str, key: str, broadcast: bool = False) -> socket.socket:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    if broadcast:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+    try:
+        sock.bind(parse_host_port(address, key))
+    except OSError as err:
+        sock.close()
+        raise OSError(f"{key}: cannot listen on {address}: {err.strerror}") from None
+    sock.setblocking(False)
+    return sock
+
+
+def run_agent(config: AgentConfig, run_id: str | None = None, ready_line=None) -> int:
+    """Run until SIGTERM or SIGINT; returns the exit code (0 on a clean stop)."""
+    run_dir = run_directory(config, run_id)
+    agent = Agent(config, run_dir)
+    previous = {}
+
+    def on_signal(signum, _frame):
+        agent.stop(signal.Signals(signum).name)
+
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        previous[signum] = signal.signal(signum, on_signal)
+    try:
+        agent.open()
+        if ready_line is not None:
+            ready_line(f"nac-onboard agent {config.vehicle.id} ({config.vehicle.role}) ready: logging to {run_dir}")
+        agent.run()
+    finally:
+        agent.close()
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    return 0

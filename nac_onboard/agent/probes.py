@@ -1,0 +1,93 @@
+"""The master's probe schedule: every period, one throughput probe to each worker, logged with positions.
+
+A probe occupies a path for duration_s out of every period_s (the duty cycle), and rate_bps can cap it further,
+so the compute traffic sharing the Wi-Fi is not starved. Each record is the iperf3-shaped result of
+`throughput.probe` plus who probed whom, both positions at the start and end of the probe and their distances.
+A probe that fails is logged too, with iperf3's `error` key: a broken link is a measurement, not a gap.
+With `emulate_channel` (SITL), each probe is paced at the channel model's capacity for the pair's distance at
+its start, and a pair beyond the model's range fails as a real one would: loopback then looks like the radio.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+from nac_onboard.agent.config import ThroughputSection
+from nac_onboard.agent.state_feed import distance_between, position_of
+from nac_onboard.flight_log import JsonlLog
+from nac_onboard.link.channel import load_channel
+from nac_onboard.link.throughput import ProbeError, probe
+
+log = logging.getLogger(__name__)
+_POSITION_KEYS = ("lat_deg", "lon_deg", "alt_m")
+
+
+class ProbeScheduler:
+    def __init__(self, settings: ThroughputSection, self_id: str, targets, positions, out: JsonlLog,
+                 stop: threading.Event):
+        self.settings, self.self_id = settings, self_id
+        self.targets, self.positions = targets, positions  # callables: [(id, host, port)], state-feed answer
+        self.out, self.stop_event = out, stop
+        self.rounds = 0
+        self.channel = load_channel(settings.emulate_channel) if settings.emulate_channel else None
+        self._thread = threading.Thread(target=self._run, name="throughput-probes", daemon=True)
+
+    def start(self) -> ProbeScheduler:
+        self._thread.start()
+        return self
+
+    def join(self, timeout_s: float) -> None:
+        self._thread.join(timeout_s)
+
+    def _run(self) -> None:
+        next_round = time.monotonic()
+        while not self.stop_event.wait(max(next_round - time.monotonic(), 0.0)):
+            next_round += self.settings.period_s
+            for peer_id, host, port in self.targets():
+                if self.stop_event.is_set():
+                    return
+                self.probe_once(peer_id, host, port)
+            self.rounds += 1
+            next_round = max(next_round, time.monotonic())
+
+    def probe_once(self, peer_id: str, host: str, port: int) -> dict:
+        s = self.settings
+        before = self.positions()
+        fields: dict = {"client": self.self_id, "server": peer_id, "host": host, "port": port}
+        distance_m = distance_between(before, self.self_id, peer_id)
+        if self.channel is not None and distance_m is None:
+            # no distance, no emulated link: nothing was measured, so it is not a failed probe either
+            return self.out.write("probe_skipped", **fields, reason="no position for one of the pair yet")
+        rate_bps = s.rate_bps or None
+        try:
+            if self.channel is not None:
+                rate_bps = self._emulated_rate_bps(distance_m, rate_bps)
+                fields["emulated_channel"] = self.channel.name
+                fields["emulated_rate_bps"] = rate_bps
+            result = probe(host, port, duration_s=None if s.bytes else s.duration_s, nbytes=s.bytes or None,
+                           interval_s=s.interval_s, rate_bps=rate_bps)
+        except ProbeError as err:
+            result = {"error": str(err)}
+        after = self.positions()
+        fields["positions"] = {"start": self._pair(before, peer_id), "end": self._pair(after, peer_id)}
+        fields["distance_m"] = distance_m
+        fields["distance_end_m"] = distance_between(after, self.self_id, peer_id)
+        return self.out.write("throughput", **fields, **result)
+
+    def _emulated_rate_bps(self, distance_m: float, cap_bps: float | None) -> float:
+        capacity = self.channel.capacity_bps(distance_m)
+        if capacity < self.channel.min_rate_bps:
+            # a real probe would wait out its connect timeout; the path is idle for the probe's slot either way
+            self.stop_event.wait(self.settings.duration_s)
+            raise ProbeError(f"out of range: {self.channel.name} gives {capacity / 1e6:.3f} Mbit/s at "
+                             f"{distance_m:.1f} m (minimum {self.channel.min_rate_bps / 1e6:g})")
+        return min(capacity, cap_bps) if cap_bps else capacity
+
+    def _pair(self, state: dict, peer_id: str) -> dict:
+        out = {}
+        for who in (self.self_id, peer_id):
+            entry = position_of(state, who)
+            out[who] = None if entry is None else {k: entry.get(k) for k in _POSITION_KEYS}
+        return out

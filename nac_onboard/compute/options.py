@@ -1,0 +1,151 @@
+"""Options of `nac-onboard compute`, parsed and checked before MPI does anything (bad input: exit 2 on every rank)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from dataclasses import dataclass
+
+from nac_onboard.compute.positions import (
+    FeedDistances,
+    FixedDistances,
+    PositionsError,
+    ScriptedDistances,
+    wait_for_feed,
+)
+from nac_onboard.link.channel import ChannelError, ChannelModel, load_channel
+
+
+@dataclass(frozen=True)
+class ComputeOptions:
+    task: str
+    iterations: int | None
+    duration_s: float | None
+    out: str
+    seed: int = 0
+    m: int = 100
+    n: int = 10000
+    l: int = 1  # noqa: E741 (the research's name for B's columns)
+    a_path: str | None = None
+    data: str | None = None
+    learning_rate: float = 0.05
+    emulate: str = "none"
+    channel: str = "paper-sim"
+    positions: str = "none"
+    distances: tuple[float, ...] = ()
+    positions_script: str | None = None
+    feed: str = "127.0.0.1:47200"
+    vehicles: tuple[str, ...] = ()
+    timeout_s: float = 5.0
+    idle_timeout_s: float = 600.0
+    on_missing: str = "incomplete"
+    allocation: str = "equal"
+    save_results: bool = False
+
+    def channel_model(self) -> ChannelModel:
+        return load_channel(self.channel)
+
+    def vehicle_of(self, rank: int) -> str:
+        return self.vehicles[rank] if rank < len(self.vehicles) else f"rank{rank}"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="nac-onboard compute", description=__doc__)
+    p.add_argument("--task", choices=["matmul", "linreg"], required=True)
+    stop = p.add_mutually_exclusive_group()
+    stop.add_argument("--iterations", type=int, help="iterations to run (default 40 for matmul, 200 for linreg)")
+    stop.add_argument("--duration-s", type=float, help="run this long instead of a fixed number of iterations")
+    p.add_argument("--out", default="compute-out", help="directory for compute.jsonl (and results.npz)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--m", type=int, default=100, help="matmul: rows of A")
+    p.add_argument("--n", type=int, default=10000, help="matmul: columns of A, rows of B")
+    p.add_argument("--l", type=int, default=1, help="matmul: columns of B")
+    p.add_argument("--a", dest="a_path", help="matmul: A from this .npy file (every rank reads it) instead of the seed")
+    p.add_argument("--data", help="linreg: forestfires.csv (default $NAC_DATA_DIR, then the user cache)")
+    p.add_argument("--learning-rate", type=float, default=0.05)
+    p.add_argument("--emulate", choices=["none", "sleep"], default="none",
+                   help="sleep: delay each transfer by bits / capacity (SITL); none: the network is real")
+    p.add_argument("--channel", default="paper-sim", help="channel preset (paper-sim, wifi-flight) or TOML file")
+    p.add_argument("--positions", choices=["none", "fixed", "script", "feed"], default="none")
+    p.add_argument("--distances", help="fixed: metres from the master, one per worker, comma-separated")
+    p.add_argument("--positions-script", help="script: JSON file of distances by iteration or time")
+    p.add_argument("--feed", default="127.0.0.1:47200", help="feed: the local agent's state feed")
+    p.add_argument("--vehicles", help="feed: vehicle ids in rank order, master first (comma-separated)")
+    p.add_argument("--timeout-s", type=float, default=5.0, help="how long the master waits for an iteration's results")
+    p.add_argument("--idle-timeout-s", type=float, default=600.0, help="a worker that hears nothing this long aborts")
+    p.add_argument("--on-missing", choices=["incomplete", "reassign"], default="incomplete",
+                   help="matmul: a worker's rows that did not arrive are re-assigned or the iteration is incomplete")
+    p.add_argument("--allocation", choices=["equal", "capacity"], default="equal",
+                   help="capacity: shard sizes proportional to each link's predicted capacity at the start")
+    p.add_argument("--save-results", action="store_true", help="matmul: keep every B and A@B in results.npz")
+    return p
+
+
+def parse_args(argv: list[str] | None = None) -> ComputeOptions:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        options = _options(args)
+    except (ValueError, ChannelError, PositionsError, RuntimeError) as err:
+        print(f"nac-onboard compute: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+    return options
+
+
+def _options(args) -> ComputeOptions:
+    iterations = args.iterations
+    if iterations is None and args.duration_s is None:
+        iterations = 40 if args.task == "matmul" else 200
+    for name in ("m", "n", "l"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name} must be >= 1")
+    if args.timeout_s <= 0 or args.idle_timeout_s <= 0:
+        raise ValueError("--timeout-s and --idle-timeout-s must be > 0")
+    distances = tuple(float(d) for d in args.distances.split(",")) if args.distances else ()
+    vehicles = tuple(v.strip() for v in args.vehicles.split(",")) if args.vehicles else ()
+    options = ComputeOptions(
+        task=args.task, iterations=iterations, duration_s=args.duration_s, out=args.out, seed=args.seed, m=args.m,
+        n=args.n, l=args.l, a_path=args.a_path, data=args.data, learning_rate=args.learning_rate,
+        emulate=args.emulate, channel=args.channel, positions=args.positions, distances=distances,
+        positions_script=args.positions_script, feed=args.feed, vehicles=vehicles, timeout_s=args.timeout_s,
+        idle_timeout_s=args.idle_timeout_s, on_missing=args.on_missing, allocation=args.allocation,
+        save_results=args.save_results)
+    if options.emulate == "sleep" and options.positions == "none":
+        raise ValueError("--emulate sleep needs positions: --positions fixed|script|feed")
+    options.channel_model()
+    if options.a_path and not os.path.isfile(options.a_path):
+        raise ValueError(f"--a {options.a_path}: no such file")
+    if options.positions != "feed":  # the feed is asked once MPI runs, on the master only
+        build_source(options)
+    if options.task == "linreg":
+        from nac_onboard.compute import forestfires
+
+        forestfires.find_csv(options.data)
+    return options
+
+
+def build_source(options: ComputeOptions, wait_s: float = 30.0):
+    if options.positions == "fixed":
+        if not options.distances:
+            raise PositionsError("--positions fixed needs --distances D1,D2,... (one per worker)")
+        return FixedDistances(list(options.distances))
+    if options.positions == "script":
+        if not options.positions_script:
+            raise PositionsError("--positions script needs --positions-script FILE")
+        return ScriptedDistances.load(options.positions_script)
+    if options.positions == "feed":
+        source = FeedDistances(options.feed, list(options.vehicles))
+        wait_for_feed(source, wait_s)
+        return source
+    return None
+
+
+def core_binding(ranks: int, cores: int | None = None) -> str:
+    """The `mpiexec -bind-to` value for ranks on one machine: one core per rank when there are enough; otherwise
+    the master alone on core 0 and the workers shared over the others. A master sharing its core with a worker
+    costs twice its own time per iteration, since the waiting rank polls MPI on that core while the other works."""
+    cores = cores or len(os.sched_getaffinity(0))
+    if cores < 2 or ranks <= cores:
+        return "core"
+    return "user:" + ",".join(["0"] + [str(1 + k % (cores - 1)) for k in range(ranks - 1)])

@@ -1,0 +1,87 @@
+"""Where the workers are relative to the master, for link emulation: the agent's live feed, or a script.
+
+A source answers distances_m(iteration, elapsed_s) -> {worker rank: metres or None (unknown)}.
+  FixedDistances    one distance per worker (static scenarios, tests)
+  ScriptedDistances piecewise-constant distances by iteration or by time, from a JSON file:
+                    {"by": "iteration", "distances_m": {"1": [[0, 10.0]], "2": [[0, 10.0], [50, 40.0], [80, 10.0]]}}
+                    (worker 2 is 10 m away until iteration 50, 40 m until 80, then 10 m again)
+  FeedDistances     the local agent's state feed: rank r is vehicle ids[r]; the master is rank 0
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from nac_onboard.agent.state_feed import StateFeedError, distance_between, fetch_state
+
+
+class PositionsError(ValueError):
+    pass
+
+
+class FixedDistances:
+    def __init__(self, distances_m: list[float]):
+        self.distances = {rank: d for rank, d in enumerate(distances_m, start=1)}
+
+    def distances_m(self, iteration: int, elapsed_s: float) -> dict[int, float | None]:
+        return dict(self.distances)
+
+
+class ScriptedDistances:
+    def __init__(self, by: str, schedule: dict[int, list[tuple[float, float]]]):
+        if by not in ("iteration", "time_s"):
+            raise PositionsError(f"positions script: 'by' must be 'iteration' or 'time_s', got {by!r}")
+        self.by, self.schedule = by, {rank: sorted(points) for rank, points in schedule.items()}
+
+    @classmethod
+    def load(cls, path: str | Path) -> ScriptedDistances:
+        try:
+            data = json.loads(Path(path).read_text())
+            schedule = {int(rank): [(float(at), float(d)) for at, d in points]
+                        for rank, points in data["distances_m"].items()}
+            return cls(data.get("by", "iteration"), schedule)
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise PositionsError(f"{path}: expected {{\"by\": \"iteration\", \"distances_m\": {{\"1\": [[0, 10.0]], "
+                                 f"...}}}}: {err}") from None
+
+    def distances_m(self, iteration: int, elapsed_s: float) -> dict[int, float | None]:
+        at = iteration if self.by == "iteration" else elapsed_s
+        out = {}
+        for rank, points in self.schedule.items():
+            current = None
+            for start, distance in points:
+                if start <= at:
+                    current = distance
+            out[rank] = current
+        return out
+
+
+class FeedDistances:
+    def __init__(self, address: str, vehicle_ids: list[str], timeout_s: float = 0.3):
+        if len(vehicle_ids) < 2:
+            raise PositionsError("--vehicles needs the master's id then one id per worker, in rank order")
+        self.address, self.ids, self.timeout_s = address, vehicle_ids, timeout_s
+        self.failures = 0
+
+    def distances_m(self, iteration: int, elapsed_s: float) -> dict[int, float | None]:
+        try:
+            state = fetch_state(self.address, self.timeout_s)
+        except StateFeedError:
+            self.failures += 1
+            return {rank: None for rank in range(1, len(self.ids))}
+        return {rank: distance_between(state, self.ids[0], vehicle) for rank, vehicle in
+                enumerate(self.ids[1:], start=1)}
+
+
+def wait_for_feed(source: FeedDistances, timeout_s: float) -> None:
+    """Block until the feed knows every vehicle's position (an experiment starts before GPS is everywhere)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        if all(d is not None for d in source.distances_m(0, 0.0).values()):
+            return
+        if time.monotonic() > deadline:
+            raise PositionsError(f"the state feed at {source.address} did not know all of {', '.join(source.ids)} "
+                                 f"within {timeout_s:g} s")
+        time.sleep(0.2)

@@ -1,0 +1,548 @@
+"""MAVLink client used by the ground station, the agent and the demo (the one module here importing pymavlink).
+
+Endpoints are URIs: udpin:HOST:PORT (listen, as QGroundControl does), udpout:HOST:PORT (send first),
+tcp:HOST:PORT, serial:DEVICE:BAUD. The environment variable NAC_MAVLINK_URI overrides the default. One client
+holds one or more links and tracks every vehicle heard on them, by system id.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import select
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink import mavutil  # noqa: E402
+
+from missions.model import MavCmd, MissionItem  # noqa: E402
+from nac_onboard.mavlink.frames import frame_msgid, frame_source, split_frames  # noqa: E402
+
+log = logging.getLogger(__name__)
+M = mavutil.mavlink
+DEFAULT_URI = "udpin:0.0.0.0:14550"
+COPTER_MODES = {name: number for number, name in mavutil.mode_mapping_acm.items()}
+LANDED_STATES = {0: "unknown", 1: "on ground", 2: "in air", 3: "taking off", 4: "landing"}
+MISSION_STATE_COMPLETE = 5
+HEARTBEAT_PERIOD_S = 1.0
+#: What VehicleState and the client's own operations (commands, mission transfer) read.
+CLIENT_MESSAGES = frozenset({
+    "HEARTBEAT", "GLOBAL_POSITION_INT", "ATTITUDE", "SYS_STATUS", "EXTENDED_SYS_STATE", "MISSION_CURRENT",
+    "MISSION_ITEM_REACHED", "COMMAND_ACK", "MISSION_COUNT", "MISSION_REQUEST", "MISSION_REQUEST_INT",
+    "MISSION_ITEM_INT", "MISSION_ACK", "STATUSTEXT"})
+
+
+class LinkError(RuntimeError):
+    """The link could not be opened or stayed silent; the message says which endpoint and what was expected."""
+
+
+class LinkClosed(LinkError):
+    """The other end closed a stream link (TCP); the link must be opened again."""
+
+
+class CommandError(RuntimeError):
+    def __init__(self, command: int, result: int, sysid: int):
+        self.command, self.result = command, result
+        name = _enum_name("MAV_RESULT", result)
+        cmd = _enum_name("MAV_CMD", command)
+        super().__init__(f"vehicle {sysid} refused {cmd}: {name}")
+
+
+class MissionError(RuntimeError):
+    def __init__(self, what: str, result: int | None = None):
+        self.result = result
+        if result is not None:
+            what += f": {_enum_name('MAV_MISSION_RESULT', result)}"
+        super().__init__(what)
+
+
+def _enum_name(enum: str, value: int) -> str:
+    entry = M.enums.get(enum, {}).get(value)
+    return entry.name if entry is not None else str(value)
+
+
+def mavutil_device(uri: str) -> tuple[str, dict]:
+    """Map a NAC endpoint URI to pymavlink's device string and options."""
+    scheme, _, rest = uri.partition(":")
+    if scheme in ("udpin", "udpout", "tcpin") and rest.rpartition(":")[2].isdigit():
+        return uri, {}
+    if scheme == "tcp" and rest.rpartition(":")[2].isdigit():
+        return uri, {"retries": 0}  # fail fast: callers that want to wait retry on their own schedule
+    if scheme == "serial":
+        device, _, baud = rest.rpartition(":")
+        if device and baud.isdigit():
+            return device, {"baud": int(baud)}
+    raise LinkError(f"endpoint {uri!r} not understood: expected udpin:HOST:PORT, udpout:HOST:PORT, "
+                    f"tcp:HOST:PORT or serial:DEVICE:BAUD")
+
+
+@dataclass
+class VehicleState:
+    """What a vehicle last told us about itself."""
+
+    sysid: int
+    link: int = 0  # index of the link it was heard on
+    autopilot: int = 0
+    mode: str = "?"
+    armed: bool = False
+    lat_deg: float = float("nan")
+    lon_deg: float = float("nan")
+    alt_m: float = float("nan")
+    rel_alt_m: float = float("nan")
+    vel_ned_mps: tuple = (0.0, 0.0, 0.0)
+    roll_deg: float = 0.0
+    pitch_deg: float = 0.0
+    yaw_deg: float = 0.0
+    battery_pct: int = -1
+    voltage_v: float = float("nan")
+    landed: str = "unknown"
+    time_boot_ms: int = -1  # the autopilot's clock at the last position (GLOBAL_POSITION_INT)
+    mission_seq: int = 0
+    mission_total: int = 0
+    mission_state: int = 0
+    last_heartbeat_s: float = 0.0
+    reached: list = field(default_factory=list)
+
+    @property
+    def ground_speed_mps(self) -> float:
+        return (self.vel_ned_mps[0] ** 2 + self.vel_ned_mps[1] ** 2) ** 0.5
+
+    def link_age_s(self, now_s: float | None = None) -> float:
+        return (time.monotonic() if now_s is None else now_s) - self.last_heartbeat_s
+
+    def apply(self, msg, now_s: float) -> None:
+        kind = msg.get_type()
+        if kind == "HEARTBEAT":
+            self.last_heartbeat_s = now_s
+            self.autopilot = msg.autopilot
+            self.armed = bool(msg.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
+            if msg.base_mode & M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+                self.mode = mavutil.mode_mapping_acm.get(msg.custom_mode, str(msg.custom_mode))
+        elif kind == "GLOBAL_POSITION_INT":
+            self.time_boot_ms = msg.time_boot_ms
+            self.lat_deg, self.lon_deg = msg.lat / 1e7, msg.lon / 1e7
+            self.alt_m, self.rel_alt_m = msg.alt / 1000, msg.relative_alt / 1000
+            self.vel_ned_mps = (msg.vx / 100, msg.vy / 100, msg.vz / 100)
+        elif kind == "ATTITUDE":
+            self.roll_deg, self.pitch_deg, self.yaw_deg = (v * 57.29577951308232 for v in
+                                                           (msg.roll, msg.pitch, msg.yaw))
+        elif kind == "SYS_STATUS":
+            self.battery_pct = msg.battery_remaining
+            self.voltage_v = msg.voltage_battery / 1000
+        elif kind == "EXTENDED_SYS_STATE":
+            self.landed = LANDED_STATES.get(msg.landed_state, "unknown")
+        elif kind == "MISSION_CURRENT":
+            self.mission_seq = msg.seq
+            self.mission_total = getattr(msg, "total", 0)
+            self.mission_state = getattr(msg, "mission_state", 0)
+        elif kind == "MISSION_ITEM_REACHED":
+            self.reached.append(msg.seq)
+
+
+class RawFrame:
+    """A frame passed through undecoded: enough of the message interface for logging and routing."""
+
+    __slots__ = ("_frame", "_msgid")
+
+    def __init__(self, frame: bytes, msgid: int):
+        self._frame, self._msgid = frame, msgid
+
+    def get_type(self) -> str:
+        known = M.mavlink_map.get(self._msgid)
+        return known.msgname if known is not None else f"UNKNOWN_{self._msgid}"
+
+    def get_msgbuf(self) -> bytes:
+        return self._frame
+
+    def get_srcSystem(self) -> int:  # noqa: N802 (pymavlink's name)
+        return frame_source(self._frame)[0]
+
+    def get_srcComponent(self) -> int:  # noqa: N802
+        return frame_source(self._frame)[1]
+
+
+class Link:
+    def __init__(self, uri: str, index: int, source_system: int, source_component: int, signing_key: bytes | None,
+                 mav_type: int = M.MAV_TYPE_GCS):
+        self.uri, self.index, self.mav_type = uri, index, mav_type
+        device, options = mavutil_device(uri)
+        try:
+            self.conn = mavutil.mavlink_connection(device, source_system=source_system,
+                                                   source_component=source_component, **options)
+        except OSError as err:
+            raise LinkError(f"cannot open {uri}: {err.strerror or err}") from None
+        self.signing_key = signing_key
+        self.stream = not uri.startswith("udp")  # frames may straddle reads
+        self.pending = bytearray()
+        if uri.startswith("tcp"):
+            # pymavlink prints and returns nothing forever on a closed TCP socket unless told to reconnect itself.
+            self.conn.handle_eof = self.conn.handle_disconnect = self._closed
+        if signing_key is not None:
+            self.conn.setup_signing(signing_key, sign_outgoing=True)
+        self.last_heartbeat_sent_s = 0.0
+        self.bad_signature_frames = 0
+        self.signed_frames_unverified = 0  # signed frames heard while we have no key
+
+    def fileno(self) -> int:
+        return self.conn.fd if getattr(self.conn, "fd", None) is not None else self.conn.port.fileno()
+
+    def read_filtered(self, wanted_ids: frozenset) -> list:
+        """Everything waiting on the link, decoding only the message ids in wanted_ids; other frames come back
+        as RawFrame (pymavlink's decoding is most of a busy link's cost, and most frames are only logged)."""
+        out = []
+        while True:
+            data = self.conn.recv(65535)
+            if not data:
+                return out
+            if isinstance(data, str):
+                data = data.encode("latin-1")
+            if self.stream:
+                self.pending += data
+                frames, used, _ = split_frames(self.pending)
+                del self.pending[:used]
+            else:
+                frames = split_frames(data)[0]  # a datagram holds whole frames: resynchronise on each
+            for frame in frames:
+                msgid = frame_msgid(frame)
+                if msgid not in wanted_ids:
+                    out.append(RawFrame(frame, msgid))
+                    continue
+                try:
+                    out.append(self.conn.mav.decode(bytearray(frame)))
+                except M.MAVError as err:
+                    out.append(M.MAVLink_bad_data(bytearray(frame), err.message))
+
+    def write_frame(self, frame: bytes) -> None:
+        """Send a frame someone else built (routed) on this link, unchanged."""
+        self.conn.write(frame)
+
+    def _closed(self):
+        raise LinkClosed(f"{self.uri}: the other end closed the connection")
+
+    def heartbeat(self, now_s: float) -> None:
+        if now_s - self.last_heartbeat_sent_s >= HEARTBEAT_PERIOD_S:
+            self.last_heartbeat_sent_s = now_s
+            try:
+                self.conn.mav.heartbeat_send(self.mav_type, M.MAV_AUTOPILOT_INVALID, 0, 0, M.MAV_STATE_ACTIVE)
+            except OSError:
+                pass  # nobody to send to yet (a listening link before the first packet)
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+class MavlinkClient:
+    """Several links, every vehicle heard on them; operations address a vehicle by system id."""
+
+    def __init__(self, uris: list[str] | str | None = None, sysid: int | None = None, signing_key: bytes | None = None,
+                 source_system: int = 255, source_component: int = M.MAV_COMP_ID_MISSIONPLANNER,
+                 mav_type: int = M.MAV_TYPE_GCS, decode_only: set[str] | None = None):
+        """decode_only: message names to decode (plus what the client itself needs); every other frame is
+        returned as a RawFrame. None decodes everything."""
+        if uris is None or uris == []:
+            uris = [os.environ.get("NAC_MAVLINK_URI", DEFAULT_URI)]
+        elif isinstance(uris, str):
+            uris = [uris]
+        self.links: list[Link] = []
+        self._link_args = (source_system, source_component, signing_key, mav_type)
+        try:
+            for k, uri in enumerate(uris):
+                self.links.append(Link(uri, k, *self._link_args))
+        except LinkError:
+            self.close()
+            raise
+        self.wanted_ids = None if decode_only is None else frozenset(
+            getattr(M, f"MAVLINK_MSG_ID_{name}") for name in set(decode_only) | CLIENT_MESSAGES)
+        self.sysid = sysid  # default target; None = the first vehicle heard
+        self.vehicles: dict[int, VehicleState] = {}
+        self.seen: list = []  # every message received, in order (bounded; handy for tools and tests)
+        self._inbox: deque = deque()  # received, not yet offered to recv()
+
+    @property
+    def conn(self):
+        return self.links[0].conn
+
+    def close(self) -> None:
+        for link in self.links:
+            link.close()
+
+    def reopen(self, index: int = 0) -> Link:
+        """Close and open a link again (a serial device that came back, a TCP peer that restarted)."""
+        old = self.links[index]
+        old.close()
+        self.links[index] = Link(old.uri, index, *self._link_args)
+        return self.links[index]
+
+    def tap_sent(self, callback) -> None:
+        """Call callback(frame_bytes) for every frame this client sends (the agent's .tlog)."""
+        for link in self.links:
+            link.conn.mav.set_send_callback(lambda msg: callback(msg.get_msgbuf()))
+
+    def request_streams(self, rate_hz: float, sysid: int | None = None) -> None:
+        """Ask the autopilot to stream all telemetry at rate_hz (REQUEST_DATA_STREAM, as MAVProxy's SR does)."""
+        target = self.sysid if sysid is None else sysid
+        self._link_for(target).mav.request_data_stream_send(target, 1, M.MAV_DATA_STREAM_ALL,
+                                                            max(1, round(rate_hz)), 1)
+
+    def __enter__(self) -> MavlinkClient:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ---- receiving --------------------------------------------------------------------------------------
+    def _drain(self, link: Link, now_s: float):
+        if self.wanted_ids is None:
+            messages = iter(lambda: link.conn.recv_match(blocking=False), None)
+        else:
+            messages = link.read_filtered(self.wanted_ids)
+        for msg in messages:
+            if isinstance(msg, RawFrame):
+                yield link, msg
+                continue
+            kind = msg.get_type()
+            if kind == "BAD_DATA":
+                if "signature" in str(getattr(msg, "reason", "")).lower():
+                    link.bad_signature_frames += 1
+                continue
+            if link.signing_key is None and msg.get_header().incompat_flags & 1:
+                link.signed_frames_unverified += 1
+            sysid = msg.get_srcSystem()
+            if msg.get_srcComponent() == 1 or kind == "HEARTBEAT" and msg.type != M.MAV_TYPE_GCS:
+                state = self.vehicles.get(sysid)
+                if state is None and kind == "HEARTBEAT":
+                    state = self.vehicles[sysid] = VehicleState(sysid, link.index)
+                if state is not None:
+                    state.apply(msg, now_s)
+            if len(self.seen) > 10000:
+                del self.seen[:5000]
+            self.seen.append(msg)
+            yield link, msg
+
+    def poll(self, timeout_s: float) -> list:
+        """Wait up to timeout_s for traffic on any link; returns the messages that arrived."""
+        ready, _, _ = select.select(self.links, [], [], max(timeout_s, 0.0))
+        now = time.monotonic()
+        out = []
+        for link in self.links:
+            link.heartbeat(now)
+            out.extend(msg for _, msg in self._drain(link, now))
+        return out
+
+    def recv(self, types, timeout_s: float, predicate=lambda m: True, sysid: int | None = None):
+        """The next message of `types` from the vehicle matching predicate, or None after timeout_s."""
+        target = self.sysid if sysid is None else sysid
+        types = {types} if isinstance(types, str) else set(types)
+        deadline = time.monotonic() + timeout_s
+        while True:
+            self._inbox.extend(self.poll(0.0))
+            while self._inbox:  # like recv_match, what does not match is consumed and dropped
+                msg = self._inbox.popleft()
+                if (msg.get_type() in types and (target is None or msg.get_srcSystem() == target)
+                        and predicate(msg)):
+                    return msg
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return None
+            select.select(self.links, [], [], min(left, 0.1))
+
+    def wait_vehicles(self, count: int = 1, timeout_s: float = 5.0, sysids: list[int] | None = None) -> dict:
+        """Listen until `count` vehicles (or the given sysids) have sent a heartbeat."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            self.poll(min(0.1, deadline - time.monotonic()))
+            heard = set(self.vehicles)
+            if (sysids and set(sysids) <= heard) or (not sysids and len(heard) >= count):
+                break
+        return self.vehicles
+
+    def wait_heartbeat(self, timeout_s: float = 5.0, sysid: int | None = None):
+        target = self.sysid if sysid is None else sysid
+        hb = self.recv("HEARTBEAT", timeout_s, lambda m: m.type != M.MAV_TYPE_GCS, sysid=target)
+        if hb is None:
+            raise LinkError(self.silence_reason(target, timeout_s))
+        if self.sysid is None:
+            self.sysid = hb.get_srcSystem()
+        link = self.links[self.vehicles[hb.get_srcSystem()].link]
+        link.conn.target_system, link.conn.target_component = hb.get_srcSystem(), 1
+        return hb
+
+    def silence_reason(self, sysid: int | None, timeout_s: float) -> str:
+        who = "any vehicle" if sysid is None else f"vehicle {sysid}"
+        where = ", ".join(link.uri for link in self.links)
+        text = f"no heartbeat from {who} on {where} within {timeout_s:g} s"
+        if any(link.bad_signature_frames for link in self.links):
+            text += " (frames arrived with an invalid signature: the signing key differs from the vehicle's)"
+        return text
+
+    def signing_hint(self) -> str:
+        if any(link.signed_frames_unverified for link in self.links):
+            return " The vehicle signs its messages: it needs our messages signed too (--signing-key-file)."
+        return ""
+
+    def _link_for(self, sysid: int):
+        state = self.vehicles.get(sysid)
+        return self.links[state.link if state else 0].conn
+
+    # ---- commands ---------------------------------------------------------------------------------------
+    def command(self, command: int, *params: float, timeout_s: float = 1.5, retries: int = 3,
+                sysid: int | None = None) -> int:
+        """Send COMMAND_LONG until its COMMAND_ACK arrives (confirmation counts retries); returns MAV_RESULT."""
+        target = self.sysid if sysid is None else sysid
+        p = [float(v) for v in params] + [0.0] * (7 - len(params))
+        for confirmation in range(retries):
+            self._link_for(target).mav.command_long_send(target, 1, command, confirmation, *p)
+            ack = self.recv("COMMAND_ACK", timeout_s,
+                            lambda m: m.command == command and m.result != M.MAV_RESULT_IN_PROGRESS, sysid=target)
+            if ack is not None:
+                return ack.result
+        raise LinkError(f"no answer from vehicle {target} to {_enum_name('MAV_CMD', command)} after {retries} "
+                        f"tries of {timeout_s:g} s.{self.signing_hint()}")
+
+    def command_ok(self, command: int, *params: float, sysid: int | None = None, **kwargs) -> None:
+        target = self.sysid if sysid is None else sysid
+        result = self.command(command, *params, sysid=target, **kwargs)
+        if result != M.MAV_RESULT_ACCEPTED:
+            raise CommandError(command, result, target)
+
+    def set_mode(self, name: str, sysid: int | None = None) -> int:
+        if name not in COPTER_MODES:
+            raise ValueError(f"unknown mode {name!r}; known: {', '.join(sorted(COPTER_MODES))}")
+        return self.command(MavCmd.DO_SET_MODE, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, COPTER_MODES[name],
+                            sysid=sysid)
+
+    # ---- missions ---------------------------------------------------------------------------------------
+    def upload(self, items: list[MissionItem], mission_type: int = 0, item_timeout_s: float = 1.5,
+               retries: int = 10, progress=None, sysid: int | None = None) -> int:
+        """Mission upload as the protocol asks of a GCS: answer each request once; when the vehicle goes quiet
+        for item_timeout_s, re-send COUNT (nothing requested yet) or the last item, at most `retries` times in
+        a row. Returns the vehicle's MISSION_ACK type. The spec asks for at least 5 retries; 10 keeps a
+        radio losing 30 % each way from failing one upload in fifty on a lost final ACK."""
+        target = self.sysid if sysid is None else sysid
+        conn = self._link_for(target)
+        conn.mav.mission_count_send(target, 1, len(items), mission_type)
+        last_sent, quiet_s = None, 0.0
+        while True:
+            # Mid-transfer the vehicle drives (it re-requests); before the first request and after the last item
+            # only we can, so we re-send three times as often for the same total patience.
+            we_drive = last_sent is None or last_sent == len(items) - 1
+            timeout_s = item_timeout_s / 3 if we_drive else item_timeout_s
+            msg = self.recv(["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"], timeout_s,
+                            lambda m: m.mission_type == mission_type and m.target_system in (0, conn.mav.srcSystem),
+                            sysid=target)
+            if msg is None:
+                quiet_s += timeout_s
+                if quiet_s > retries * item_timeout_s + 1e-9:
+                    waiting = "the first request" if last_sent is None else f"the answer to item {last_sent}"
+                    raise MissionError(f"mission upload to vehicle {target} gave up: no answer ({waiting}) after "
+                                       f"{quiet_s:.1f} s of retries.{self.signing_hint()}")
+                if last_sent is None:
+                    conn.mav.mission_count_send(target, 1, len(items), mission_type)
+                else:
+                    self.send_item(items[last_sent], mission_type, target)
+                continue
+            quiet_s = 0.0
+            if msg.get_type() == "MISSION_ACK":
+                return msg.type
+            if not 0 <= msg.seq < len(items):
+                continue
+            last_sent = msg.seq
+            self.send_item(items[msg.seq], mission_type, target)
+            if progress is not None:
+                progress(msg.seq + 1, len(items))
+
+    def send_item(self, it: MissionItem, mission_type: int, sysid: int | None = None) -> None:
+        target = self.sysid if sysid is None else sysid
+        self._link_for(target).mav.mission_item_int_send(
+            target, 1, it.seq, it.frame, it.command, 0, int(it.autocontinue), it.p1, it.p2, it.p3, it.p4,
+            int(round(it.lat_deg * 1e7)), int(round(it.lon_deg * 1e7)), it.alt_m, mission_type)
+
+    def download(self, mission_type: int = 0, item_timeout_s: float = 1.5, retries: int = 5, progress=None,
+                 sysid: int | None = None) -> list[MissionItem]:
+        target = self.sysid if sysid is None else sysid
+        conn = self._link_for(target)
+        count, quiet = None, 0
+        while count is None:
+            conn.mav.mission_request_list_send(target, 1, mission_type)
+            msg = self.recv("MISSION_COUNT", item_timeout_s, lambda m: m.mission_type == mission_type, sysid=target)
+            if msg is not None:
+                count = msg.count
+            elif (quiet := quiet + 1) > retries:
+                raise MissionError(f"mission download from vehicle {target}: no MISSION_COUNT after {retries} "
+                                   f"retries.{self.signing_hint()}")
+        items: list[MissionItem] = []
+        quiet = 0
+        while len(items) < count:
+            conn.mav.mission_request_int_send(target, 1, len(items), mission_type)
+            msg = self.recv("MISSION_ITEM_INT", item_timeout_s, lambda m: m.seq == len(items), sysid=target)
+            if msg is None:
+                if (quiet := quiet + 1) > retries:
+                    raise MissionError(f"mission download from vehicle {target}: item {len(items)} of {count} "
+                                       f"never came after {retries} retries")
+                continue
+            quiet = 0
+            items.append(MissionItem(msg.seq, msg.command, msg.frame, msg.param1, msg.param2, msg.param3,
+                                     msg.param4, msg.x / 1e7, msg.y / 1e7, msg.z, bool(msg.autocontinue),
+                                     mission_type=msg.mission_type))
+            if progress is not None:
+                progress(len(items), count)
+        conn.mav.mission_ack_send(target, 1, M.MAV_MISSION_ACCEPTED, mission_type)
+        return items
+
+    def set_current(self, seq: int, sysid: int | None = None) -> None:
+        """Make mission item `seq` the current one (MAV_CMD_DO_SET_MISSION_CURRENT)."""
+        self.command_ok(MavCmd.DO_SET_MISSION_CURRENT, seq, sysid=sysid)
+
+    def clear(self, mission_type: int = 0, timeout_s: float = 1.5, retries: int = 3,
+              sysid: int | None = None) -> int:
+        target = self.sysid if sysid is None else sysid
+        for _ in range(retries):
+            self._link_for(target).mav.mission_clear_all_send(target, 1, mission_type)
+            ack = self.recv("MISSION_ACK", timeout_s, lambda m: m.mission_type == mission_type, sysid=target)
+            if ack is not None:
+                return ack.type
+        raise MissionError(f"vehicle {target} did not acknowledge the mission clear after {retries} tries")
+
+
+class RawEndpoint:
+    """A MAVLink endpoint whose frames are relayed byte for byte (the agent's routing to MAVProxy and tools)."""
+
+    def __init__(self, uri: str):
+        self.uri = uri
+        device, options = mavutil_device(uri)
+        try:
+            self.conn = mavutil.mavlink_connection(device, **options)
+        except OSError as err:
+            raise LinkError(f"cannot open routing endpoint {uri}: {err.strerror or err}") from None
+        self.conn.mav.robust_parsing = True
+
+    def fileno(self) -> int:
+        return self.conn.fd if getattr(self.conn, "fd", None) is not None else self.conn.port.fileno()
+
+    def read_frames(self) -> list[bytes]:
+        frames = []
+        while (msg := self.conn.recv_msg()) is not None:
+            if msg.get_type() != "BAD_DATA":
+                frames.append(bytes(msg.get_msgbuf()))
+        return frames
+
+    def write(self, frame: bytes) -> bool:
+        try:
+            self.conn.write(frame)
+        except OSError:
+            return False  # nobody listening yet (udpout before the tool starts): the frame is simply not routed
+        return True
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+class VehicleClient(MavlinkClient):
+    """One link, one vehicle: the shape the demo and simple tools need."""
+
+    def __init__(self, uri: str | None = None, sysid: int = 1, source_system: int = 255,
+                 source_component: int = M.MAV_COMP_ID_MISSIONPLANNER, signing_key: bytes | None = None):
+        super().__init__(uri, sysid=sysid, signing_key=signing_key, source_system=source_system,
+                         source_component=source_component)

@@ -1,0 +1,95 @@
+"""The experiment's live display: each vehicle followed over its ground link, the latest compute iteration and
+throughput probe read from the tail of their logs, one line per refresh."""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from nac_onboard.mavlink.client import COPTER_MODES, LinkError, M, VehicleClient
+
+MODES = {number: name for name, number in COPTER_MODES.items()}
+TAIL_BYTES = 65536
+
+
+@dataclass
+class Progress:
+    vehicle: str
+    mode: str = "?"
+    armed: bool = False
+    rel_alt_m: float = 0.0
+    speed_mps: float = 0.0
+    item: int = 0
+    total: int = 0
+    reached: list[int] = field(default_factory=list)
+    landed: bool = False
+    error: str = ""
+
+
+def follow(client: VehicleClient, progress: Progress, stop: threading.Event) -> None:
+    """Keep progress up to date from the vehicle's messages until stop is set."""
+    wanted = ["HEARTBEAT", "GLOBAL_POSITION_INT", "MISSION_ITEM_REACHED", "MISSION_CURRENT"]
+    while not stop.is_set():
+        try:
+            msg = client.recv(wanted, 0.5)
+        except (LinkError, OSError) as err:
+            progress.error = str(err)
+            return
+        if msg is None:
+            continue
+        kind = msg.get_type()
+        if kind == "HEARTBEAT":
+            progress.mode = MODES.get(msg.custom_mode, str(msg.custom_mode))
+            progress.armed = bool(msg.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
+        elif kind == "GLOBAL_POSITION_INT":
+            progress.rel_alt_m = msg.relative_alt / 1000
+            progress.speed_mps = math.hypot(msg.vx, msg.vy) / 100
+        elif kind == "MISSION_ITEM_REACHED":
+            if msg.seq not in progress.reached:
+                progress.reached.append(msg.seq)
+        else:
+            progress.item = msg.seq
+
+
+def last_record(path: Path, kind: str) -> dict | None:
+    """The last complete record of this kind in a JSON Lines log, reading only its tail."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, 2)
+            size = f.tell()
+            f.seek(max(size - TAIL_BYTES, 0))
+            tail = f.read()
+    except OSError:
+        return None
+    marker = f'"kind":"{kind}"'.encode()  # JsonlLog writes compact JSON
+    for line in reversed(tail.split(b"\n")[1 if size > TAIL_BYTES else 0:]):
+        if marker in line:
+            try:
+                return json.loads(line)
+            except ValueError:
+                continue
+    return None
+
+
+def render_progress(t_s: float, states: list[Progress], run_dir: Path, master: str) -> str:
+    cells = [f"{s.vehicle} {s.mode:<6}{'A' if s.armed else '-'} {s.rel_alt_m:4.1f} m {s.speed_mps:3.1f} m/s "
+             f"item {s.item}/{s.total}" for s in states]
+    line = f"t={t_s:6.1f}s | " + " | ".join(cells)
+    iteration = last_record(run_dir / "compute" / "compute.jsonl", "iteration")
+    if iteration:
+        present = iteration.get("workers", {}).get("present", [])
+        line += f" | it {iteration['iteration'] + 1} ({sum(present)}/{len(present)} workers)"
+        if iteration.get("cost") is not None:
+            line += f" cost {iteration['cost']:.4f}"
+    probe = last_record(run_dir / master / "throughput.jsonl", "throughput")
+    if probe:
+        if "error" in probe:
+            line += f" | {probe.get('server')}: no link"
+        else:
+            rate = probe["end"]["sum_received"]["bits_per_second"] / 1e6
+            distance = probe.get("distance_m")
+            line += f" | {probe.get('server')}: {rate:.1f} Mbit/s" + (f" at {distance:.1f} m" if distance else "")
+    return line

@@ -1,0 +1,436 @@
+"""`nac-sitl experiment SCENARIO`: one NAC experiment in SITL, end to end, with the code that flies.
+
+The simulator (in this process), one `nac-onboard agent` process per vehicle (its own config and log directory),
+the missions uploaded, armed and started through the MAVLink client on each vehicle's ground link, the MPI job
+under `mpiexec` fed by the master agent's live positions; at the end the vehicles land, everything stops, and
+the run directory is analysed into report.md. Whatever happens (Ctrl-C, a part failing) every child is stopped,
+the partial run is analysed, and the outcome says what ended it.
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from missions.model import MavCmd
+from nac_onboard.agent.config import dump_toml
+from nac_onboard.child_process import AgentProcess, ChildStartError
+from nac_onboard.compute.options import core_binding
+from nac_onboard.mavlink.client import CommandError, LinkError, M, MissionError, VehicleClient
+from sitl.experiment.progress import Progress, follow, render_progress
+from sitl.experiment.scenario import Fault, Scenario
+from sitl.server import Sitl, SitlConfig, SitlError
+
+log = logging.getLogger(__name__)
+CLIENT_ERRORS = (OSError, LinkError, CommandError, MissionError)
+PORTS_PER_VEHICLE = 10  # ground, companion, peers, throughput server, (master) state feed
+TAKEOFF_TIMEOUT_S = 60.0  # simulated
+
+
+class Outcome(enum.Enum):
+    COMPLETED = (0, "completed")
+    INTERRUPTED = (130, "interrupted (Ctrl-C)")
+    COMPUTE_FAILED = (1, "the MPI job failed")
+    AGENT_FAILED = (1, "an agent failed")
+    MISSION_FAILED = (1, "a mission could not be started")
+    SITL_FAILED = (1, "the simulator stopped")
+    BAD_INPUT = (2, "the experiment cannot start")
+
+    @property
+    def exit_code(self) -> int:
+        return self.value[0]
+
+    @property
+    def text(self) -> str:
+        return self.value[1]
+
+
+class ExperimentError(RuntimeError):
+    def __init__(self, outcome: Outcome, detail: str):
+        super().__init__(f"{outcome.text}: {detail}")
+        self.outcome, self.detail = outcome, detail
+
+
+@dataclass
+class ExperimentResult:
+    outcome: Outcome
+    detail: str
+    run_dir: Path
+    report: Path | None = None
+    summary: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Ports:
+    base: int
+
+    def of(self, index: int, slot: int) -> int:
+        return self.base + PORTS_PER_VEHICLE * index + slot
+
+    def gcs(self, i: int) -> int:
+        return self.of(i, 0)
+
+    def companion(self, i: int) -> int:
+        return self.of(i, 1)
+
+    def peers(self, i: int) -> int:
+        return self.of(i, 2)
+
+    def throughput(self, i: int) -> int:
+        return self.of(i, 3)
+
+    def feed(self) -> int:
+        return self.of(0, 4)
+
+
+def agent_config(scenario: Scenario, index: int, run_dir: Path, ports: Ports) -> str:
+    vehicle = scenario.vehicles[index]
+    others = [k for k in range(len(scenario.vehicles)) if k != index]
+    master = vehicle.role == "master"
+    throughput = {"server": not master, "bind": "127.0.0.1", "port": ports.throughput(index)}
+    if master and scenario.throughput:
+        p = scenario.throughput
+        throughput.update(probe=True, period_s=p.period_s, duration_s=p.duration_s, interval_s=p.interval_s,
+                          emulate_channel=scenario.channel,
+                          targets=[f"{scenario.vehicles[k].id}=127.0.0.1:{ports.throughput(k)}" for k in others
+                                   if scenario.vehicles[k].role == "worker"])
+    return dump_toml({
+        "vehicle": {"id": vehicle.id, "role": vehicle.role, "sysid": index + 1},
+        "autopilot": {"uri": f"udpin:127.0.0.1:{ports.companion(index)}", "link_timeout_s": 3.0},
+        "log": {"dir": str(run_dir.parent), "run_id": run_dir.name, "telemetry_hz": 10.0, "tlog": True},
+        "peers": {"listen": f"127.0.0.1:{ports.peers(index)}",
+                  "send_to": [f"127.0.0.1:{ports.peers(k)}" for k in others], "rate_hz": 2.0, "timeout_s": 3.0},
+        "state_feed": {"listen": f"127.0.0.1:{ports.feed() if master else ports.of(index, 4)}"},
+        "throughput": throughput,
+    })
+
+
+def mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, wall_limit_s: float) -> list[str]:
+    c = scenario.compute
+    bin_dir = Path(sys.executable).parent
+    mpiexec = bin_dir / "mpiexec"
+    ids = [scenario.master.id, *(w.id for w in scenario.workers)]
+    stop = ["--iterations", str(c.iterations)] if c.iterations else ["--duration-s", f"{wall_limit_s:.3f}"]
+    return [str(mpiexec if mpiexec.exists() else "mpiexec"), "-n", str(len(ids)), "-bind-to", core_binding(len(ids)),
+            sys.executable, "-m", "mpi4py", "-m", "nac_onboard.compute", "--task", c.task, *stop,
+            "--out", str(run_dir / "compute"), "--emulate", "sleep", "--channel", scenario.channel,
+            "--positions", "feed", "--feed", f"127.0.0.1:{ports.feed()}", "--vehicles", ",".join(ids),
+            "--timeout-s", str(c.timeout_s), "--on-missing", c.on_missing, "--allocation", c.allocation, *c.args]
+
+
+class Experiment:
+    def __init__(self, scenario: Scenario, run_dir: Path, speedup: float, base_port: int, out=sys.stdout,
+                 stop: threading.Event | None = None, analyze: bool = True):
+        self.scenario, self.run_dir, self.speedup, self.out = scenario, run_dir, speedup, out
+        self.ports = Ports(base_port)
+        self.stop_event = stop or threading.Event()
+        self.analyze = analyze
+        self.sim: Sitl | None = None
+        self.agents: list[AgentProcess] = []
+        self.clients: list[VehicleClient] = []
+        self.mpi: subprocess.Popen | None = None
+        self.mpi_log = None
+        self.progress = [Progress(v.id) for v in scenario.vehicles]
+        self.pilots: list[threading.Thread] = []
+        self.mission_start_sim_s: float | None = None
+        self.fault_log: list[dict] = []
+        self.step_observers = []  # (t_s, state) callbacks handed to the simulator (tests record the truth)
+
+    # ---- the run ---------------------------------------------------------------------------------------------
+    def run(self) -> ExperimentResult:
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        outcome, detail = Outcome.COMPLETED, "the scenario ran to its end"
+        self._write_record("experiment", scenario=self.scenario.name, path=str(self.scenario.path),
+                           speedup=self.speedup, speedup_note=self._speedup_note(), duration_s=self.scenario.duration_s,
+                           vehicles=[{"id": v.id, "role": v.role} for v in self.scenario.vehicles])
+        try:
+            self._preflight()
+            self._start()
+            self._fly()
+        except ExperimentError as err:
+            outcome, detail = err.outcome, err.detail
+        except KeyboardInterrupt:
+            outcome, detail = Outcome.INTERRUPTED, "stopped by the operator"
+        finally:
+            if self.stop_event.is_set() and outcome is Outcome.COMPLETED:
+                outcome, detail = Outcome.INTERRUPTED, "stopped by the operator"
+            self._shutdown(land=outcome is not Outcome.INTERRUPTED)
+        self._write_record("experiment_ended", outcome=outcome.name.lower(), detail=detail, faults=self.fault_log)
+        result = ExperimentResult(outcome, detail, self.run_dir)
+        if self.analyze:
+            result.report, result.summary = self._analyze(outcome)
+        return result
+
+    def _speedup_note(self) -> str:
+        if self.speedup == 1.0:
+            return "real time"
+        return (f"sped up: simulated time ran {self.speedup:g}x wall-clock time; compute and probes run in wall-clock "
+                "time")
+
+    def _write_record(self, kind: str, **fields) -> None:
+        with open(self.run_dir / "experiment.json", "a") as f:
+            f.write(json.dumps({"t_s": time.time(), "kind": kind, **fields}) + "\n")
+
+    def _preflight(self) -> None:
+        """What would only fail minutes later (the MPI job's data) is checked before anything starts."""
+        if self.scenario.compute and self.scenario.compute.task == "linreg":
+            from nac_onboard.compute.forestfires import DataError, find_csv
+
+            try:
+                find_csv(None)
+            except DataError as err:
+                raise ExperimentError(Outcome.BAD_INPUT, str(err)) from None
+
+    def _start(self) -> None:
+        s = self.scenario
+        config = SitlConfig(vehicles=len(s.vehicles), speedup=self.speedup,
+                            vehicle_homes=tuple(v.home for v in s.vehicles),
+                            gcs_base_port=self.ports.gcs(0), companion_base_port=self.ports.companion(0),
+                            tcp_base_port=0, port_step=PORTS_PER_VEHICLE)
+        try:
+            self.sim = Sitl(config)
+        except (SitlError, OSError) as err:  # e.g. a base port already taken
+            raise ExperimentError(Outcome.SITL_FAILED, f"cannot start the simulator: {err}") from None
+        self.sim.step_observers.extend(self.step_observers)
+        self.sim.start()
+        config_dir = self.run_dir / "config"
+        config_dir.mkdir(exist_ok=True)
+        for i, vehicle in enumerate(s.vehicles):
+            path = config_dir / f"{vehicle.id}.toml"
+            path.write_text(agent_config(s, i, self.run_dir, self.ports))
+            agent = AgentProcess(path)
+            try:
+                agent.start()
+            except ChildStartError as err:
+                raise ExperimentError(Outcome.AGENT_FAILED, f"{vehicle.id}: {err}") from None
+            self.agents.append(agent)
+        print(f"{s.name}: {len(s.vehicles)} vehicles, {self.speedup:g}x, {len(self.agents)} agents up; logs in "
+              f"{self.run_dir}", file=self.out, flush=True)
+
+    def _fly(self) -> None:
+        s = self.scenario
+        for i, vehicle in enumerate(s.vehicles):
+            client = VehicleClient(f"udpin:127.0.0.1:{self.ports.gcs(i)}", sysid=i + 1)
+            self.clients.append(client)
+            if vehicle.mission is None:
+                continue
+            items = vehicle.mission.to_wire()
+            self.progress[i].total = len(items) - 1
+            try:
+                client.wait_heartbeat(10.0)
+                if client.upload(items) != M.MAV_MISSION_ACCEPTED:
+                    raise ExperimentError(Outcome.MISSION_FAILED, f"{vehicle.id}: mission upload refused")
+            except CLIENT_ERRORS as err:
+                raise ExperimentError(Outcome.MISSION_FAILED, f"{vehicle.id}: {err}") from None
+        for i, vehicle in enumerate(s.vehicles):
+            if vehicle.mission is None:
+                continue
+            try:
+                self.clients[i].command_ok(MavCmd.COMPONENT_ARM_DISARM, 1)
+                self.clients[i].command_ok(MavCmd.MISSION_START, 0, 0)
+            except CLIENT_ERRORS as err:
+                raise ExperimentError(Outcome.MISSION_FAILED, f"{vehicle.id}: {err}") from None
+        self.mission_start_sim_s = self.sim.t_s
+        for i in range(len(s.vehicles)):
+            pilot = threading.Thread(target=follow, args=(self.clients[i], self.progress[i], self.stop_event),
+                                     name=f"follow-{s.vehicles[i].id}", daemon=True)
+            pilot.start()
+            self.pilots.append(pilot)
+        self._wait_for_takeoff()
+        if s.compute:
+            self._start_mpi()
+        self._watch()
+
+    def _sim_elapsed_s(self) -> float:
+        return self.sim.t_s - (self.mission_start_sim_s or 0.0)
+
+    def _wait_for_takeoff(self) -> None:
+        flying = [k for k, v in enumerate(self.scenario.vehicles) if v.mission is not None]
+        while not all(1 in self.progress[k].reached for k in flying):
+            self._check_children()
+            if self._sim_elapsed_s() > TAKEOFF_TIMEOUT_S:
+                late = [self.scenario.vehicles[k].id for k in flying if 1 not in self.progress[k].reached]
+                raise ExperimentError(Outcome.MISSION_FAILED, f"no take-off within {TAKEOFF_TIMEOUT_S:g} s "
+                                                              f"simulated: {', '.join(late)}")
+            if self.stop_event.wait(0.05):
+                raise KeyboardInterrupt
+
+    def _start_mpi(self) -> None:
+        remaining_wall_s = max(self.scenario.duration_s - self._sim_elapsed_s(), 1.0) / self.speedup
+        (self.run_dir / "compute").mkdir(exist_ok=True)
+        self.mpi_log = open(self.run_dir / "compute" / "mpiexec.log", "wb")  # noqa: SIM115 (closed at shutdown)
+        command = mpi_command(self.scenario, self.run_dir, self.ports, remaining_wall_s)
+        self.mpi = subprocess.Popen(command, stdout=self.mpi_log, stderr=subprocess.STDOUT, start_new_session=True)
+        print(f"MPI job started (pid {self.mpi.pid}): {self.scenario.compute.task}, "
+              f"{len(self.scenario.workers)} workers", file=self.out, flush=True)
+
+    def _watch(self) -> None:
+        pending = sorted(self.scenario.faults, key=lambda f: f.at_s)
+        active: list[tuple[float, Fault]] = []
+        next_display = time.monotonic()
+        while self._sim_elapsed_s() < self.scenario.duration_s:
+            now = self._sim_elapsed_s()
+            while pending and pending[0].at_s <= now:
+                fault = pending.pop(0)
+                self._inject(fault, True)
+                if fault.duration_s > 0:
+                    active.append((fault.at_s + fault.duration_s, fault))
+            for item in [a for a in active if a[0] <= now]:
+                active.remove(item)
+                self._inject(item[1], False)
+            self._check_children()
+            if self.mpi is not None and self.mpi.poll() is not None and self.scenario.compute.iterations:
+                print(f"MPI job finished its {self.scenario.compute.iterations} iterations at "
+                      f"t={now:.1f} s", file=self.out, flush=True)
+                return
+            if time.monotonic() >= next_display:
+                line = render_progress(now, self.progress, self.run_dir, self.scenario.master.id)
+                print(line, file=self.out, flush=True)
+                next_display += 1.0
+            if self.stop_event.wait(0.05):
+                raise KeyboardInterrupt
+
+    def _check_children(self) -> None:
+        if not self.sim.alive:
+            raise ExperimentError(Outcome.SITL_FAILED, "the simulation loop stopped (see the log)")
+        for agent, vehicle in zip(self.agents, self.scenario.vehicles, strict=False):
+            if not agent.alive() and not self._killed_on_purpose(vehicle.id, "kill_agent"):
+                raise ExperimentError(Outcome.AGENT_FAILED, f"{vehicle.id}'s agent exited "
+                                                            f"({agent.proc.returncode}): {agent.stderr_text()[-500:]}")
+        if self.mpi is not None and self.mpi.poll() not in (None, 0):
+            raise ExperimentError(Outcome.COMPUTE_FAILED, f"mpiexec exited {self.mpi.returncode} (see "
+                                                          f"{self.run_dir / 'compute' / 'mpiexec.log'})")
+
+    def _killed_on_purpose(self, vehicle_id: str, kind: str) -> bool:
+        return any(f["vehicle"] == vehicle_id and f["kind"] == kind for f in self.fault_log)
+
+    def _inject(self, fault: Fault, on: bool) -> None:
+        index = next(k for k, v in enumerate(self.scenario.vehicles) if v.id == fault.vehicle)
+        sim = self.sim
+        if fault.kind == "link_down":
+            sim.set_link_down(index, "companion", on)
+        elif fault.kind == "gps_lost":
+            sim.set_gps_lost(index, on)
+        elif fault.kind == "packet_loss_pct":
+            sim.set_loss(index, "companion", fault.value if on else 0.0)
+        elif fault.kind == "battery_pct" and on:
+            sim.set_battery_pct(index, fault.value)
+        elif fault.kind == "kill_agent" and on:
+            self.agents[index].kill()
+        elif fault.kind == "kill_worker" and on:
+            self._kill_worker(fault.vehicle)
+        record = {"t_sim_s": round(self._sim_elapsed_s(), 3), "vehicle": fault.vehicle, "kind": fault.kind,
+                  "state": "on" if on else "off"}
+        self.fault_log.append(record)
+        print(f"fault: {fault.kind} {record['state']} for {fault.vehicle} at t={record['t_sim_s']:.1f} s",
+              file=self.out, flush=True)
+
+    def _kill_worker(self, vehicle_id: str) -> None:
+        rank = 1 + [w.id for w in self.scenario.workers].index(vehicle_id)
+        rank_log = self.run_dir / "compute" / f"rank-{rank}.jsonl"
+        try:
+            pid = next(json.loads(line)["pid"] for line in rank_log.read_text().splitlines()
+                       if '"worker_started"' in line)
+            os.kill(pid, signal.SIGKILL)
+        except (OSError, StopIteration, ValueError) as err:
+            log.warning("kill_worker %s: %s", vehicle_id, err)
+
+    # ---- the end ---------------------------------------------------------------------------------------------
+    def _shutdown(self, land: bool) -> None:
+        self.stop_event.set()  # the progress followers stop reading
+        # at the scenario's end the MPI job is finishing its own --duration-s: let it write its summary
+        self._stop_mpi(grace_s=self.scenario.compute.timeout_s + 2.0 if land and self.scenario.compute else 0.0)
+        for t in self.pilots:
+            t.join(2.0)
+        if land and self.sim is not None and self.sim.alive:
+            self._land()
+        for agent in self.agents:
+            agent.stop(5.0)
+        for client in self.clients:
+            client.close()
+        if self.sim is not None:
+            self.sim.stop()
+        if self.mpi_log is not None:
+            self.mpi_log.close()
+
+    def _stop_mpi(self, grace_s: float) -> None:
+        if self.mpi is None:
+            return
+        try:
+            self.mpi.wait(grace_s)
+        except subprocess.TimeoutExpired:
+            pass
+        if self.mpi.poll() is not None:
+            return
+        try:
+            os.killpg(self.mpi.pid, signal.SIGTERM)  # mpiexec and every rank: its own session
+            self.mpi.wait(5.0)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.mpi.pid, signal.SIGKILL)
+            self.mpi.wait(5.0)
+        except ProcessLookupError:
+            pass
+
+    def _land(self, timeout_s: float = 30.0) -> None:
+        """LAND every airborne vehicle and wait (simulated time) for the ground: auto-disarm ends it."""
+        for i, client in enumerate(self.clients):
+            if self.sim.truth(i)["armed"]:
+                try:
+                    client.command(MavCmd.NAV_LAND, timeout_s=1.0)
+                except CLIENT_ERRORS as err:
+                    log.warning("land %s: %s", self.scenario.vehicles[i].id, err)
+        deadline = self.sim.t_s + timeout_s
+        while self.sim.t_s < deadline and any(self.sim.truth(i)["armed"] for i in range(len(self.clients))):
+            time.sleep(0.05)
+        for i in range(len(self.clients)):
+            self.progress[i].landed = not self.sim.truth(i)["armed"]
+
+    def _analyze(self, outcome: Outcome) -> tuple[Path | None, dict]:
+        from ground.logs.report import analyze_run
+        from ground.logs.runlog import RunDirError
+
+        try:
+            tables = analyze_run(self.run_dir, self.run_dir / "analysis", report_path=self.run_dir / "report.md")
+        except RunDirError as err:
+            print(f"analysis: {err}", file=self.out)
+            return None, {}
+        return self.run_dir / "report.md", tables.summary
+
+
+def default_run_dir(scenario: Scenario) -> Path:
+    return Path("runs") / f"{scenario.name}-{time.strftime('%Y%m%dT%H%M%S')}"
+
+
+def run_scenario(scenario: Scenario, run_dir: Path | None, speedup: float, base_port: int = 14550,
+                 out=sys.stdout, stop: threading.Event | None = None, analyze: bool = True) -> ExperimentResult:
+    """Run one scenario and print its final summary; the result says how it ended and where the report is."""
+    run_dir = Path(run_dir) if run_dir else default_run_dir(scenario)
+    result = Experiment(scenario, run_dir, speedup, base_port, out, stop, analyze).run()
+    print(final_summary(result), file=out, flush=True)
+    return result
+
+
+def final_summary(result: ExperimentResult) -> str:
+    s = result.summary
+    lines = [f"{result.run_dir.name}: {result.outcome.text} ({result.detail})"]
+    if "iterations" in s:
+        lines.append(f"  compute: {s['iterations']} iterations, mean {s['mean_iteration_s']:.3f} s, "
+                     f"{s.get('iterations_per_min') or 0:.1f} per minute; "
+                     f"absent iterations {s.get('absent_iterations')}")
+    if s.get("final_cost") is not None:
+        lines.append(f"  training cost {s['first_cost']:.4f} -> {s['final_cost']:.4f}")
+    if "probes" in s:
+        lines.append(f"  throughput: {s['probes']} probes ({s['failed_probes']} failed), mean "
+                     f"{s['mean_throughput_mbps']:.2f} Mbit/s, above {s['threshold_mbps']:g} Mbit/s up to "
+                     f"{s['range_above_threshold_m']} m")
+    lines.append(f"  report: {result.report}" if result.report else "  report: none (nothing to analyse)")
+    return "\n".join(lines)

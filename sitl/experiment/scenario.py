@@ -1,0 +1,217 @@
+"""A NAC experiment described as data: `nac-sitl experiment SCENARIO.toml` reads one of these.
+
+    name = "paper-flight-moving"
+    duration_s = 130            # simulated seconds from the missions' start
+    max_speedup = 4             # fidelity limit: --speedup above it is refused
+    [channel]  preset = "wifi-flight"           # or a TOML file (what `nac-ground logs calibrate` writes)
+    [compute]  task = "linreg"  iterations = 0  timeout_s = 3.0  args = []   # no [compute]: no MPI job
+    [throughput]  period_s = 2.0  duration_s = 0.5  interval_s = 0.1
+    [[vehicle]]  id = "master"  role = "master"  mission = "paper-flight-moving/master.plan"
+    [[fault]]  at_s = 60  vehicle = "w1"  kind = "link_down"  duration_s = 5
+
+A vehicle's home is its mission's planned home (so the plan and the simulator cannot disagree); a vehicle without
+a mission gives `home = [lat, lon, alt_m]` and stays on the ground. Paths are relative to the scenario file.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+from missions import MissionFileError, load_mission
+from missions.geo import Home
+from missions.model import Mission
+from nac_onboard.link.channel import ChannelError, load_channel
+
+FAULT_KINDS = ("link_down", "gps_lost", "battery_pct", "packet_loss_pct", "kill_agent", "kill_worker")
+SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
+
+
+class ScenarioError(ValueError):
+    """A scenario file that cannot be run; the message names the file and the key."""
+
+
+@dataclass(frozen=True)
+class VehiclePlan:
+    id: str
+    role: str
+    home: Home
+    mission: Mission | None = None
+    mission_path: Path | None = None
+
+
+@dataclass(frozen=True)
+class ComputePlan:
+    task: str
+    iterations: int = 0  # 0: until the scenario ends
+    timeout_s: float = 3.0
+    on_missing: str = "incomplete"
+    allocation: str = "equal"
+    args: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class ProbePlan:
+    period_s: float = 2.0
+    duration_s: float = 0.5
+    interval_s: float = 0.1
+
+
+@dataclass(frozen=True)
+class Fault:
+    at_s: float
+    vehicle: str
+    kind: str
+    duration_s: float = 0.0  # 0: until the end
+    value: float = 0.0
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    path: Path
+    description: str
+    duration_s: float
+    vehicles: tuple[VehiclePlan, ...]
+    channel: str  # preset name or absolute path
+    compute: ComputePlan | None
+    throughput: ProbePlan | None
+    faults: tuple[Fault, ...] = ()
+    max_speedup: float = 1.0
+    default_speedup: float = 1.0
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def master(self) -> VehiclePlan:
+        return next(v for v in self.vehicles if v.role == "master")
+
+    @property
+    def workers(self) -> list[VehiclePlan]:
+        return [v for v in self.vehicles if v.role == "worker"]
+
+
+def find_scenario(name_or_path: str) -> Path:
+    """A scenario by path, or by name among the shipped ones (sitl/scenarios/NAME.toml)."""
+    path = Path(name_or_path)
+    if path.exists():
+        return path
+    shipped = SCENARIO_DIR / f"{name_or_path}.toml"
+    if shipped.exists():
+        return shipped
+    names = ", ".join(sorted(p.stem for p in SCENARIO_DIR.glob("*.toml")))
+    raise ScenarioError(f"{name_or_path}: no such scenario file, nor a shipped scenario ({names})")
+
+
+def _get(table: dict, key: str, kind, where: str, default=None):
+    value = table.get(key, default)
+    if value is None:
+        raise ScenarioError(f"{where}: missing key {key!r}")
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if not isinstance(value, kind) or isinstance(value, bool) and kind is not bool:
+        raise ScenarioError(f"{where}: {key} must be {getattr(kind, '__name__', kind)}, got {value!r}")
+    return value
+
+
+def load_scenario(name_or_path: str) -> Scenario:
+    path = find_scenario(name_or_path).resolve()
+    try:
+        data = tomllib.loads(path.read_text())
+    except OSError as err:
+        raise ScenarioError(f"{path}: cannot read ({err.strerror})") from None
+    except tomllib.TOMLDecodeError as err:
+        raise ScenarioError(f"{path}: not valid TOML: {err}") from None
+    where = str(path)
+    duration_s = _get(data, "duration_s", float, where)
+    if duration_s <= 0:
+        raise ScenarioError(f"{where}: duration_s must be > 0, got {duration_s}")
+    vehicles = tuple(_vehicle(v, path, f"{where}: vehicle {k + 1}") for k, v in enumerate(data.get("vehicle", [])))
+    roles = [v.role for v in vehicles]
+    if roles.count("master") != 1 or len(vehicles) < 2:
+        raise ScenarioError(f"{where}: needs one [[vehicle]] with role \"master\" and at least one worker "
+                            f"(got roles {roles})")
+    ids = [v.id for v in vehicles]
+    if len(set(ids)) != len(ids):
+        raise ScenarioError(f"{where}: vehicle ids must be unique, got {ids}")
+    channel = _get(data.get("channel", {}), "preset", str, f"{where}: [channel]", "paper-sim")
+    relative = path.parent / channel
+    channel = str(relative) if relative.suffix == ".toml" else channel
+    try:
+        load_channel(channel)
+    except ChannelError as err:
+        raise ScenarioError(f"{where}: [channel] {err}") from None
+    speedup = data.get("max_speedup", 1.0)
+    scenario = Scenario(
+        name=_get(data, "name", str, where, path.stem), path=path, description=data.get("description", ""),
+        duration_s=duration_s, vehicles=vehicles, channel=channel,
+        compute=_compute(data["compute"], f"{where}: [compute]") if "compute" in data else None,
+        throughput=_probes(data["throughput"], f"{where}: [throughput]") if "throughput" in data else None,
+        faults=tuple(_fault(f, ids, f"{where}: fault {k + 1}") for k, f in enumerate(data.get("fault", []))),
+        max_speedup=float(speedup), default_speedup=float(data.get("default_speedup", 1.0)),
+        notes=tuple(data.get("notes", [])))
+    for k, fault in enumerate(scenario.faults):
+        if fault.kind == "kill_worker" and (scenario.compute is None or fault.vehicle not in
+                                            [w.id for w in scenario.workers]):
+            raise ScenarioError(f"{where}: fault {k + 1}: kill_worker needs a worker of the MPI job ([compute]), "
+                                f"got {fault.vehicle!r}")
+    if not 0 < scenario.default_speedup <= scenario.max_speedup:
+        raise ScenarioError(f"{where}: default_speedup must be within (0, max_speedup]")
+    return scenario
+
+
+def _vehicle(table: dict, scenario_path: Path, where: str) -> VehiclePlan:
+    vehicle_id = _get(table, "id", str, where)
+    role = _get(table, "role", str, where)
+    if role not in ("master", "worker"):
+        raise ScenarioError(f"{where}: role must be \"master\" or \"worker\", got {role!r}")
+    if "mission" in table:
+        mission_path = scenario_path.parent / _get(table, "mission", str, where)
+        try:
+            mission = load_mission(mission_path)
+        except MissionFileError as err:
+            raise ScenarioError(f"{where} ({vehicle_id}): {err}") from None
+        if mission.home is None:
+            raise ScenarioError(f"{where} ({vehicle_id}): {mission_path} has no plannedHomePosition")
+        home = Home(mission.home.lat_deg, mission.home.lon_deg, mission.home.alt_m)
+        return VehiclePlan(vehicle_id, role, home, mission, mission_path)
+    home = table.get("home")
+    if not (isinstance(home, list) and len(home) == 3 and all(isinstance(x, (int, float)) for x in home)):
+        raise ScenarioError(f"{where} ({vehicle_id}): give mission = \"FILE.plan\" or home = [lat, lon, alt_m]")
+    return VehiclePlan(vehicle_id, role, Home(*map(float, home)))
+
+
+def _compute(table: dict, where: str) -> ComputePlan:
+    task = _get(table, "task", str, where)
+    if task not in ("matmul", "linreg"):
+        raise ScenarioError(f"{where}: task must be \"matmul\" or \"linreg\", got {task!r}")
+    args = table.get("args", [])
+    if not isinstance(args, list) or not all(isinstance(a, str) for a in args):
+        raise ScenarioError(f"{where}: args must be a list of strings (extra nac-onboard compute arguments)")
+    return ComputePlan(task, _get(table, "iterations", int, where, 0), _get(table, "timeout_s", float, where, 3.0),
+                       _get(table, "on_missing", str, where, "incomplete"),
+                       _get(table, "allocation", str, where, "equal"), tuple(args))
+
+
+def _probes(table: dict, where: str) -> ProbePlan:
+    plan = ProbePlan(*(_get(table, k, float, where, d) for k, d in
+                       (("period_s", 2.0), ("duration_s", 0.5), ("interval_s", 0.1))))
+    if not 0 < plan.duration_s <= plan.period_s:
+        raise ScenarioError(f"{where}: need 0 < duration_s <= period_s")
+    return plan
+
+
+def _fault(table: dict, ids: list[str], where: str) -> Fault:
+    kind = _get(table, "kind", str, where)
+    if kind not in FAULT_KINDS:
+        raise ScenarioError(f"{where}: kind must be one of {', '.join(FAULT_KINDS)}, got {kind!r}")
+    vehicle = _get(table, "vehicle", str, where)
+    if vehicle not in ids:
+        raise ScenarioError(f"{where}: no vehicle {vehicle!r} in this scenario ({', '.join(ids)})")
+    return Fault(_get(table, "at_s", float, where), vehicle, kind, _get(table, "duration_s", float, where, 0.0),
+                 _get(table, "value", float, where, 0.0))

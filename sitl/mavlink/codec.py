@@ -1,0 +1,130 @@
+"""The SITL's one door to pymavlink: the dialect, a parser per channel and a fast MAVLink 2 frame encoder.
+
+High-rate telemetry is encoded here straight from field values (struct + CRC), reusing the packed payload when
+a message's values have not changed since it was last sent; pymavlink packs everything else.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+
+os.environ.setdefault("MAVLINK20", "1")
+
+from pymavlink.dialects.v20 import all as mavlink  # noqa: E402
+from pymavlink.generator.mavcrc import x25crc  # noqa: E402
+
+from sitl.mavlink.signing import INCOMPAT_SIGNED, initial_timestamp, signature_block  # noqa: E402
+
+try:  # pymavlink's own optional accelerator; the pure-Python CRC is the fallback
+    from fastcrc.crc16 import mcrf4xx as _mcrf4xx
+except ImportError:  # pragma: no cover
+    _mcrf4xx = None
+
+
+def _crc(data: bytes) -> int:
+    if _mcrf4xx is not None:
+        return _mcrf4xx(data, 0xFFFF)
+    return x25crc(data).crc
+
+__all__ = ["FrameEncoder", "mavlink", "new_parser", "parse_datagram"]
+
+_HEADER = struct.Struct("<BBBBBBBHB")
+_CRC = struct.Struct("<H")
+
+
+def new_parser(signing_key: bytes | None = None) -> mavlink.MAVLink:
+    """A parser that turns garbage into BAD_DATA messages instead of raising. With a signing key, unsigned or
+    wrongly signed frames become BAD_DATA too (RADIO_STATUS excepted, as on ArduPilot: radios cannot sign)."""
+    parser = mavlink.MAVLink(None)
+    parser.robust_parsing = True
+    if signing_key is not None:
+        parser.signing.secret_key = signing_key
+        parser.signing.sign_outgoing = False
+        parser.signing.allow_unsigned_callback = (
+            lambda _mav, msgid: msgid == mavlink.MAVLINK_MSG_ID_RADIO_STATUS)
+    return parser
+
+
+def parse_datagram(parser: mavlink.MAVLink, data: bytes) -> list:
+    """Parse one UDP datagram. Frames never span datagrams, so a partial frame left over (garbage that looked
+    like a header) is discarded instead of swallowing the start of the next datagram."""
+    messages = parser.parse_buffer(data) or []
+    if parser.buf_len():
+        parser.buf = bytearray()
+        parser.buf_index = 0
+        parser.expected_length = mavlink.HEADER_LEN_V1 + 2
+    return messages
+
+
+class _Layout:
+    __slots__ = ("msgid", "crc_extra", "packer", "order")
+
+    def __init__(self, cls):
+        self.msgid = cls.id
+        self.crc_extra = bytes((cls.crc_extra,))
+        self.packer = cls.unpacker
+        order = [cls.fieldnames.index(name) for name in cls.ordered_fieldnames]
+        self.order = None if order == sorted(order) else order
+
+
+_LAYOUTS: dict[type, _Layout] = {}
+
+
+def _layout(cls) -> _Layout:
+    layout = _LAYOUTS.get(cls)
+    if layout is None:
+        layout = _LAYOUTS[cls] = _Layout(cls)
+    return layout
+
+
+class FrameEncoder:
+    """Encodes frames for one source (sysid/compid) with its own sequence counter."""
+
+    def __init__(self, sysid: int, compid: int = 1, signing_key: bytes | None = None, link_id: int = 0):
+        self.sysid = sysid
+        self.compid = compid
+        self.seq = 0
+        self._mav = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
+        self._cache: dict[int, tuple[tuple, bytes]] = {}
+        self.signing_key = signing_key
+        self.link_id = link_id
+        self.sign_timestamp = initial_timestamp()
+        if signing_key is not None:
+            self._mav.signing.secret_key = signing_key
+            self._mav.signing.sign_outgoing = True
+            self._mav.signing.link_id = link_id
+
+    def fields(self, cls, *values) -> bytes:
+        """Encode a message given its field values in declaration order (scalar-only messages)."""
+        layout = _layout(cls)
+        cached = self._cache.get(layout.msgid)
+        if cached is not None and cached[0] == values:
+            payload = cached[1]
+        else:
+            ordered = values if layout.order is None else [values[k] for k in layout.order]
+            payload = layout.packer.pack(*ordered)
+            end = len(payload)
+            while end > 1 and payload[end - 1] == 0:  # MAVLink 2 trims trailing zeros
+                end -= 1
+            payload = payload[:end]
+            self._cache[layout.msgid] = (values, payload)
+        signed = self.signing_key is not None
+        header = _HEADER.pack(0xFD, len(payload), INCOMPAT_SIGNED if signed else 0, 0, self.seq, self.sysid,
+                              self.compid, layout.msgid & 0xFFFF, layout.msgid >> 16)
+        self.seq = (self.seq + 1) & 0xFF
+        body = header + payload
+        frame = body + _CRC.pack(_crc(body[1:] + layout.crc_extra))
+        if signed:
+            frame += signature_block(self.signing_key, frame, self.link_id, self.sign_timestamp)
+            self.sign_timestamp += 1
+        return frame
+
+    def message(self, msg) -> bytes:
+        """Encode any pymavlink message object (arrays, strings, extensions)."""
+        self._mav.seq = self.seq
+        self._mav.signing.timestamp = self.sign_timestamp
+        frame = msg.pack(self._mav)
+        self.sign_timestamp = self._mav.signing.timestamp
+        self.seq = (self.seq + 1) & 0xFF
+        return frame

@@ -1,0 +1,474 @@
+"""Flight logic of every simulated autopilot: modes, commands, mission execution, failsafes (pure).
+
+Arrays are per vehicle; completion checks run vectorised each step and only vehicles with something to do
+(item reached, landed, timer expired) enter Python. Results are MAV_RESULT numbers, events are plain tuples
+the MAVLink layer turns into messages. Mission item 0 is home, as on ArduPilot: execution starts at seq 1.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+
+from missions.geo import Home, lla_to_enu
+from missions.model import AMSL_FRAMES, Frame, MavCmd, MissionItem, MissionType
+from sitl.vehicle.params import ParamTable
+from sitl.vehicle.physics import Command, Motion, VehicleState
+
+
+class Result(IntEnum):
+    """MAV_RESULT."""
+
+    ACCEPTED = 0
+    TEMPORARILY_REJECTED = 1
+    DENIED = 2
+    UNSUPPORTED = 3
+    FAILED = 4
+    IN_PROGRESS = 5
+
+
+class CopterMode(IntEnum):
+    """ArduCopter custom_mode numbers, so pymavlink, MAVProxy and QGC name them."""
+
+    STABILIZE = 0
+    ALT_HOLD = 2
+    AUTO = 3
+    GUIDED = 4
+    LOITER = 5
+    RTL = 6
+    LAND = 9
+    POSHOLD = 16
+    BRAKE = 17
+
+
+class MissionState(IntEnum):
+    """MISSION_STATE (MISSION_CURRENT.mission_state)."""
+
+    NO_MISSION = 1
+    NOT_STARTED = 2
+    ACTIVE = 3
+    PAUSED = 4
+    COMPLETE = 5
+
+
+class Check(IntEnum):
+    NONE = 0
+    REACH = 1  # within radius_m of goal (3D)
+    ALTITUDE = 2  # climbed to the goal's altitude
+    LANDED = 3  # touched down
+    TIMER = 4  # sim time reached until_t
+
+
+EXECUTABLE_COMMANDS = frozenset({
+    MavCmd.NAV_WAYPOINT, MavCmd.NAV_TAKEOFF, MavCmd.NAV_LAND, MavCmd.NAV_RETURN_TO_LAUNCH,
+    MavCmd.NAV_LOITER_TIME, MavCmd.DO_CHANGE_SPEED, MavCmd.DO_JUMP,
+})
+FENCE_COMMANDS = frozenset({5000, 5001, 5002, 5003, 5004})
+RALLY_COMMANDS = frozenset({5100})
+SUPPORTED_FRAMES = frozenset({Frame.GLOBAL, Frame.GLOBAL_RELATIVE_ALT, Frame.GLOBAL_INT, Frame.GLOBAL_RELATIVE_ALT_INT,
+                              Frame.GLOBAL_TERRAIN_ALT, Frame.GLOBAL_TERRAIN_ALT_INT, Frame.MISSION})
+HOLD_MODES = frozenset({CopterMode.STABILIZE, CopterMode.ALT_HOLD, CopterMode.LOITER, CopterMode.POSHOLD,
+                        CopterMode.BRAKE, CopterMode.GUIDED})
+FORCE_DISARM_MAGIC = 21196
+
+
+@dataclass(frozen=True)
+class Outcome:
+    result: Result
+    text: str = ""
+
+
+OK = Outcome(Result.ACCEPTED)
+
+
+class Fleet:
+    """Autopilot logic for N vehicles; positions are ENU metres about each vehicle's own home."""
+
+    def __init__(self, homes: list[Home], params: ParamTable):
+        n = len(homes)
+        self.n = n
+        self.homes = homes
+        self.params = params
+        self.mode = np.full(n, CopterMode.STABILIZE, dtype=int)
+        self.armed = np.zeros(n, dtype=bool)
+        self.motion = np.full(n, Motion.IDLE, dtype=int)
+        self.goal_m = np.zeros((n, 3))
+        self.speed_xy_mps = params.column("WPNAV_SPEED") / 100.0
+        self.check = np.zeros(n, dtype=int)
+        self.radius_m = np.zeros(n)
+        self.until_t_s = np.full(n, math.inf)
+        self.phase = [""] * n
+        self.missions: list[dict[int, list[MissionItem]]] = [{t: [] for t in MissionType} for _ in range(n)]
+        self.current_seq = np.zeros(n, dtype=int)
+        self.mission_state = np.full(n, MissionState.NO_MISSION, dtype=int)
+        self.jumps_left: list[dict[int, int]] = [{} for _ in range(n)]
+        self.gps_ok = np.ones(n, dtype=bool)
+        self.transfer_busy = np.zeros(n, dtype=bool)
+        self.failsafe = np.zeros(n, dtype=bool)
+        self.events: list[tuple[int, str, object]] = []
+        self.t_s = 0.0
+        self.state: VehicleState | None = None
+
+    # ---- per-step -------------------------------------------------------------------------------------
+    def command(self) -> Command:
+        return Command(motion=self.motion, goal_m=self.goal_m, armed=self.armed, speed_xy_mps=self.speed_xy_mps)
+
+    def update(self, state: VehicleState, t_s: float) -> None:
+        """Run completion checks and failsafes after a physics step."""
+        self.state, self.t_s = state, t_s
+        check = self.check
+        if not check.any() and not self.armed.any():
+            return
+        pos = state.pos_m
+        done = (check == Check.REACH) & (np.linalg.norm(pos - self.goal_m, axis=1) <= self.radius_m)
+        done |= (check == Check.ALTITUDE) & (pos[:, 2] >= self.goal_m[:, 2] - self._alt_tolerance_m())
+        done |= (check == Check.LANDED) & state.on_ground
+        done |= (check == Check.TIMER) & (t_s >= self.until_t_s)
+        for i in np.flatnonzero(done):
+            self._on_done(int(i))
+        flying = self.armed & ~state.on_ground
+        low_batt = flying & ~self.failsafe & (state.soc * 100.0 < self.params.column("BATT_LOW_PCT"))
+        no_gps = flying & ~self.gps_ok & (self.mode != CopterMode.LAND)
+        for i in np.flatnonzero(low_batt | no_gps):
+            self._failsafe(int(i), bool(no_gps[i]))
+
+    def _alt_tolerance_m(self) -> np.ndarray:
+        return np.clip(0.1 * self.goal_m[:, 2], 0.1, 0.5)
+
+    def _emit(self, i: int, kind: str, value: object = None) -> None:
+        self.events.append((i, kind, value))
+
+    def _text(self, i: int, text: str, severity: int = 6) -> None:
+        self._emit(i, "text", (severity, text))
+
+    def _pos(self, i: int) -> np.ndarray:
+        assert self.state is not None
+        return self.state.pos_m[i].copy()
+
+    def _flying(self, i: int) -> bool:
+        return bool(self.armed[i] and self.state is not None and not self.state.on_ground[i])
+
+    def _set_goal(self, i: int, goal_m, motion: Motion, check: Check, radius_m: float = 0.0, phase: str = ""):
+        self.goal_m[i] = goal_m
+        self.motion[i] = motion
+        self.check[i] = check
+        self.radius_m[i] = radius_m
+        self.phase[i] = phase
+
+    def _hold(self, i: int) -> None:
+        if self._flying(i):
+            self._set_goal(i, self._pos(i), Motion.GOTO, Check.NONE)
+        else:
+            self._set_goal(i, self._pos(i), Motion.IDLE, Check.NONE)
+
+    def _timer(self, i: int, seconds: float, phase: str) -> None:
+        self.check[i] = Check.TIMER
+        self.until_t_s[i] = self.t_s + seconds
+        self.phase[i] = phase
+
+    # ---- completion -----------------------------------------------------------------------------------
+    def _on_done(self, i: int) -> None:
+        phase = self.phase[i]
+        self.check[i] = Check.NONE
+        if phase == "takeoff":
+            self._text(i, "Takeoff complete")
+        elif phase == "mission":
+            self._item_reached(i)
+        elif phase == "mission_hold":  # reached a waypoint with a hold time / NAV_LOITER_TIME
+            item = self.missions[i][MissionType.MISSION][self.current_seq[i]]
+            self._timer(i, max(0.0, item.p1), "mission")
+        elif phase == "rtl_climb":
+            home_xy = np.array([0.0, 0.0, self.goal_m[i, 2]])
+            self._set_goal(i, home_xy, Motion.GOTO, Check.REACH, self._wp_radius_m(i), "rtl_return")
+        elif phase == "rtl_return":
+            self._set_goal(i, [0.0, 0.0, 0.0], Motion.LAND, Check.LANDED, phase="land")
+        elif phase == "land":
+            if self.mode[i] == CopterMode.AUTO:
+                self._item_reached(i)
+            self._text(i, "Landed")
+            self._timer(i, self.params.get(i, "DISARM_DELAY"), "disarm_wait")
+        elif phase == "disarm_wait":
+            if self.state is not None and self.state.on_ground[i] and self.armed[i]:
+                self._disarm(i, "Auto-disarmed after landing")
+
+    def _failsafe(self, i: int, gps: bool) -> None:
+        self.failsafe[i] = True
+        if gps:
+            self._text(i, "EKF failsafe: GPS lost, landing", 2)
+            self.set_mode(i, CopterMode.LAND)
+            return
+        action = int(self.params.get(i, "BATT_FS_LOW_ACT"))
+        self._text(i, "Battery failsafe: low battery", 2)
+        if action == 2:
+            self.set_mode(i, CopterMode.RTL)
+        elif action == 1:
+            self.set_mode(i, CopterMode.LAND)
+
+    # ---- missions -------------------------------------------------------------------------------------
+    def mission(self, i: int, mission_type: int = MissionType.MISSION) -> list[MissionItem]:
+        return self.missions[i][MissionType(mission_type)]
+
+    def replace_mission(self, i: int, mission_type: int, items: list[MissionItem]) -> None:
+        """Install a complete, validated list (seq 0..n-1); only called once a transfer has succeeded."""
+        self.missions[i][MissionType(mission_type)] = items
+        if mission_type != MissionType.MISSION:
+            return
+        self.jumps_left[i] = {}
+        if len(items) <= 1:
+            self.current_seq[i] = 0
+            self.mission_state[i] = MissionState.NO_MISSION
+            if self.mode[i] == CopterMode.AUTO:
+                self._hold(i)
+        else:
+            if not 1 <= self.current_seq[i] < len(items):
+                self.current_seq[i] = 1
+            running = self.mode[i] == CopterMode.AUTO and self.armed[i]
+            self.mission_state[i] = MissionState.ACTIVE if running else MissionState.NOT_STARTED
+            if running:
+                self._start_item(i, int(self.current_seq[i]))
+        self._emit(i, "mission_current", int(self.current_seq[i]))
+
+    def _wp_radius_m(self, i: int) -> float:
+        return self.params.get(i, "WPNAV_RADIUS") / 100.0
+
+    def item_goal_m(self, i: int, item: MissionItem) -> np.ndarray:
+        here = self._pos(i)
+        if item.lat_deg == 0.0 and item.lon_deg == 0.0:
+            goal = here.copy()
+        else:
+            goal = lla_to_enu(item.lat_deg, item.lon_deg, self.homes[i].alt_m, self.homes[i])
+        if item.frame in AMSL_FRAMES:
+            goal[2] = item.alt_m - self.homes[i].alt_m
+        else:
+            goal[2] = item.alt_m
+        goal[2] = max(goal[2], 0.0)
+        return goal
+
+    def _item_reached(self, i: int) -> None:
+        seq = int(self.current_seq[i])
+        self._emit(i, "item_reached", seq)
+        self._start_item(i, seq + 1)
+
+    def _start_item(self, i: int, seq: int) -> None:
+        items = self.mission(i)
+        for _ in range(4 * len(items) + 2):  # bounds DO_JUMP chains that never reach a nav item
+            if seq >= len(items):
+                self._mission_complete(i)
+                return
+            item = items[seq]
+            if self.current_seq[i] != seq:
+                self.current_seq[i] = seq
+                self._emit(i, "mission_current", seq)
+            self.mission_state[i] = MissionState.ACTIVE
+            cmd = item.command
+            if cmd == MavCmd.DO_CHANGE_SPEED:
+                if item.p2 > 0:
+                    self.speed_xy_mps[i] = item.p2
+                self._emit(i, "item_reached", seq)
+                seq += 1
+                continue
+            if cmd == MavCmd.DO_JUMP:
+                left = self.jumps_left[i].setdefault(seq, int(item.p2))
+                target = int(item.p1)
+                if left != 0 and 1 <= target < len(items):
+                    if left > 0:
+                        self.jumps_left[i][seq] = left - 1
+                    seq = target
+                else:
+                    seq += 1
+                continue
+            self._start_nav_item(i, item)
+            return
+        self._text(i, "Mission: DO_JUMP loop without a navigation command, stopping", 3)
+        self._mission_complete(i)
+
+    def _start_nav_item(self, i: int, item: MissionItem) -> None:
+        cmd = item.command
+        goal = self.item_goal_m(i, item)
+        if cmd == MavCmd.NAV_TAKEOFF:
+            here = self._pos(i)
+            self._set_goal(i, [here[0], here[1], max(goal[2], here[2])], Motion.GOTO, Check.ALTITUDE,
+                           phase="mission")
+        elif cmd == MavCmd.NAV_LAND:
+            self._set_goal(i, [goal[0], goal[1], 0.0], Motion.LAND, Check.LANDED, phase="land")
+        elif cmd == MavCmd.NAV_RETURN_TO_LAUNCH:
+            self._begin_rtl(i)
+        else:
+            radius = item.p2 if cmd == MavCmd.NAV_WAYPOINT and item.p2 > 0 else self._wp_radius_m(i)
+            holds = cmd == MavCmd.NAV_LOITER_TIME or item.p1 > 0
+            self._set_goal(i, goal, Motion.GOTO, Check.REACH, radius, "mission_hold" if holds else "mission")
+
+    def _mission_complete(self, i: int) -> None:
+        self.mission_state[i] = MissionState.COMPLETE
+        self._emit(i, "mission_current", int(self.current_seq[i]))
+        self._text(i, "Mission complete")
+        if self.phase[i] != "disarm_wait":
+            self._hold(i)
+
+    # ---- commands -------------------------------------------------------------------------------------
+    def arm(self, i: int, arm: bool, force: bool = False) -> Outcome:
+        if not arm:
+            if not self.armed[i]:
+                return OK
+            if self._flying(i) and not force:
+                return Outcome(Result.DENIED, "Disarm refused: vehicle is flying")
+            self._disarm(i, "Disarmed")
+            return OK
+        if self.armed[i]:
+            return OK
+        if self.transfer_busy[i]:
+            return Outcome(Result.TEMPORARILY_REJECTED, "Arm refused: mission transfer in progress")
+        if not force:
+            if not self.gps_ok[i]:
+                return Outcome(Result.FAILED, "PreArm: GPS: no fix")
+            assert self.state is not None
+            if self.state.soc[i] * 100.0 < self.params.get(i, "BATT_LOW_PCT"):
+                return Outcome(Result.FAILED, "PreArm: Battery below failsafe level")
+            if self.mode[i] in (CopterMode.RTL, CopterMode.LAND):
+                return Outcome(Result.FAILED, f"Arm: mode {CopterMode(self.mode[i]).name} does not allow arming")
+        self.armed[i] = True
+        self.failsafe[i] = False
+        self._set_goal(i, self._pos(i), Motion.IDLE, Check.NONE)
+        self._text(i, "Arming motors")
+        self._emit(i, "armed", True)
+        return OK
+
+    def _disarm(self, i: int, text: str) -> None:
+        self.armed[i] = False
+        self._set_goal(i, self._pos(i), Motion.IDLE, Check.NONE)
+        if self.mode[i] == CopterMode.AUTO and self.mission_state[i] == MissionState.ACTIVE:
+            self.mission_state[i] = MissionState.PAUSED
+        self._text(i, text)
+        self._emit(i, "armed", False)
+
+    def set_mode(self, i: int, mode: int) -> Outcome:
+        try:
+            mode = CopterMode(mode)
+        except ValueError:
+            return Outcome(Result.DENIED, f"Mode change failed: unsupported mode {mode}")
+        previous = self.mode[i]
+        self.mode[i] = mode
+        if mode in HOLD_MODES:
+            self._hold(i)
+        elif mode == CopterMode.AUTO:
+            if self.armed[i] and len(self.mission(i)) > 1:
+                seq = int(self.current_seq[i])
+                if self.mission_state[i] == MissionState.COMPLETE or not 1 <= seq < len(self.mission(i)):
+                    seq = 1
+                self._start_item(i, seq)
+            else:
+                self._hold(i)
+        elif mode == CopterMode.RTL:
+            if self._flying(i):
+                self._begin_rtl(i)
+            else:
+                self._hold(i)
+        elif mode == CopterMode.LAND:
+            if self._flying(i):
+                here = self._pos(i)
+                self._set_goal(i, [here[0], here[1], 0.0], Motion.LAND, Check.LANDED, phase="land")
+            else:
+                self._hold(i)
+        if previous != mode:
+            self._emit(i, "mode", int(mode))
+        return OK
+
+    def _begin_rtl(self, i: int) -> None:
+        here = self._pos(i)
+        rtl_alt = max(here[2], self.params.get(i, "RTL_ALT") / 100.0)
+        self._set_goal(i, [here[0], here[1], rtl_alt], Motion.GOTO, Check.ALTITUDE, phase="rtl_climb")
+
+    def takeoff(self, i: int, alt_m: float) -> Outcome:
+        if not math.isfinite(alt_m) or alt_m <= 0:
+            default_cm = self.params.get(i, "PILOT_TKOFF_ALT")
+            if default_cm <= 0:
+                return Outcome(Result.DENIED, f"Takeoff refused: altitude {alt_m} m must be above 0")
+            alt_m = default_cm / 100.0
+        if alt_m > 1000:
+            return Outcome(Result.DENIED, f"Takeoff refused: altitude {alt_m} m above 1000 m")
+        if not self.armed[i]:
+            return Outcome(Result.TEMPORARILY_REJECTED, "Takeoff refused: arm first")
+        if self._flying(i):
+            return Outcome(Result.FAILED, "Takeoff refused: already flying")
+        if self.mode[i] != CopterMode.GUIDED:
+            self.mode[i] = CopterMode.GUIDED
+            self._emit(i, "mode", int(CopterMode.GUIDED))
+        here = self._pos(i)
+        self._set_goal(i, [here[0], here[1], alt_m], Motion.GOTO, Check.ALTITUDE, phase="takeoff")
+        return OK
+
+    def mission_start(self, i: int, first_seq: int) -> Outcome:
+        items = self.mission(i)
+        if len(items) <= 1:
+            return Outcome(Result.FAILED, "Mission start refused: no mission")
+        if not self.armed[i]:
+            return Outcome(Result.TEMPORARILY_REJECTED, "Mission start refused: arm first")
+        if first_seq >= len(items):
+            return Outcome(Result.DENIED, f"Mission start refused: item {first_seq} of {len(items) - 1}")
+        if first_seq >= 1:
+            self.current_seq[i] = first_seq
+        elif self.mission_state[i] == MissionState.COMPLETE:
+            self.current_seq[i] = 1
+        self.jumps_left[i] = {}
+        self.mode[i] = CopterMode.GUIDED  # forces the AUTO entry below to (re)start the item
+        return self.set_mode(i, CopterMode.AUTO)
+
+    def set_current(self, i: int, seq: int) -> Outcome:
+        items = self.mission(i)
+        if not 0 <= seq < len(items):
+            return Outcome(Result.DENIED, f"Set current refused: no item {seq} (mission has {len(items)})")
+        seq = max(seq, 1)
+        self.current_seq[i] = seq
+        self.jumps_left[i] = {}
+        if self.mode[i] == CopterMode.AUTO and self.armed[i]:
+            self._start_item(i, seq)
+        else:
+            self.mission_state[i] = MissionState.NOT_STARTED
+        self._emit(i, "mission_current", seq)
+        return OK
+
+    def change_speed(self, i: int, speed_mps: float) -> Outcome:
+        if not math.isfinite(speed_mps) or speed_mps <= 0 or speed_mps > 50:
+            return Outcome(Result.DENIED, f"Speed {speed_mps} m/s outside 0..50")
+        self.speed_xy_mps[i] = speed_mps
+        return OK
+
+    def goto(self, i: int, goal_m) -> Outcome:
+        if self.mode[i] != CopterMode.GUIDED or not self._flying(i):
+            return Outcome(Result.TEMPORARILY_REJECTED, "Goto refused: needs GUIDED mode and flying")
+        goal = np.asarray(goal_m, dtype=float).copy()
+        goal[2] = max(goal[2], 0.5)
+        self._set_goal(i, goal, Motion.GOTO, Check.NONE)
+        return OK
+
+    def on_params_changed(self) -> None:
+        """A new WPNAV_SPEED applies at once; a mission's DO_CHANGE_SPEED below it stays while in AUTO."""
+        limits = self.params.column("WPNAV_SPEED") / 100.0
+        in_auto = self.mode == CopterMode.AUTO
+        self.speed_xy_mps = np.where(in_auto, np.minimum(self.speed_xy_mps, limits), limits)
+
+
+def validate_item(item: MissionItem, mission_type: int) -> str | None:
+    """Return the MAV_MISSION_RESULT name for a bad item, None when acceptable."""
+    if mission_type == MissionType.FENCE:
+        return None if item.command in FENCE_COMMANDS else "MAV_MISSION_UNSUPPORTED"
+    if mission_type == MissionType.RALLY:
+        return None if item.command in RALLY_COMMANDS else "MAV_MISSION_UNSUPPORTED"
+    if item.seq == 0:
+        return None  # home slot: ArduPilot ignores what is uploaded there
+    if item.command not in EXECUTABLE_COMMANDS:
+        return "MAV_MISSION_UNSUPPORTED"
+    if item.command in (MavCmd.DO_CHANGE_SPEED, MavCmd.DO_JUMP):
+        return None
+    if item.frame not in SUPPORTED_FRAMES:
+        return "MAV_MISSION_UNSUPPORTED_FRAME"
+    if not (math.isfinite(item.lat_deg) and -90 <= item.lat_deg <= 90):
+        return "MAV_MISSION_INVALID_PARAM5_X"
+    if not (math.isfinite(item.lon_deg) and -180 <= item.lon_deg <= 180):
+        return "MAV_MISSION_INVALID_PARAM6_Y"
+    if not math.isfinite(item.alt_m):
+        return "MAV_MISSION_INVALID_PARAM7"
+    return None
