@@ -6,7 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test lint bench bench-smoke clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -24,13 +24,14 @@ test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest
 
+# Every script in benchmarks/, for real (minutes) or with --smoke (the same code at tiny sizes, seconds each).
+BENCHMARKS := sitl_scale mission_upload agent_load throughput_vs_iperf3 compute_overhead log_parse
+
 bench: $(STAMP)
-	$(BIN)/python benchmarks/sitl_scale.py
-	$(BIN)/python benchmarks/mission_upload.py
-	$(BIN)/python benchmarks/agent_load.py
-	$(BIN)/python benchmarks/throughput_vs_iperf3.py
-	$(BIN)/python benchmarks/compute_overhead.py
-	$(BIN)/python benchmarks/log_parse.py
+	set -e; for b in $(BENCHMARKS); do $(BIN)/python benchmarks/$$b.py; done
+
+bench-smoke: $(STAMP)
+	set -e; for b in $(BENCHMARKS); do $(BIN)/python benchmarks/$$b.py --smoke; done
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .ruff_cache

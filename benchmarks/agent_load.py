@@ -6,7 +6,7 @@ to the other core) asks it for every stream at 50 Hz, logs telemetry at 10 Hz, w
 its peer state. A ground station flies the vehicle through a mission meanwhile so mode and mission events occur.
 CPU = (utime + stime) of the agent over the window / window; RSS = VmRSS at the end, VmHWM its peak.
 
-    python benchmarks/agent_load.py [--seconds 60] [--stream-hz 50] [--telemetry-hz 10]
+    python benchmarks/agent_load.py [--seconds 60] [--stream-hz 50] [--telemetry-hz 10] [--smoke]
 """
 
 from __future__ import annotations
@@ -14,22 +14,19 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from missions.model import MavCmd  # noqa: E402
-from nac_onboard.child_process import AgentProcess  # noqa: E402
-from nac_onboard.mavlink.client import VehicleClient  # noqa: E402
-from sitl.experiment.demo import waypoint_mission  # noqa: E402
-from sitl.launcher import SitlProcess  # noqa: E402
-from sitl.server import SitlConfig  # noqa: E402
-from tests.conftest import allocate_base_port, free_port  # noqa: E402
+from missions.builder import waypoint_mission
+from missions.model import MavCmd
+from nac_onboard.child_process import AgentProcess
+from nac_onboard.mavlink.client import VehicleClient
+from sitl.launcher import SitlProcess, allocate_base_port, free_port
+from sitl.server import SitlConfig
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+SMOKE = {"seconds": 2.0, "settle": 1.0}  # --smoke: the same measurement over a short window
 
 
 def cpu_s(pid: int) -> float:
@@ -42,11 +39,12 @@ def memory_mb(pid: int) -> dict:
     return {key: int(status[key].split()[0]) / 1024 for key in ("VmRSS", "VmHWM")}
 
 
-def run(seconds: float, stream_hz: float, telemetry_hz: float) -> dict:
+def run(seconds: float, stream_hz: float, telemetry_hz: float, settle_s: float = 3.0) -> dict:
+    cores = sorted(os.sched_getaffinity(0))  # the SITL on the first, the agent on the last (the same on 1 core)
     base = allocate_base_port(1)
     config = SitlConfig(vehicles=1, speedup=1.0, gcs_base_port=base, companion_base_port=base + 1, tcp_base_port=0)
     with tempfile.TemporaryDirectory() as tmp, SitlProcess(config) as sitl:
-        os.sched_setaffinity(sitl.pid, {0})
+        os.sched_setaffinity(sitl.pid, {cores[0]})
         agent_toml = Path(tmp) / "agent.toml"
         agent_toml.write_text(f"""
 [vehicle]
@@ -71,15 +69,17 @@ bind = "127.0.0.1"
 port = {free_port()}
 """)
         with AgentProcess(agent_toml) as agent:
-            os.sched_setaffinity(agent.pid, {1})
+            os.sched_setaffinity(agent.pid, {cores[-1]})
             gcs = VehicleClient(f"udpin:127.0.0.1:{base}", sysid=1)
             gcs.wait_heartbeat(10.0)
             home = config.home
             legs = [(30, 0), (30, 30), (0, 30), (0, 0)] * 3
-            assert gcs.upload(waypoint_mission(home.lat_deg, home.lon_deg, legs, alt_m=10.0)) == 0
+            accepted = gcs.upload(waypoint_mission(home.lat_deg, home.lon_deg, legs, alt_m=10.0))
+            if accepted != 0:
+                raise RuntimeError(f"mission upload refused: MISSION_ACK type {accepted}")
             gcs.command_ok(MavCmd.COMPONENT_ARM_DISARM, 1)
             gcs.command_ok(MavCmd.MISSION_START, 0, 0)
-            time.sleep(3.0)  # let the stream-rate request take effect before the window opens
+            time.sleep(settle_s)  # let the stream-rate request take effect before the window opens
             cpu0, t0 = cpu_s(agent.pid), time.monotonic()
             end = t0 + seconds
             while time.monotonic() < end:
@@ -102,8 +102,12 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--stream-hz", type=float, default=50.0)
     parser.add_argument("--telemetry-hz", type=float, default=10.0)
+    parser.add_argument("--settle", type=float, default=3.0, help="seconds from arming to the window")
+    parser.add_argument("--smoke", action="store_true", help=f"tiny run to check the benchmark works: {SMOKE}")
+    if parser.parse_known_args()[0].smoke:
+        parser.set_defaults(**SMOKE)
     args = parser.parse_args()
-    result = run(args.seconds, args.stream_hz, args.telemetry_hz)
+    result = run(args.seconds, args.stream_hz, args.telemetry_hz, args.settle)
     print(f"agent over {args.seconds:g} s, streams at {args.stream_hz:g} Hz, log at {args.telemetry_hz:g} Hz:")
     print(f"  CPU {result['cpu_pct_of_one_core']:.2f} % of one core (target < 5 %)")
     print(f"  RSS {result['rss_mb']:.1f} MB, peak {result['peak_rss_mb']:.1f} MB (target < 80 MB)")

@@ -4,7 +4,7 @@ header + gradient up, blocking Send/Recv, no records, no timeouts), in the same 
 Targets: ratio >= 0.8, and >= 1000 iterations/s with 2 workers. Ranks pinned as `core_binding` says (with more
 ranks than cores: the master alone on core 0), the same for both programs; `--bind` overrides.
 
-    python benchmarks/compute_overhead.py [--iterations 3000] [--repeats 11] [--workers 2 4]
+    python benchmarks/compute_overhead.py [--iterations 3000] [--repeats 11] [--workers 2 4] [--smoke]
     (with --bare-loop, this file is the bare loop itself, run by mpiexec)
 """
 
@@ -20,10 +20,10 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from nac_onboard.compute.options import core_binding  # noqa: E402
+from nac_onboard.compute.options import core_binding
 
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = {"iterations": 200, "repeats": 1, "workers": [2]}  # --smoke: one pair with 2 workers
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
 BIND = ""  # --bind: an mpiexec -bind-to value for both programs (default: nac_onboard's core_binding)
 
@@ -95,6 +95,9 @@ def main() -> None:
     parser.add_argument("--workers", type=int, nargs="+", default=[2, 4])
     parser.add_argument("--bind", default="", help="mpiexec -bind-to value (default: core_binding(ranks))")
     parser.add_argument("--bare-loop", action="store_true")
+    parser.add_argument("--smoke", action="store_true", help=f"tiny run to check the benchmark works: {SMOKE}")
+    if parser.parse_known_args()[0].smoke:
+        parser.set_defaults(**SMOKE)
     args = parser.parse_args()
     global BIND
     BIND = args.bind

@@ -4,7 +4,7 @@
 SIM_LOSS_CC). The SITL runs as its own process (`nac-sitl run`); NAC's client uploads over the ground link,
 MAVSDK over the companion link. Each cell is the median of --repeats uploads.
 
-    python benchmarks/mission_upload.py [--repeats 3]
+    python benchmarks/mission_upload.py [--repeats 3] [--sizes 10 100 500] [--losses 0 10 30] [--smoke]
 """
 
 from __future__ import annotations
@@ -14,17 +14,15 @@ import statistics
 import sys
 import threading
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from missions.geo import Home  # noqa: E402
-from nac_onboard.mavlink.client import M, VehicleClient  # noqa: E402
-from sitl.experiment.demo import waypoint_mission  # noqa: E402
-from sitl.launcher import SitlProcess  # noqa: E402
-from sitl.server import SitlConfig  # noqa: E402
+from missions.builder import waypoint_mission
+from missions.geo import Home
+from nac_onboard.mavlink.client import M, VehicleClient
+from sitl.launcher import SitlProcess, allocate_base_port
+from sitl.server import SitlConfig
 
 HOME = Home(47.397742, 8.545594, 488.0)
+SMOKE = {"repeats": 1, "sizes": [10], "losses": [0.0, 10.0]}  # --smoke: one loopback cell and one lossy cell
 
 
 def mission(n_items: int):
@@ -97,16 +95,19 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--sizes", type=int, nargs="+", default=[10, 100, 500])
     parser.add_argument("--losses", type=float, nargs="+", default=[0.0, 10.0, 30.0])
-    parser.add_argument("--base-port", type=int, default=35550)
+    parser.add_argument("--base-port", type=int, default=None, help="ground link's UDP port (default: a free one)")
+    parser.add_argument("--smoke", action="store_true", help=f"tiny run to check the benchmark works: {SMOKE}")
+    if parser.parse_known_args()[0].smoke:
+        parser.set_defaults(**SMOKE)
     args = parser.parse_args()
-    config = SitlConfig(vehicles=1, gcs_base_port=args.base_port, companion_base_port=args.base_port + 1,
-                        tcp_base_port=0)
+    base = args.base_port or allocate_base_port(1)
+    config = SitlConfig(vehicles=1, gcs_base_port=base, companion_base_port=base + 1, tcp_base_port=0)
     print("| items | loss | NAC client (s) | MAVSDK mission_raw (s) |")
     print("| ---: | ---: | ---: | ---: |")
     with SitlProcess(config):
-        nac = VehicleClient(f"udpin:127.0.0.1:{args.base_port}", sysid=1)
+        nac = VehicleClient(f"udpin:127.0.0.1:{base}", sysid=1)
         nac.wait_heartbeat(10)
-        sdk = Mavsdk(args.base_port + 1)
+        sdk = Mavsdk(base + 1)
         try:
             for loss in args.losses:
                 set_loss(nac, loss)

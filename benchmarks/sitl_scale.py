@@ -5,7 +5,7 @@ The simulator runs as `nac-sitl run --speedup 1000` (as fast as it can) pinned t
 this process pinned to the other core, receives every datagram, counts frames per message id and reads the
 simulated clock from SYSTEM_TIME. Real-time factor = simulated seconds / wall seconds over the window.
 
-    python benchmarks/sitl_scale.py [--vehicles 1 10 50 100] [--seconds 10]
+    python benchmarks/sitl_scale.py [--vehicles 1 10 50 100] [--seconds 10] [--smoke]
 """
 
 from __future__ import annotations
@@ -17,36 +17,16 @@ import socket
 import struct
 import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from sitl.launcher import SitlProcess  # noqa: E402
-from sitl.server import SitlConfig  # noqa: E402
+from sitl.launcher import SitlProcess, allocate_base_port
+from sitl.server import SitlConfig
 
 SYSTEM_TIME_ID = 2
-
-
-def free_base(vehicles: int) -> int:
-    for base in range(30000, 60000 - 10 * vehicles, 10 * vehicles + 10):
-        try:
-            probes = []
-            for i in range(vehicles):
-                for k in (0, 1):
-                    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                    probes.append(s)
-                    s.bind(("127.0.0.1", base + 10 * i + k))
-            for s in probes:
-                s.close()
-            return base
-        except OSError:
-            for s in probes:
-                s.close()
-    raise RuntimeError("no free port range")
+SMOKE = {"vehicles": [1, 5], "seconds": 2.0, "warmup": 1.0}  # --smoke: the same measurement, a few seconds in all
 
 
 def measure(vehicles: int, seconds: float, warmup_s: float = 2.0) -> dict:
-    base = free_base(vehicles)
+    base = allocate_base_port(vehicles)
     sel = selectors.DefaultSelector()
     sockets = []
     for i in range(vehicles):
@@ -96,6 +76,8 @@ def measure(vehicles: int, seconds: float, warmup_s: float = 2.0) -> dict:
         proc.stop()
         for s in sockets:
             s.close()
+    if first is None or end[1] is None or end[0] <= first[0]:
+        raise RuntimeError(f"{vehicles} vehicles: no SYSTEM_TIME from vehicle 1 within {warmup_s + seconds:g} s")
     wall = end[0] - first[0]
     sim = (end[1] - first[1]) / 1000.0
     return {"vehicles": vehicles, "rtf": sim / wall, "frames_per_s": (end[2] - first[2]) / wall,
@@ -106,12 +88,16 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--vehicles", type=int, nargs="+", default=[1, 10, 50, 100])
     parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--warmup", type=float, default=2.0, help="seconds before the window opens")
+    parser.add_argument("--smoke", action="store_true", help=f"tiny run to check the benchmark works: {SMOKE}")
+    if parser.parse_known_args()[0].smoke:
+        parser.set_defaults(**SMOKE)
     args = parser.parse_args()
     os.sched_setaffinity(0, {1 % os.cpu_count()})
     print("| vehicles | real-time factor | frames/s read by the client | Mbit/s |")
     print("| ---: | ---: | ---: | ---: |")
     for n in args.vehicles:
-        r = measure(n, args.seconds)
+        r = measure(n, args.seconds, args.warmup)
         print(f"| {r['vehicles']} | {r['rtf']:.1f}x | {r['frames_per_s']:,.0f} | {r['mbit_per_s']:.1f} |", flush=True)
     return 0
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import random
 import signal
+import socket
 import sys
 
 from nac_onboard.child_process import ChildStartError, ReadyProcess
@@ -37,3 +39,33 @@ class SitlProcess(ReadyProcess):
             return super().start()
         except ChildStartError as err:
             raise SitlError(str(err)) from None
+
+
+# ---- free loopback ports for local SITL / agent processes (tests, benchmarks) ---------------------------------
+def _free(port: int, kind: int) -> bool:
+    with socket.socket(socket.AF_INET, kind) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def free_port() -> int:
+    """A loopback port free for both UDP and TCP right now, for a local SITL or agent process to bind."""
+    for _ in range(200):
+        port = random.randrange(20000, 60000)
+        if _free(port, socket.SOCK_DGRAM) and _free(port, socket.SOCK_STREAM):
+            return port
+    raise RuntimeError("no free port found")
+
+
+def allocate_base_port(vehicles: int, step: int = 10, slots: int = 2) -> int:
+    """A base port B on loopback with B+step*i+k free (UDP and TCP) for every vehicle i and slot k < slots (ground,
+    companion, ...): the port block of a local SITL (SitlConfig's gcs/companion base ports and port_step)."""
+    for _ in range(200):
+        base = random.randrange(20000, 60000 - step * vehicles, 2)
+        ports = [base + step * i + k for i in range(vehicles) for k in range(slots)]
+        if all(_free(p, socket.SOCK_DGRAM) and _free(p, socket.SOCK_STREAM) for p in ports):
+            return base
+    raise RuntimeError("no free port range found")

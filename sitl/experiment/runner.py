@@ -200,7 +200,7 @@ class Experiment:
             self.sim = Sitl(config)
         except (SitlError, OSError) as err:  # e.g. a base port already taken
             raise ExperimentError(Outcome.SITL_FAILED, f"cannot start the simulator: {err}") from None
-        self.sim.step_observers.extend(self.step_observers)
+        self.sim.world.step_observers.extend(self.step_observers)
         self.sim.start()
         config_dir = self.run_dir / "config"
         config_dir.mkdir(exist_ok=True)

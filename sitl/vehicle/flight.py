@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from enum import IntEnum
+from enum import Enum, IntEnum
 
 import numpy as np
 
@@ -54,6 +54,38 @@ class MissionState(IntEnum):
     COMPLETE = 5
 
 
+class Severity(IntEnum):
+    """MAV_SEVERITY of the texts the autopilot sends."""
+
+    CRITICAL = 2
+    ERROR = 3
+    WARNING = 4
+    INFO = 6
+
+
+class Event(Enum):
+    """What the flight logic tells the MAVLink layer to announce."""
+
+    ITEM_REACHED = "item_reached"  # value: seq
+    MISSION_CURRENT = "mission_current"  # value: seq
+    MODE = "mode"  # value: custom mode number
+    ARMED = "armed"  # value: bool
+    TEXT = "text"  # value: (Severity, text)
+
+
+class Phase(Enum):
+    """What the vehicle is doing toward its current goal; decides what happens when the goal's check passes."""
+
+    NONE = "none"
+    TAKEOFF = "takeoff"
+    MISSION = "mission"  # flying to a mission item
+    MISSION_HOLD = "mission_hold"  # flying to an item with a hold time, then waiting there
+    RTL_CLIMB = "rtl_climb"
+    RTL_RETURN = "rtl_return"
+    LAND = "land"
+    DISARM_WAIT = "disarm_wait"
+
+
 class Check(IntEnum):
     NONE = 0
     REACH = 1  # within radius_m of goal (3D)
@@ -66,22 +98,25 @@ EXECUTABLE_COMMANDS = frozenset({
     MavCmd.NAV_WAYPOINT, MavCmd.NAV_TAKEOFF, MavCmd.NAV_LAND, MavCmd.NAV_RETURN_TO_LAUNCH,
     MavCmd.NAV_LOITER_TIME, MavCmd.DO_CHANGE_SPEED, MavCmd.DO_JUMP,
 })
-FENCE_COMMANDS = frozenset({5000, 5001, 5002, 5003, 5004})
-RALLY_COMMANDS = frozenset({5100})
+FENCE_COMMANDS = frozenset({
+    MavCmd.NAV_FENCE_RETURN_POINT, MavCmd.NAV_FENCE_POLYGON_VERTEX_INCLUSION,
+    MavCmd.NAV_FENCE_POLYGON_VERTEX_EXCLUSION, MavCmd.NAV_FENCE_CIRCLE_INCLUSION, MavCmd.NAV_FENCE_CIRCLE_EXCLUSION,
+})
+RALLY_COMMANDS = frozenset({MavCmd.NAV_RALLY_POINT})
 SUPPORTED_FRAMES = frozenset({Frame.GLOBAL, Frame.GLOBAL_RELATIVE_ALT, Frame.GLOBAL_INT, Frame.GLOBAL_RELATIVE_ALT_INT,
                               Frame.GLOBAL_TERRAIN_ALT, Frame.GLOBAL_TERRAIN_ALT_INT, Frame.MISSION})
 HOLD_MODES = frozenset({CopterMode.STABILIZE, CopterMode.ALT_HOLD, CopterMode.LOITER, CopterMode.POSHOLD,
                         CopterMode.BRAKE, CopterMode.GUIDED})
-FORCE_DISARM_MAGIC = 21196
+FORCE_DISARM_MAGIC = 21196  # COMPONENT_ARM_DISARM param 2: disarm even in flight (ArduPilot)
 
 
 @dataclass(frozen=True)
-class Outcome:
+class CommandOutcome:
     result: Result
     text: str = ""
 
 
-OK = Outcome(Result.ACCEPTED)
+OK = CommandOutcome(Result.ACCEPTED)
 
 
 class Fleet:
@@ -100,7 +135,7 @@ class Fleet:
         self.check = np.zeros(n, dtype=int)
         self.radius_m = np.zeros(n)
         self.until_t_s = np.full(n, math.inf)
-        self.phase = [""] * n
+        self.phase = [Phase.NONE] * n
         self.missions: list[dict[int, list[MissionItem]]] = [{t: [] for t in MissionType} for _ in range(n)]
         self.current_seq = np.zeros(n, dtype=int)
         self.mission_state = np.full(n, MissionState.NO_MISSION, dtype=int)
@@ -108,7 +143,7 @@ class Fleet:
         self.gps_ok = np.ones(n, dtype=bool)
         self.transfer_busy = np.zeros(n, dtype=bool)
         self.failsafe = np.zeros(n, dtype=bool)
-        self.events: list[tuple[int, str, object]] = []
+        self.events: list[tuple[int, Event, object]] = []
         self.t_s = 0.0
         self.state: VehicleState | None = None
 
@@ -138,11 +173,11 @@ class Fleet:
     def _alt_tolerance_m(self) -> np.ndarray:
         return np.clip(0.1 * self.goal_m[:, 2], 0.1, 0.5)
 
-    def _emit(self, i: int, kind: str, value: object = None) -> None:
+    def _emit(self, i: int, kind: Event, value: object = None) -> None:
         self.events.append((i, kind, value))
 
-    def _text(self, i: int, text: str, severity: int = 6) -> None:
-        self._emit(i, "text", (severity, text))
+    def _text(self, i: int, text: str, severity: Severity = Severity.INFO) -> None:
+        self._emit(i, Event.TEXT, (severity, text))
 
     def _pos(self, i: int) -> np.ndarray:
         assert self.state is not None
@@ -151,7 +186,7 @@ class Fleet:
     def _flying(self, i: int) -> bool:
         return bool(self.armed[i] and self.state is not None and not self.state.on_ground[i])
 
-    def _set_goal(self, i: int, goal_m, motion: Motion, check: Check, radius_m: float = 0.0, phase: str = ""):
+    def _set_goal(self, i: int, goal_m, motion: Motion, check: Check, radius_m: float = 0.0, phase: Phase = Phase.NONE):
         self.goal_m[i] = goal_m
         self.motion[i] = motion
         self.check[i] = check
@@ -164,7 +199,7 @@ class Fleet:
         else:
             self._set_goal(i, self._pos(i), Motion.IDLE, Check.NONE)
 
-    def _timer(self, i: int, seconds: float, phase: str) -> None:
+    def _timer(self, i: int, seconds: float, phase: Phase) -> None:
         self.check[i] = Check.TIMER
         self.until_t_s[i] = self.t_s + seconds
         self.phase[i] = phase
@@ -173,35 +208,35 @@ class Fleet:
     def _on_done(self, i: int) -> None:
         phase = self.phase[i]
         self.check[i] = Check.NONE
-        if phase == "takeoff":
+        if phase == Phase.TAKEOFF:
             self._text(i, "Takeoff complete")
-        elif phase == "mission":
+        elif phase == Phase.MISSION:
             self._item_reached(i)
-        elif phase == "mission_hold":  # reached a waypoint with a hold time / NAV_LOITER_TIME
+        elif phase == Phase.MISSION_HOLD:  # reached a waypoint with a hold time / NAV_LOITER_TIME
             item = self.missions[i][MissionType.MISSION][self.current_seq[i]]
-            self._timer(i, max(0.0, item.p1), "mission")
-        elif phase == "rtl_climb":
+            self._timer(i, max(0.0, item.p1), Phase.MISSION)
+        elif phase == Phase.RTL_CLIMB:
             home_xy = np.array([0.0, 0.0, self.goal_m[i, 2]])
-            self._set_goal(i, home_xy, Motion.GOTO, Check.REACH, self._wp_radius_m(i), "rtl_return")
-        elif phase == "rtl_return":
-            self._set_goal(i, [0.0, 0.0, 0.0], Motion.LAND, Check.LANDED, phase="land")
-        elif phase == "land":
+            self._set_goal(i, home_xy, Motion.GOTO, Check.REACH, self._wp_radius_m(i), Phase.RTL_RETURN)
+        elif phase == Phase.RTL_RETURN:
+            self._set_goal(i, [0.0, 0.0, 0.0], Motion.LAND, Check.LANDED, phase=Phase.LAND)
+        elif phase == Phase.LAND:
             if self.mode[i] == CopterMode.AUTO:
                 self._item_reached(i)
             self._text(i, "Landed")
-            self._timer(i, self.params.get(i, "DISARM_DELAY"), "disarm_wait")
-        elif phase == "disarm_wait":
+            self._timer(i, self.params.get(i, "DISARM_DELAY"), Phase.DISARM_WAIT)
+        elif phase == Phase.DISARM_WAIT:
             if self.state is not None and self.state.on_ground[i] and self.armed[i]:
                 self._disarm(i, "Auto-disarmed after landing")
 
     def _failsafe(self, i: int, gps: bool) -> None:
         self.failsafe[i] = True
         if gps:
-            self._text(i, "EKF failsafe: GPS lost, landing", 2)
+            self._text(i, "EKF failsafe: GPS lost, landing", Severity.CRITICAL)
             self.set_mode(i, CopterMode.LAND)
             return
         action = int(self.params.get(i, "BATT_FS_LOW_ACT"))
-        self._text(i, "Battery failsafe: low battery", 2)
+        self._text(i, "Battery failsafe: low battery", Severity.CRITICAL)
         if action == 2:
             self.set_mode(i, CopterMode.RTL)
         elif action == 1:
@@ -229,7 +264,7 @@ class Fleet:
             self.mission_state[i] = MissionState.ACTIVE if running else MissionState.NOT_STARTED
             if running:
                 self._start_item(i, int(self.current_seq[i]))
-        self._emit(i, "mission_current", int(self.current_seq[i]))
+        self._emit(i, Event.MISSION_CURRENT, int(self.current_seq[i]))
 
     def _wp_radius_m(self, i: int) -> float:
         return self.params.get(i, "WPNAV_RADIUS") / 100.0
@@ -249,7 +284,7 @@ class Fleet:
 
     def _item_reached(self, i: int) -> None:
         seq = int(self.current_seq[i])
-        self._emit(i, "item_reached", seq)
+        self._emit(i, Event.ITEM_REACHED, seq)
         self._start_item(i, seq + 1)
 
     def _start_item(self, i: int, seq: int) -> None:
@@ -261,13 +296,13 @@ class Fleet:
             item = items[seq]
             if self.current_seq[i] != seq:
                 self.current_seq[i] = seq
-                self._emit(i, "mission_current", seq)
+                self._emit(i, Event.MISSION_CURRENT, seq)
             self.mission_state[i] = MissionState.ACTIVE
             cmd = item.command
             if cmd == MavCmd.DO_CHANGE_SPEED:
                 if item.p2 > 0:
                     self.speed_xy_mps[i] = item.p2
-                self._emit(i, "item_reached", seq)
+                self._emit(i, Event.ITEM_REACHED, seq)
                 seq += 1
                 continue
             if cmd == MavCmd.DO_JUMP:
@@ -282,7 +317,7 @@ class Fleet:
                 continue
             self._start_nav_item(i, item)
             return
-        self._text(i, "Mission: DO_JUMP loop without a navigation command, stopping", 3)
+        self._text(i, "Mission: DO_JUMP loop without a navigation command, stopping", Severity.ERROR)
         self._mission_complete(i)
 
     def _start_nav_item(self, i: int, item: MissionItem) -> None:
@@ -291,49 +326,49 @@ class Fleet:
         if cmd == MavCmd.NAV_TAKEOFF:
             here = self._pos(i)
             self._set_goal(i, [here[0], here[1], max(goal[2], here[2])], Motion.GOTO, Check.ALTITUDE,
-                           phase="mission")
+                           phase=Phase.MISSION)
         elif cmd == MavCmd.NAV_LAND:
-            self._set_goal(i, [goal[0], goal[1], 0.0], Motion.LAND, Check.LANDED, phase="land")
+            self._set_goal(i, [goal[0], goal[1], 0.0], Motion.LAND, Check.LANDED, phase=Phase.LAND)
         elif cmd == MavCmd.NAV_RETURN_TO_LAUNCH:
             self._begin_rtl(i)
         else:
             radius = item.p2 if cmd == MavCmd.NAV_WAYPOINT and item.p2 > 0 else self._wp_radius_m(i)
             holds = cmd == MavCmd.NAV_LOITER_TIME or item.p1 > 0
-            self._set_goal(i, goal, Motion.GOTO, Check.REACH, radius, "mission_hold" if holds else "mission")
+            self._set_goal(i, goal, Motion.GOTO, Check.REACH, radius, Phase.MISSION_HOLD if holds else Phase.MISSION)
 
     def _mission_complete(self, i: int) -> None:
         self.mission_state[i] = MissionState.COMPLETE
-        self._emit(i, "mission_current", int(self.current_seq[i]))
+        self._emit(i, Event.MISSION_CURRENT, int(self.current_seq[i]))
         self._text(i, "Mission complete")
-        if self.phase[i] != "disarm_wait":
+        if self.phase[i] != Phase.DISARM_WAIT:
             self._hold(i)
 
     # ---- commands -------------------------------------------------------------------------------------
-    def arm(self, i: int, arm: bool, force: bool = False) -> Outcome:
+    def arm(self, i: int, arm: bool, force: bool = False) -> CommandOutcome:
         if not arm:
             if not self.armed[i]:
                 return OK
             if self._flying(i) and not force:
-                return Outcome(Result.DENIED, "Disarm refused: vehicle is flying")
+                return CommandOutcome(Result.DENIED, "Disarm refused: vehicle is flying")
             self._disarm(i, "Disarmed")
             return OK
         if self.armed[i]:
             return OK
         if self.transfer_busy[i]:
-            return Outcome(Result.TEMPORARILY_REJECTED, "Arm refused: mission transfer in progress")
+            return CommandOutcome(Result.TEMPORARILY_REJECTED, "Arm refused: mission transfer in progress")
         if not force:
             if not self.gps_ok[i]:
-                return Outcome(Result.FAILED, "PreArm: GPS: no fix")
+                return CommandOutcome(Result.FAILED, "PreArm: GPS: no fix")
             assert self.state is not None
             if self.state.soc[i] * 100.0 < self.params.get(i, "BATT_LOW_PCT"):
-                return Outcome(Result.FAILED, "PreArm: Battery below failsafe level")
+                return CommandOutcome(Result.FAILED, "PreArm: Battery below failsafe level")
             if self.mode[i] in (CopterMode.RTL, CopterMode.LAND):
-                return Outcome(Result.FAILED, f"Arm: mode {CopterMode(self.mode[i]).name} does not allow arming")
+                return CommandOutcome(Result.FAILED, f"Arm: mode {CopterMode(self.mode[i]).name} does not allow arming")
         self.armed[i] = True
         self.failsafe[i] = False
         self._set_goal(i, self._pos(i), Motion.IDLE, Check.NONE)
         self._text(i, "Arming motors")
-        self._emit(i, "armed", True)
+        self._emit(i, Event.ARMED, True)
         return OK
 
     def _disarm(self, i: int, text: str) -> None:
@@ -342,13 +377,13 @@ class Fleet:
         if self.mode[i] == CopterMode.AUTO and self.mission_state[i] == MissionState.ACTIVE:
             self.mission_state[i] = MissionState.PAUSED
         self._text(i, text)
-        self._emit(i, "armed", False)
+        self._emit(i, Event.ARMED, False)
 
-    def set_mode(self, i: int, mode: int) -> Outcome:
+    def set_mode(self, i: int, mode: int) -> CommandOutcome:
         try:
             mode = CopterMode(mode)
         except ValueError:
-            return Outcome(Result.DENIED, f"Mode change failed: unsupported mode {mode}")
+            return CommandOutcome(Result.DENIED, f"Mode change failed: unsupported mode {mode}")
         previous = self.mode[i]
         self.mode[i] = mode
         if mode in HOLD_MODES:
@@ -369,45 +404,45 @@ class Fleet:
         elif mode == CopterMode.LAND:
             if self._flying(i):
                 here = self._pos(i)
-                self._set_goal(i, [here[0], here[1], 0.0], Motion.LAND, Check.LANDED, phase="land")
+                self._set_goal(i, [here[0], here[1], 0.0], Motion.LAND, Check.LANDED, phase=Phase.LAND)
             else:
                 self._hold(i)
         if previous != mode:
-            self._emit(i, "mode", int(mode))
+            self._emit(i, Event.MODE, int(mode))
         return OK
 
     def _begin_rtl(self, i: int) -> None:
         here = self._pos(i)
         rtl_alt = max(here[2], self.params.get(i, "RTL_ALT") / 100.0)
-        self._set_goal(i, [here[0], here[1], rtl_alt], Motion.GOTO, Check.ALTITUDE, phase="rtl_climb")
+        self._set_goal(i, [here[0], here[1], rtl_alt], Motion.GOTO, Check.ALTITUDE, phase=Phase.RTL_CLIMB)
 
-    def takeoff(self, i: int, alt_m: float) -> Outcome:
+    def takeoff(self, i: int, alt_m: float) -> CommandOutcome:
         if not math.isfinite(alt_m) or alt_m <= 0:
             default_cm = self.params.get(i, "PILOT_TKOFF_ALT")
             if default_cm <= 0:
-                return Outcome(Result.DENIED, f"Takeoff refused: altitude {alt_m} m must be above 0")
+                return CommandOutcome(Result.DENIED, f"Takeoff refused: altitude {alt_m} m must be above 0")
             alt_m = default_cm / 100.0
         if alt_m > 1000:
-            return Outcome(Result.DENIED, f"Takeoff refused: altitude {alt_m} m above 1000 m")
+            return CommandOutcome(Result.DENIED, f"Takeoff refused: altitude {alt_m} m above 1000 m")
         if not self.armed[i]:
-            return Outcome(Result.TEMPORARILY_REJECTED, "Takeoff refused: arm first")
+            return CommandOutcome(Result.TEMPORARILY_REJECTED, "Takeoff refused: arm first")
         if self._flying(i):
-            return Outcome(Result.FAILED, "Takeoff refused: already flying")
+            return CommandOutcome(Result.FAILED, "Takeoff refused: already flying")
         if self.mode[i] != CopterMode.GUIDED:
             self.mode[i] = CopterMode.GUIDED
-            self._emit(i, "mode", int(CopterMode.GUIDED))
+            self._emit(i, Event.MODE, int(CopterMode.GUIDED))
         here = self._pos(i)
-        self._set_goal(i, [here[0], here[1], alt_m], Motion.GOTO, Check.ALTITUDE, phase="takeoff")
+        self._set_goal(i, [here[0], here[1], alt_m], Motion.GOTO, Check.ALTITUDE, phase=Phase.TAKEOFF)
         return OK
 
-    def mission_start(self, i: int, first_seq: int) -> Outcome:
+    def mission_start(self, i: int, first_seq: int) -> CommandOutcome:
         items = self.mission(i)
         if len(items) <= 1:
-            return Outcome(Result.FAILED, "Mission start refused: no mission")
+            return CommandOutcome(Result.FAILED, "Mission start refused: no mission")
         if not self.armed[i]:
-            return Outcome(Result.TEMPORARILY_REJECTED, "Mission start refused: arm first")
+            return CommandOutcome(Result.TEMPORARILY_REJECTED, "Mission start refused: arm first")
         if first_seq >= len(items):
-            return Outcome(Result.DENIED, f"Mission start refused: item {first_seq} of {len(items) - 1}")
+            return CommandOutcome(Result.DENIED, f"Mission start refused: item {first_seq} of {len(items) - 1}")
         if first_seq >= 1:
             self.current_seq[i] = first_seq
         elif self.mission_state[i] == MissionState.COMPLETE:
@@ -416,10 +451,10 @@ class Fleet:
         self.mode[i] = CopterMode.GUIDED  # forces the AUTO entry below to (re)start the item
         return self.set_mode(i, CopterMode.AUTO)
 
-    def set_current(self, i: int, seq: int) -> Outcome:
+    def set_current(self, i: int, seq: int) -> CommandOutcome:
         items = self.mission(i)
         if not 0 <= seq < len(items):
-            return Outcome(Result.DENIED, f"Set current refused: no item {seq} (mission has {len(items)})")
+            return CommandOutcome(Result.DENIED, f"Set current refused: no item {seq} (mission has {len(items)})")
         seq = max(seq, 1)
         self.current_seq[i] = seq
         self.jumps_left[i] = {}
@@ -427,18 +462,18 @@ class Fleet:
             self._start_item(i, seq)
         else:
             self.mission_state[i] = MissionState.NOT_STARTED
-        self._emit(i, "mission_current", seq)
+        self._emit(i, Event.MISSION_CURRENT, seq)
         return OK
 
-    def change_speed(self, i: int, speed_mps: float) -> Outcome:
+    def change_speed(self, i: int, speed_mps: float) -> CommandOutcome:
         if not math.isfinite(speed_mps) or speed_mps <= 0 or speed_mps > 50:
-            return Outcome(Result.DENIED, f"Speed {speed_mps} m/s outside 0..50")
+            return CommandOutcome(Result.DENIED, f"Speed {speed_mps} m/s outside 0..50")
         self.speed_xy_mps[i] = speed_mps
         return OK
 
-    def goto(self, i: int, goal_m) -> Outcome:
+    def goto(self, i: int, goal_m) -> CommandOutcome:
         if self.mode[i] != CopterMode.GUIDED or not self._flying(i):
-            return Outcome(Result.TEMPORARILY_REJECTED, "Goto refused: needs GUIDED mode and flying")
+            return CommandOutcome(Result.TEMPORARILY_REJECTED, "Goto refused: needs GUIDED mode and flying")
         goal = np.asarray(goal_m, dtype=float).copy()
         goal[2] = max(goal[2], 0.5)
         self._set_goal(i, goal, Motion.GOTO, Check.NONE)

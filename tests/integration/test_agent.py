@@ -39,7 +39,7 @@ def test_logged_positions_match_truth_and_every_mission_item_is_an_event(start_s
                                                                           tmp_path):
     sim = start_sitl(speedup=10.0)
     trace: list[tuple[float, np.ndarray]] = []
-    sim.step_observers.append(lambda t, s: trace.append((t, s.pos_m[0].copy())))
+    sim.world.step_observers.append(lambda t, s: trace.append((t, s.pos_m[0].copy())))
     agent = start_agent(one_agent(sim, tmp_path))
     log_path = run_dir(tmp_path) / "agent.jsonl"
     wait_for_record(log_path, kind("link_up"))

@@ -54,8 +54,8 @@ def test_malformed_file_is_exit_2_names_file_and_item_and_sends_nothing(name, st
     original = waypoint_mission(home.lat_deg, home.lon_deg, [(5, 5)])
     assert gcs.upload(original) == 0
     gcs.close()
-    before = list(sim.fleet.mission(0))
-    counts_before = sim.links[0].receiver.items_received_total
+    before = list(sim.world.fleet.mission(0))
+    counts_before = sim.protocols[0].receiver.items_received_total
 
     text, where = MALFORMED[name]
     path = tmp_path / name
@@ -67,9 +67,9 @@ def test_malformed_file_is_exit_2_names_file_and_item_and_sends_nothing(name, st
     assert "Traceback" not in result.stderr
     offline = ground("mission", "validate", str(path))
     assert offline.returncode == 2 and str(path) in offline.stderr
-    assert sim.fleet.mission(0) == before
-    assert sim.links[0].receiver.items_received_total == counts_before
-    assert not sim.links[0].receiver.busy
+    assert sim.world.fleet.mission(0) == before
+    assert sim.protocols[0].receiver.items_received_total == counts_before
+    assert not sim.protocols[0].receiver.busy
 
 
 @pytest.mark.slow
@@ -85,7 +85,7 @@ def test_twenty_uploads_of_100_items_under_30_percent_loss(start_sitl, gcs_for):
     items = waypoint_mission(home.lat_deg, home.lon_deg, offsets)
     assert len(items) == 100
     sim.set_loss(0, "ground", 30.0)
-    receiver = sim.links[0].receiver
+    receiver = sim.protocols[0].receiver
     start_items, start_requests = receiver.items_received_total, receiver.requests_sent_total
     for attempt in range(20):
         assert gcs.upload(items) == 0, f"upload {attempt + 1} failed"

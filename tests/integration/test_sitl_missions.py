@@ -20,7 +20,7 @@ LEGS_M = [
 def test_four_vehicles_fly_their_missions_and_report_every_item(start_sitl, gcs_for):
     sim = start_sitl(vehicles=4, speedup=40.0, spacing_m=8.0)
     trace: list[tuple[float, np.ndarray]] = []
-    sim.step_observers.append(lambda t, s: trace.append((t, s.pos_m.copy())))
+    sim.world.step_observers.append(lambda t, s: trace.append((t, s.pos_m.copy())))
     stations, missions = [], []
     for i in range(4):
         gcs = gcs_for(sim, i)

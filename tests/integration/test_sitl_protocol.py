@@ -27,7 +27,7 @@ def test_upload_of_50_items_completes_under_30_percent_loss(start_sitl, gcs_for)
     sim.set_loss(0, "ground", 0.0)
     downloaded = gcs.download()
     assert same_items(downloaded, items)
-    assert sim.links[0].receiver.requests_sent_total >= 50
+    assert sim.protocols[0].receiver.requests_sent_total >= 50
 
 
 def test_aborted_or_refused_upload_leaves_the_old_mission_intact(start_sitl, gcs_for):
@@ -52,7 +52,7 @@ def test_aborted_or_refused_upload_leaves_the_old_mission_intact(start_sitl, gcs
     bad[5] = MissionItem(5, 5001, Frame.GLOBAL_RELATIVE_ALT_INT, lat_deg=1, lon_deg=1)  # a fence vertex
     assert gcs.upload(bad) == M.MAV_MISSION_UNSUPPORTED
     assert same_items(gcs.download(), before)
-    assert not sim.fleet.transfer_busy[0]
+    assert not sim.world.fleet.transfer_busy[0]
 
 
 def test_item_zero_reads_back_as_home_and_clear_empties_the_mission(start_sitl, gcs_for):
@@ -155,7 +155,7 @@ def test_param_set_echoes_and_out_of_range_keeps_the_old_value(start_sitl, gcs_f
     gcs = gcs_for(sim)
     gcs.conn.mav.param_set_send(1, 1, b"NAC_KP_XY", 0.3, M.MAV_PARAM_TYPE_REAL32)
     msg = gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "NAC_KP_XY")
-    assert abs(msg.param_value - 0.3) < 1e-6 and abs(sim.physics.k_xy[0] - 0.3) < 1e-6
+    assert abs(msg.param_value - 0.3) < 1e-6 and abs(sim.world.physics.k_xy[0] - 0.3) < 1e-6
     gcs.conn.mav.param_set_send(1, 1, b"WPNAV_SPEED", -100, M.MAV_PARAM_TYPE_REAL32)
     msg = gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "WPNAV_SPEED")
     assert msg.param_value == 500

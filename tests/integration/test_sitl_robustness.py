@@ -34,7 +34,7 @@ def random_message(rng: random.Random):
 
 
 def vehicle_socket_address(sim, vehicle=0):
-    return ("127.0.0.1", sim.links[vehicle].channels[0].sock.getsockname()[1])
+    return ("127.0.0.1", sim.protocols[vehicle].connections[0].sock.getsockname()[1])
 
 
 def assert_still_answering(gcs):

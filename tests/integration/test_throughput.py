@@ -4,93 +4,22 @@ two network namespaces."""
 import json
 import os
 import secrets
-import shutil
-import statistics
 import subprocess
 import sys
 import threading
-from dataclasses import dataclass
 
 import pytest
 
 from nac_onboard.agent.config import ThroughputSection
 from nac_onboard.agent.probes import ProbeScheduler
-from nac_onboard.child_process import ReadyProcess
 from nac_onboard.flight_log import JsonlLog, read_jsonl
+from nac_onboard.link import iperf3
 from nac_onboard.link.channel import PRESETS
-from nac_onboard.link.throughput import BLOCK_BYTES, ThroughputServer
+from nac_onboard.link.iperf3 import compare, iperf3_result, iperf3_server, nac_server
+from nac_onboard.link.throughput import ThroughputServer
 from tests.conftest import free_port
 
-needs_iperf3 = pytest.mark.skipif(shutil.which("iperf3") is None, reason="iperf3 not installed (.ci/run installs it)")
-
-
-def nac_server(port: int, netns: str | None = None) -> ReadyProcess:
-    command = [sys.executable, "-m", "nac_onboard.cli", "throughput", "server", "--port", str(port)]
-    return ReadyProcess(_in(netns, command, cpu=0), "throughput server listening", "nac throughput server")
-
-
-def iperf3_server(port: int, netns: str | None = None) -> ReadyProcess:
-    command = ["iperf3", "--server", "--port", str(port), "--forceflush"]
-    return ReadyProcess(_in(netns, command, cpu=0), "Server listening", "iperf3 server")
-
-
-def _in(netns: str | None, command: list[str], cpu: int | None = None) -> list[str]:
-    """Run in a network namespace and/or pinned to one CPU. On loopback both tools are CPU-bound, so each gets the
-    same placement: servers on CPU 0, clients on CPU 1."""
-    if cpu is not None and shutil.which("taskset") and (os.cpu_count() or 1) >= 2:
-        command = ["taskset", "--cpu-list", str(cpu), *command]
-    return ["ip", "netns", "exec", netns, *command] if netns else command
-
-
-def amount_args(duration_s: int | None, nbytes: int | None) -> list[str]:
-    return ["--time", str(duration_s)] if nbytes is None else ["--bytes", str(nbytes)]
-
-
-def nac_rate_bps(host: str, port: int, duration_s: int | None, nbytes: int | None = None,
-                 netns: str | None = None) -> float:
-    command = [sys.executable, "-m", "nac_onboard.cli", "throughput", "probe", host, "--port", str(port),
-               *amount_args(duration_s, nbytes)]
-    out = subprocess.run(_in(netns, command, cpu=1), capture_output=True, text=True, timeout=60, check=True)
-    return json.loads(out.stdout)["end"]["sum_received"]["bits_per_second"]
-
-
-def iperf3_result(host: str, port: int, duration_s: int | None, nbytes: int | None = None,
-                  netns: str | None = None) -> dict:
-    # The same write size as ours: where the CPU is the bottleneck (loopback) the rate depends on it.
-    command = ["iperf3", "--client", host, "--port", str(port), *amount_args(duration_s, nbytes), "--json",
-               "--length", str(BLOCK_BYTES)]
-    out = subprocess.run(_in(netns, command, cpu=1), capture_output=True, text=True, timeout=60)
-    result = json.loads(out.stdout)
-    assert "error" not in result, result.get("error")
-    return result
-
-
-@dataclass
-class Comparison:
-    ours_bps: list[float]
-    iperf3_bps: list[float]
-
-    @property
-    def ratio(self) -> float:
-        """Median of our/iperf3 over adjacent runs: a machine that slows down for a while slows both of a pair."""
-        return statistics.median(a / b for a, b in zip(self.ours_bps, self.iperf3_bps, strict=True))
-
-    def describe(self, unit: float, unit_name: str) -> str:
-        return (f"ours/iperf3 = {self.ratio:.3f} (medians {statistics.median(self.ours_bps) / unit:.3f} vs "
-                f"{statistics.median(self.iperf3_bps) / unit:.3f} {unit_name})")
-
-
-def compare(host: str, runs: int, duration_s: int | None = None, nbytes: int | None = None,
-            netns_client: str | None = None, netns_server: str | None = None) -> Comparison:
-    """Alternating runs of each tool over the same path, receiver-side rates."""
-    nac_port, iperf_port = free_port(), free_port()
-    result = Comparison([], [])
-    with nac_server(nac_port, netns_server), iperf3_server(iperf_port, netns_server):
-        for _ in range(runs):
-            result.ours_bps.append(nac_rate_bps(host, nac_port, duration_s, nbytes, netns_client))
-            theirs = iperf3_result(host, iperf_port, duration_s, nbytes, netns_client)
-            result.iperf3_bps.append(theirs["end"]["sum_received"]["bits_per_second"])
-    return result
+needs_iperf3 = pytest.mark.skipif(not iperf3.available(), reason="iperf3 not installed (.ci/run installs it)")
 
 
 @needs_iperf3

@@ -4,7 +4,7 @@ import numpy as np
 
 from missions.geo import Home, enu_to_lla
 from missions.model import Frame, MavCmd, MissionItem
-from sitl.vehicle.flight import Check, CopterMode, Fleet, MissionState, Result
+from sitl.vehicle.flight import Check, CopterMode, Event, Fleet, MissionState, Result
 from sitl.vehicle.params import ParamTable
 from sitl.vehicle.physics import VehicleState, step
 
@@ -38,7 +38,7 @@ def wp(seq, east, north, alt=10.0, cmd=MavCmd.NAV_WAYPOINT, **kw):
 
 
 def reached(fleet):
-    return [v for _, kind, v in fleet.events if kind == "item_reached"]
+    return [v for _, kind, v in fleet.events if kind == Event.ITEM_REACHED]
 
 
 def test_loiter_time_holds_for_its_seconds_and_jump_repeats():
