@@ -11,13 +11,13 @@ from __future__ import annotations
 import json
 import math
 import os
-import struct
 import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-_TLOG_STAMP = struct.Struct(">Q")
+from nac_onboard.mavlink.frames import TLOG_STAMP
+
 # One encoder for every record: json.dumps with options builds a new encoder per call, a third of its cost.
 _STRICT = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
 _LENIENT = json.JSONEncoder(separators=(",", ":"))
@@ -90,7 +90,7 @@ class TlogWriter(_AppendFile):
     def write_many(self, frames: list[bytes], t_s: float | None = None) -> None:
         """Frames that arrived together, in one write."""
         if frames:
-            stamp = _TLOG_STAMP.pack(int((time.time() if t_s is None else t_s) * 1e6))
+            stamp = TLOG_STAMP.pack(int((time.time() if t_s is None else t_s) * 1e6))
             self._write(b"".join(stamp + bytes(frame) for frame in frames))
 
 

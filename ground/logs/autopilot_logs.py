@@ -9,17 +9,17 @@ bytes that are not a record are skipped up to the next plausible one, frames fai
 from __future__ import annotations
 
 import os
-import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
-_STAMP = struct.Struct(">Q")
-_MAGIC_V1, _MAGIC_V2 = 0xFE, 0xFD
+from nac_onboard.mavlink.frames import TLOG_STAMP, frame_length, msgid_at  # noqa: E402
+
+STAMP_BYTES = TLOG_STAMP.size
+
 _PLAUSIBLE_GAP_US = 86_400 * 10**6  # a record more than a day from its neighbour is damage, not a pause
-POSITION_COLUMNS = ["vehicle", "source", "t_s", "time_boot_ms", "lat_deg", "lon_deg", "alt_m", "rel_alt_m"]
 
 
 class FlightLogError(ValueError):
@@ -61,23 +61,17 @@ def _record_length(data: bytes, i: int, n: int) -> int | None:
     """Length of the tlog record at i (stamp + frame), or None when no frame starts at i + 8."""
     if i + 10 > n:
         return None
-    magic = data[i + 8]
-    if magic == _MAGIC_V2:
-        return 8 + 12 + data[i + 9] + (13 if i + 10 < n and data[i + 10] & 1 else 0)
-    if magic == _MAGIC_V1:
-        return 8 + 8 + data[i + 9]
-    return None
+    length = frame_length(data, i + STAMP_BYTES, n)
+    return None if length is None else STAMP_BYTES + length
 
 
 def _resync(data: bytes, i: int, n: int, last_us: int | None) -> int:
     """The next offset after i where a record starts and is followed by another (or the end of the file)."""
     for j in range(i + 1, n - 9):
-        if data[j + 8] not in (_MAGIC_V1, _MAGIC_V2):
-            continue
-        if last_us is not None and abs(_STAMP.unpack_from(data, j)[0] - last_us) > _PLAUSIBLE_GAP_US:
-            continue
         length = _record_length(data, j, n)
         if length is None or j + length > n:
+            continue
+        if last_us is not None and abs(TLOG_STAMP.unpack_from(data, j)[0] - last_us) > _PLAUSIBLE_GAP_US:
             continue
         if j + length == n or _record_length(data, j + length, n) is not None:
             return j
@@ -95,24 +89,20 @@ def read_tlog(path: str | Path, wanted=("GLOBAL_POSITION_INT",)) -> TlogRead:
     wanted_ids = message_ids(wanted)
     decoder = mavlink.MAVLink(None)
     decoder.robust_parsing = True
-    unpack_stamp = _STAMP.unpack_from
+    unpack_stamp = TLOG_STAMP.unpack_from
     i, n, last_us = 0, len(data), None
     while i < n:
         if n - i < 18:  # shorter than any whole record (the smallest frames are HEARTBEATs)
             out.truncated_tail = True
             break
-        magic = data[i + 8]
-        if magic == _MAGIC_V2:
-            length = 20 + data[i + 9] + (13 if data[i + 10] & 1 else 0)
-            msgid = data[i + 15] | data[i + 16] << 8 | data[i + 17] << 16
-        elif magic == _MAGIC_V1:
-            length = 16 + data[i + 9]
-            msgid = data[i + 13]
-        else:
+        length = frame_length(data, i + STAMP_BYTES, n)
+        if length is None:
             j = _resync(data, i, n, last_us)
             out.skipped_bytes += j - i
             i = j
             continue
+        length += STAMP_BYTES
+        msgid = msgid_at(data, i + STAMP_BYTES)
         if i + length > n:
             out.truncated_tail = True
             break

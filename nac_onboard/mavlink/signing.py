@@ -1,4 +1,5 @@
-"""MAVLink 2 signing keys, shared by the ground station, the agent and the SITL (stdlib only).
+"""MAVLink 2 signing, shared by the ground station, the agent and the SITL (stdlib only): keys, timestamps and
+the signature block.
 
 A key file holds either 64 hex characters (the 32-byte secret itself) or a passphrase, whose SHA-256 is the
 secret, as MAVProxy's `signing setup PASSPHRASE` derives it.
@@ -7,7 +8,22 @@ secret, as MAVProxy's `signing setup PASSPHRASE` derives it.
 from __future__ import annotations
 
 import hashlib
+import struct
+import time
 from pathlib import Path
+
+SIGNING_EPOCH_UNIX_S = 1420070400  # 2015-01-01, the origin of MAVLink signing timestamps
+
+
+def initial_timestamp() -> int:
+    """Signing timestamps count 10 µs units since 2015-01-01 and must only increase."""
+    return int((max(time.time(), SIGNING_EPOCH_UNIX_S) - SIGNING_EPOCH_UNIX_S) * 100_000)
+
+
+def signature_block(key: bytes, frame: bytes, link_id: int, timestamp: int) -> bytes:
+    """The 13 bytes after a signed frame's CRC: link id, 48-bit timestamp, 48-bit SHA-256 signature."""
+    stamp = struct.pack("<BQ", link_id, timestamp)[:7]
+    return stamp + hashlib.sha256(key + frame + stamp).digest()[:6]
 
 
 class SigningKeyError(ValueError):

@@ -7,14 +7,14 @@ a message's values have not changed since it was last sent; pymavlink packs ever
 from __future__ import annotations
 
 import os
-import struct
 
 os.environ.setdefault("MAVLINK20", "1")
 
 from pymavlink.dialects.v20 import all as mavlink  # noqa: E402
 from pymavlink.generator.mavcrc import x25crc  # noqa: E402
 
-from sitl.mavlink.signing import INCOMPAT_SIGNED, initial_timestamp, signature_block  # noqa: E402
+from nac_onboard.mavlink.frames import CRC, HEADER_V2, INCOMPAT_SIGNED, MAGIC_V2  # noqa: E402
+from nac_onboard.mavlink.signing import initial_timestamp, signature_block  # noqa: E402
 
 try:  # pymavlink's own optional accelerator; the pure-Python CRC is the fallback
     from fastcrc.crc16 import mcrf4xx as _mcrf4xx
@@ -29,8 +29,6 @@ def _crc(data: bytes) -> int:
 
 __all__ = ["FrameEncoder", "mavlink", "new_parser", "parse_datagram"]
 
-_HEADER = struct.Struct("<BBBBBBBHB")
-_CRC = struct.Struct("<H")
 
 
 def new_parser(signing_key: bytes | None = None) -> mavlink.MAVLink:
@@ -110,11 +108,11 @@ class FrameEncoder:
             payload = payload[:end]
             self._cache[layout.msgid] = (values, payload)
         signed = self.signing_key is not None
-        header = _HEADER.pack(0xFD, len(payload), INCOMPAT_SIGNED if signed else 0, 0, self.seq, self.sysid,
+        header = HEADER_V2.pack(MAGIC_V2, len(payload), INCOMPAT_SIGNED if signed else 0, 0, self.seq, self.sysid,
                               self.compid, layout.msgid & 0xFFFF, layout.msgid >> 16)
         self.seq = (self.seq + 1) & 0xFF
         body = header + payload
-        frame = body + _CRC.pack(_crc(body[1:] + layout.crc_extra))
+        frame = body + CRC.pack(_crc(body[1:] + layout.crc_extra))
         if signed:
             frame += signature_block(self.signing_key, frame, self.link_id, self.sign_timestamp)
             self.sign_timestamp += 1

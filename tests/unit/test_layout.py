@@ -46,7 +46,8 @@ def imports_of(path: Path, name: str, modules: dict[str, Path]) -> set[str]:
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
-                base = ".".join(package.split(".")[:len(package.split(".")) - node.level + 1] + ([base] if base else []))
+                parts = package.split(".")[:len(package.split(".")) - node.level + 1]
+                base = ".".join(parts + ([base] if base else []))
             found.add(base)
             # `from pkg import module` imports the module, not only the package
             found.update(f"{base}.{alias.name}" for alias in node.names if f"{base}.{alias.name}" in modules)
@@ -95,7 +96,8 @@ def test_imports_point_down_the_layers(graph):
     for name, deps in graph.items():
         for prefix, banned in FORBIDDEN.items():
             if name == prefix or name.startswith(prefix + "."):
-                wrong += [f"{name} imports {dep}" for dep in deps for b in banned if dep == b or dep.startswith(b + ".")]
+                wrong += [f"{name} imports {dep}" for dep in deps for b in banned
+                          if dep == b or dep.startswith(b + ".")]
     assert not wrong, "\n".join(sorted(wrong))
 
 
