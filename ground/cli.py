@@ -12,13 +12,10 @@ import sys
 from pathlib import Path
 
 from ground.operator import commands as ops
-from missions import MissionFileError, load_mission
-from nac_onboard.mavlink.client import COPTER_MODES, DEFAULT_URI, CommandError, LinkError, MavlinkClient, MissionError
-from nac_onboard.mavlink.signing import SigningKeyError, load_signing_key
-
-
-class UsageError(ValueError):
-    pass
+from missions import load_mission
+from nac_onboard.errors import BadInput, run_cli
+from nac_onboard.mavlink.client import COPTER_MODES, DEFAULT_URI, MavlinkClient
+from nac_onboard.mavlink.signing import load_signing_key
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -87,16 +84,7 @@ def _add_logs_parser(sub) -> None:
 
 def run_logs(args: argparse.Namespace, out=sys.stdout) -> int:
     from ground.logs import report  # pandas and matplotlib only for the commands that use them
-    from ground.logs.runlog import RunDirError
-    from nac_onboard.link.channel import ChannelError
 
-    try:
-        return _run_logs(report, args, out)
-    except (RunDirError, report.CalibrationError, ChannelError) as err:
-        raise UsageError(str(err)) from None
-
-
-def _run_logs(report, args: argparse.Namespace, out) -> int:
     if args.action == "analyze":
         tables = report.analyze_run(args.run_dir, args.out, args.master, args.bin_m, args.threshold_mbps)
         where = args.out or args.run_dir / "analysis"
@@ -138,7 +126,7 @@ def run(args: argparse.Namespace, out=sys.stdout) -> int:
     # Everything that can be refused offline is checked before any link opens: bad input sends nothing.
     mission = load_mission(args.file) if key == ("mission", "upload") else None
     if args.command == "mode" and args.name.upper() not in COPTER_MODES:
-        raise UsageError(f"unknown mode {args.name!r}; known: {', '.join(sorted(COPTER_MODES))}")
+        raise BadInput(f"unknown mode {args.name!r}; known: {', '.join(sorted(COPTER_MODES))}")
     signing_key = load_signing_key(args.signing_key_file) if args.signing_key_file else None
 
     with MavlinkClient(args.connect, sysid=args.sysid, signing_key=signing_key) as client:
@@ -174,17 +162,7 @@ def run(args: argparse.Namespace, out=sys.stdout) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        return run(args)
-    except (UsageError, MissionFileError, SigningKeyError) as err:
-        print(f"nac-ground: {err}", file=sys.stderr)
-        return 2
-    except (LinkError, CommandError, MissionError) as err:
-        print(f"nac-ground: {err}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("nac-ground: interrupted", file=sys.stderr)
-        return 130
+    return run_cli("nac-ground", lambda: run(args))
 
 
 if __name__ == "__main__":

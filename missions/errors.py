@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from nac_onboard.errors import BadInput
 
-class MissionFileError(ValueError):
+
+class MissionFileError(BadInput):
     """A mission file or mission that cannot be used, told the way an operator can fix it.
 
     str() is `SOURCE: WHERE: REASON`, e.g. `x.plan: item 4 (doJumpId 4): latitude 95.0 is outside -90..90`.

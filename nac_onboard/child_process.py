@@ -17,8 +17,10 @@ import threading
 import time
 from collections import deque
 
+from nac_onboard.errors import OperationFailed
 
-class ChildStartError(RuntimeError):
+
+class ChildStartError(OperationFailed):
     pass
 
 

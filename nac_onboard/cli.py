@@ -19,7 +19,8 @@ import json
 import logging
 import sys
 
-from nac_onboard.agent.config import ConfigError, load_agent_config
+from nac_onboard.agent.config import load_agent_config
+from nac_onboard.errors import OperationFailed, run_cli
 from nac_onboard.link.throughput import DEFAULT_PORT
 
 
@@ -71,49 +72,38 @@ def main(argv: list[str] | None = None) -> int:
         return compute_main(argv[1:])
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(message)s")
-    try:
-        if args.command == "agent":
-            return agent_command(args)
-        if args.command == "throughput":
-            return throughput_command(args)
-        if args.command == "log":
-            return log_check(args.files)
-        if args.command == "data":
-            from nac_onboard.compute import forestfires
+    return run_cli("nac-onboard", lambda: run(args))
 
-            path = forestfires.fetch(args.url or forestfires.UCI_ARCHIVE_URL)
-            print(f"stored {path} (sha256 {forestfires.CSV_SHA256})")
-            return 0
-        if args.command == "state":
-            from nac_onboard.agent.state_feed import fetch_state
 
-            print(json.dumps(fetch_state(args.feed), indent=2))
-            return 0
-    except ConfigError as err:
-        print(f"nac-onboard: {err}", file=sys.stderr)
-        return 2
-    except RuntimeError as err:  # LinkError, ProbeError, StateFeedError, SigningKeyError: operator-facing text
-        print(f"nac-onboard: {err}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        return 130
-    return 2
+def run(args) -> int:
+    if args.command == "agent":
+        return agent_command(args)
+    if args.command == "throughput":
+        return throughput_command(args)
+    if args.command == "log":
+        return log_check(args.files)
+    if args.command == "data":
+        from nac_onboard.compute import forestfires
+
+        path = forestfires.fetch(args.url or forestfires.UCI_ARCHIVE_URL)
+        print(f"stored {path} (sha256 {forestfires.CSV_SHA256})")
+        return 0
+    from nac_onboard.agent.state_feed import fetch_state
+
+    print(json.dumps(fetch_state(args.feed), indent=2))
+    return 0
 
 
 def agent_command(args) -> int:
     from nac_onboard.agent.daemon import run_agent
-    from nac_onboard.mavlink.signing import SigningKeyError
 
     config = load_agent_config(args.config)
     if args.log_dir:
         config = dataclasses.replace(config, log=dataclasses.replace(config.log, dir=args.log_dir))
     try:
         return run_agent(config, args.run_id, ready_line=lambda text: print(text, flush=True))
-    except SigningKeyError as err:
-        raise ConfigError(str(err)) from None
     except OSError as err:  # a port in use, a log directory we may not write
-        print(f"nac-onboard agent: {err}", file=sys.stderr)
-        return 1
+        raise OperationFailed(f"agent {config.vehicle.id}: {err}") from None
 
 
 def throughput_command(args) -> int:
@@ -123,8 +113,7 @@ def throughput_command(args) -> int:
         try:
             server = ThroughputServer(args.bind, args.port)
         except OSError as err:
-            print(f"nac-onboard: cannot listen on {args.bind}:{args.port}: {err.strerror}", file=sys.stderr)
-            return 1
+            raise OperationFailed(f"cannot listen on {args.bind}:{args.port}: {err.strerror}") from None
         print(f"throughput server listening on {args.bind}:{server.port}", flush=True)
         try:
             server.serve_forever()

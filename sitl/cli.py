@@ -13,15 +13,13 @@ import threading
 from pathlib import Path
 
 from missions.geo import Home
-from nac_onboard.mavlink.signing import SigningKeyError, load_signing_key
+from nac_onboard.address import parse_host_port
+from nac_onboard.errors import BadInput, run_cli
+from nac_onboard.mavlink.signing import load_signing_key
 from sitl.server import Sitl, SitlConfig, SitlError
-from sitl.vehicle.params import ParamError, parse_param_file
+from sitl.vehicle.params import parse_param_file
 
 log = logging.getLogger(__name__)
-
-
-class UsageError(ValueError):
-    pass
 
 
 def _home(text: str) -> Home:
@@ -36,10 +34,10 @@ def _home(text: str) -> Home:
 
 
 def _host_port(text: str) -> tuple[str, int]:
-    host, _, port = text.rpartition(":")
-    if not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}")
-    return host, int(port)
+    try:
+        return parse_host_port(text, "--out")
+    except BadInput as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -75,23 +73,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 def config_from_args(args: argparse.Namespace) -> SitlConfig:
     if not 1 <= args.vehicles <= 250:
-        raise UsageError(f"--vehicles must be 1..250, got {args.vehicles}")
+        raise BadInput(f"--vehicles must be 1..250, got {args.vehicles}")
     if not 0.1 <= args.speedup <= 1000:
-        raise UsageError(f"--speedup must be 0.1..1000, got {args.speedup}")
+        raise BadInput(f"--speedup must be 0.1..1000, got {args.speedup}")
     params = {}
     if args.params is not None:
         try:
-            params = parse_param_file(args.params.read_text(), str(args.params))
+            text = args.params.read_text()
         except OSError as err:
-            raise UsageError(f"cannot read parameter file {args.params}: {err.strerror}") from None
-        except ParamError as err:
-            raise UsageError(str(err)) from None
+            raise BadInput(f"cannot read parameter file {args.params}: {err.strerror}") from None
+        params = parse_param_file(text, str(args.params))
     signing_key = None
     if args.signing_key_file is not None:
-        try:
-            signing_key = load_signing_key(args.signing_key_file)
-        except SigningKeyError as err:
-            raise UsageError(str(err)) from None
+        signing_key = load_signing_key(args.signing_key_file)
     return SitlConfig(
         vehicles=args.vehicles, speedup=args.speedup, home=args.home, spacing_m=args.spacing_m, seed=args.seed,
         params=params, host=args.host, gcs_base_port=args.gcs_base_port,
@@ -130,15 +124,12 @@ def _wait(sim: Sitl, stop: threading.Event | None) -> None:
 
 def experiment(args: argparse.Namespace, out=sys.stdout) -> int:
     from sitl.experiment.runner import run_scenario
-    from sitl.experiment.scenario import ScenarioError, load_scenario
+    from sitl.experiment.scenario import load_scenario
 
-    try:
-        scenario = load_scenario(args.scenario)
-    except ScenarioError as err:
-        raise UsageError(str(err)) from None
+    scenario = load_scenario(args.scenario)
     speedup = args.speedup or scenario.default_speedup
     if not 0 < speedup <= scenario.max_speedup:
-        raise UsageError(f"{scenario.name}: --speedup {speedup:g} is outside what this scenario allows "
+        raise BadInput(f"{scenario.name}: --speedup {speedup:g} is outside what this scenario allows "
                          f"(up to {scenario.max_speedup:g}x: {' '.join(scenario.notes) or 'fidelity'})")
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
@@ -150,17 +141,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    try:
-        if args.command == "experiment":
-            return experiment(args)
-        run(config_from_args(args))
-    except (UsageError, ParamError) as err:
-        print(f"nac-sitl: {err}", file=sys.stderr)
-        return 2
-    except SitlError as err:
-        print(f"nac-sitl: {err}", file=sys.stderr)
-        return 1
-    return 0
+    if args.command == "experiment":
+        return run_cli("nac-sitl", lambda: experiment(args))
+    return run_cli("nac-sitl", lambda: run(config_from_args(args)) or 0)
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass, field
 
 from missions.geo import Home
+from nac_onboard.errors import OperationFailed
 from sitl.mavlink.codec import new_parser, parse_datagram
 from sitl.mavlink.telemetry import Streams, TelemetrySource
 from sitl.mavlink.vehicle_protocol import VehicleProtocol
@@ -25,7 +26,7 @@ log = logging.getLogger(__name__)
 MAX_DATAGRAM_BYTES = 1200  # below a typical MTU once IP/UDP headers are added
 
 
-class SitlError(RuntimeError):
+class SitlError(OperationFailed):
     """The simulator could not start (e.g. a port is taken); the message says which and why."""
 
 

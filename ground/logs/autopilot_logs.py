@@ -15,6 +15,7 @@ from pathlib import Path
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
+from nac_onboard.errors import BadInput
 from nac_onboard.mavlink.frames import TLOG_STAMP, frame_length, msgid_at  # noqa: E402
 
 STAMP_BYTES = TLOG_STAMP.size
@@ -22,7 +23,7 @@ STAMP_BYTES = TLOG_STAMP.size
 _PLAUSIBLE_GAP_US = 86_400 * 10**6  # a record more than a day from its neighbour is damage, not a pause
 
 
-class FlightLogError(ValueError):
+class FlightLogError(BadInput):
     """A log that cannot be read at all (not a damaged one: damage is counted)."""
 
 

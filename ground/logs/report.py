@@ -13,6 +13,7 @@ import pandas as pd
 from ground.logs import figures
 from ground.logs.analysis import DEFAULT_BIN_M, DEFAULT_THRESHOLD_MBPS, RunTables, analyze
 from ground.logs.runlog import read_run
+from nac_onboard.errors import BadInput
 from nac_onboard.link.channel import ChannelModel, load_channel, save_channel
 
 SUMMARY_LABELS = {
@@ -140,7 +141,7 @@ def compare_runs(run_a: str | Path, run_b: str | Path, out: str | Path, master: 
 
 
 # ---- calibration -------------------------------------------------------------------------------------------
-class CalibrationError(ValueError):
+class CalibrationError(BadInput):
     pass
 
 

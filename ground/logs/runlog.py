@@ -16,12 +16,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ground.logs.autopilot_logs import READERS, FlightLogError
+from nac_onboard.errors import BadInput
 from nac_onboard.flight_log import read_jsonl
 
 log = logging.getLogger(__name__)
 
 
-class RunDirError(ValueError):
+class RunDirError(BadInput):
     """Nothing to analyse: the directory is missing or holds no NAC logs."""
 
 

@@ -11,6 +11,9 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from nac_onboard.address import parse_host_port
+from nac_onboard.errors import BadInput
+
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # Jetson images ship Python 3.10
@@ -19,7 +22,7 @@ else:  # Jetson images ship Python 3.10
 ROLES = ("master", "worker")
 
 
-class ConfigError(ValueError):
+class ConfigError(BadInput):
     """The configuration file is unusable; the message names the file, the key and what was expected."""
 
 
@@ -98,13 +101,6 @@ class AgentConfig:
     state_feed: StateFeedSection = field(default_factory=StateFeedSection)
     throughput: ThroughputSection = field(default_factory=ThroughputSection)
     source: str = "<config>"
-
-
-def parse_host_port(text: str, what: str) -> tuple[str, int]:
-    host, sep, port = text.rpartition(":")
-    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
-        raise ValueError(f"{what}: expected HOST:PORT, got {text!r}")
-    return host, int(port)
 
 
 def _section(cls, data: dict, name: str, source: str):
@@ -189,19 +185,20 @@ def _check(c: AgentConfig) -> None:
 
         for uri in (c.autopilot.uri, *c.routing.endpoints):
             mavutil_device(uri)
-        for key, text in [("peers.listen", c.peers.listen), ("state_feed.listen", c.state_feed.listen),
-                          *[("peers.send_to", s) for s in c.peers.send_to]]:
-            parse_host_port(text, key)
+        for key, text in [("peers.listen", c.peers.listen), ("state_feed.listen", c.state_feed.listen)]:
+            parse_host_port(text, key, allow_port_zero=True)
+        for text in c.peers.send_to:
+            parse_host_port(text, "peers.send_to")
         for target in t.targets:
             name, eq, address = target.partition("=")
             if not eq or not name:
-                raise ValueError(f"throughput.targets: expected ID=HOST:PORT, got {target!r}")
+                raise BadInput(f"throughput.targets: expected ID=HOST:PORT, got {target!r}")
             parse_host_port(address, "throughput.targets")
         if t.emulate_channel:
             from nac_onboard.link.channel import load_channel
 
             load_channel(t.emulate_channel)
-    except (ValueError, RuntimeError) as err:
+    except BadInput as err:
         raise ConfigError(f"{src}: {err}") from None
 
 

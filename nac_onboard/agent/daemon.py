@@ -20,7 +20,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from nac_onboard.agent.config import AgentConfig, parse_host_port
+from nac_onboard.address import parse_host_port
+from nac_onboard.agent.config import AgentConfig
 from nac_onboard.agent.peers import (
     MAX_DATAGRAM_BYTES,
     PeerMessageError,
@@ -407,7 +408,7 @@ def _udp_socket(address: str, key: str, broadcast: bool = False) -> socket.socke
     if broadcast:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
     try:
-        sock.bind(parse_host_port(address, key))
+        sock.bind(parse_host_port(address, key, allow_port_zero=True))
     except OSError as err:
         sock.close()
         raise OSError(f"{key}: cannot listen on {address}: {err.strerror}") from None

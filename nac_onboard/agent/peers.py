@@ -10,11 +10,13 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass
 
+from nac_onboard.errors import BadInput
+
 PEER_PROTOCOL = "peer-state/1"
 MAX_DATAGRAM_BYTES = 2048
 
 
-class PeerMessageError(ValueError):
+class PeerMessageError(BadInput):
     pass
 
 

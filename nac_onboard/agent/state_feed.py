@@ -10,13 +10,14 @@ import json
 import socket
 
 from missions.geo import distance_m
-from nac_onboard.agent.config import parse_host_port
+from nac_onboard.address import parse_host_port
+from nac_onboard.errors import OperationFailed
 
 REQUEST = b'{"get":"state"}'
 MAX_ANSWER_BYTES = 65000
 
 
-class StateFeedError(RuntimeError):
+class StateFeedError(OperationFailed):
     pass
 
 

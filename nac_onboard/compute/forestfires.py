@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nac_onboard.errors import BadInput
+
 CSV_NAME = "forestfires.csv"
 CSV_SHA256 = "0d6586a1fa52f55bef48578aef14eb97273f1e9330e1a53423df497a77065253"
 UCI_ARCHIVE_URL = "https://archive.ics.uci.edu/static/public/162/forest+fires.zip"
@@ -32,7 +34,7 @@ DAYS = ["mon", "tue", "wed", "thu", "fri", "sat", "sun"]
 FEATURES = ["intercept", *NUMERIC, *(f"month_{m}" for m in MONTHS), *(f"day_{d}" for d in DAYS)]
 
 
-class DataError(RuntimeError):
+class DataError(BadInput):
     """The data set is missing or malformed; the message says where it looked or which line is wrong."""
 
 

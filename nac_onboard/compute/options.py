@@ -14,7 +14,8 @@ from nac_onboard.compute.positions import (
     ScriptedDistances,
     wait_for_feed,
 )
-from nac_onboard.link.channel import ChannelError, ChannelModel, load_channel
+from nac_onboard.errors import BadInput, NacError
+from nac_onboard.link.channel import ChannelModel, load_channel
 
 
 @dataclass(frozen=True)
@@ -86,11 +87,10 @@ def parse_args(argv: list[str] | None = None) -> ComputeOptions:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        options = _options(args)
-    except (ValueError, ChannelError, PositionsError, RuntimeError) as err:
+        return _options(args)
+    except NacError as err:
         print(f"nac-onboard compute: {err}", file=sys.stderr)
-        raise SystemExit(2) from None
-    return options
+        raise SystemExit(err.exit_code) from None
 
 
 def _options(args) -> ComputeOptions:
@@ -99,9 +99,9 @@ def _options(args) -> ComputeOptions:
         iterations = 40 if args.task == "matmul" else 200
     for name in ("m", "n", "l"):
         if getattr(args, name) < 1:
-            raise ValueError(f"--{name} must be >= 1")
+            raise BadInput(f"--{name} must be >= 1")
     if args.timeout_s <= 0 or args.idle_timeout_s <= 0:
-        raise ValueError("--timeout-s and --idle-timeout-s must be > 0")
+        raise BadInput("--timeout-s and --idle-timeout-s must be > 0")
     distances = tuple(float(d) for d in args.distances.split(",")) if args.distances else ()
     vehicles = tuple(v.strip() for v in args.vehicles.split(",")) if args.vehicles else ()
     options = ComputeOptions(
@@ -112,10 +112,10 @@ def _options(args) -> ComputeOptions:
         idle_timeout_s=args.idle_timeout_s, on_missing=args.on_missing, allocation=args.allocation,
         save_results=args.save_results)
     if options.emulate == "sleep" and options.positions == "none":
-        raise ValueError("--emulate sleep needs positions: --positions fixed|script|feed")
+        raise BadInput("--emulate sleep needs positions: --positions fixed|script|feed")
     options.channel_model()
     if options.a_path and not os.path.isfile(options.a_path):
-        raise ValueError(f"--a {options.a_path}: no such file")
+        raise BadInput(f"--a {options.a_path}: no such file")
     if options.positions != "feed":  # the feed is asked once MPI runs, on the master only
         build_source(options)
     if options.task == "linreg":

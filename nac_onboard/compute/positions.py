@@ -15,9 +15,10 @@ import time
 from pathlib import Path
 
 from nac_onboard.agent.state_feed import StateFeedError, distance_between, fetch_state
+from nac_onboard.errors import BadInput
 
 
-class PositionsError(ValueError):
+class PositionsError(BadInput):
     pass
 
 

@@ -24,6 +24,8 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from nac_onboard.errors import BadInput
+
 if sys.version_info >= (3, 11):
     import tomllib
 else:
@@ -33,7 +35,7 @@ PATH_LOSS_MODELS = ("free-space", "log-distance", "hata-urban", "hata-large-city
 MIN_DISTANCE_M = 0.1  # closer than this the formulas are meaningless; distances are clamped
 
 
-class ChannelError(ValueError):
+class ChannelError(BadInput):
     pass
 
 

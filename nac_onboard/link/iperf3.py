@@ -15,10 +15,11 @@ import sys
 from dataclasses import dataclass
 
 from nac_onboard.child_process import ReadyProcess
+from nac_onboard.errors import OperationFailed
 from nac_onboard.link.throughput import BLOCK_BYTES
 
 
-class Iperf3Error(RuntimeError):
+class Iperf3Error(OperationFailed):
     """iperf3 failed or answered with an error."""
 
 

@@ -19,6 +19,8 @@ import struct
 import threading
 import time
 
+from nac_onboard.errors import OperationFailed
+
 log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 5201  # iperf3's
@@ -34,7 +36,7 @@ _TCP_INFO = {"snd_mss": 16, "pmtu": 60, "rtt": 68, "rttvar": 72, "snd_cwnd": 80,
 _U32 = struct.Struct("=I")
 
 
-class ProbeError(RuntimeError):
+class ProbeError(OperationFailed):
     """A probe could not run; the message names the peer and what went wrong."""
 
 

@@ -18,6 +18,8 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
 from missions.model import MavCmd, MissionItem  # noqa: E402
+from nac_onboard.address import parse_host_port
+from nac_onboard.errors import BadInput, OperationFailed
 from nac_onboard.mavlink.frames import frame_msgid, frame_source, split_frames  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -34,7 +36,7 @@ CLIENT_MESSAGES = frozenset({
     "MISSION_ITEM_INT", "MISSION_ACK", "STATUSTEXT"})
 
 
-class LinkError(RuntimeError):
+class LinkError(OperationFailed):
     """The link could not be opened or stayed silent; the message says which endpoint and what was expected."""
 
 
@@ -42,7 +44,7 @@ class LinkClosed(LinkError):
     """The other end closed a stream link (TCP); the link must be opened again."""
 
 
-class CommandError(RuntimeError):
+class CommandError(OperationFailed):
     def __init__(self, command: int, result: int, sysid: int):
         self.command, self.result = command, result
         name = _enum_name("MAV_RESULT", result)
@@ -50,7 +52,7 @@ class CommandError(RuntimeError):
         super().__init__(f"vehicle {sysid} refused {cmd}: {name}")
 
 
-class MissionError(RuntimeError):
+class MissionError(OperationFailed):
     def __init__(self, what: str, result: int | None = None):
         self.result = result
         if result is not None:
@@ -63,19 +65,26 @@ def _enum_name(enum: str, value: int) -> str:
     return entry.name if entry is not None else str(value)
 
 
+#: URI scheme -> pymavlink options; the device string is the URI itself for network links.
+_NETWORK_SCHEMES = {"udpin": {}, "udpout": {}, "tcpin": {},
+                    "tcp": {"retries": 0}}  # fail fast: callers that want to wait retry on their own schedule
+
+
 def mavutil_device(uri: str) -> tuple[str, dict]:
-    """Map a NAC endpoint URI to pymavlink's device string and options."""
+    """Map a NAC endpoint URI to pymavlink's device string and options; BadInput for anything else."""
     scheme, _, rest = uri.partition(":")
-    if scheme in ("udpin", "udpout", "tcpin") and rest.rpartition(":")[2].isdigit():
-        return uri, {}
-    if scheme == "tcp" and rest.rpartition(":")[2].isdigit():
-        return uri, {"retries": 0}  # fail fast: callers that want to wait retry on their own schedule
+    expected = "expected udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or serial:DEVICE:BAUD"
+    if scheme in _NETWORK_SCHEMES:
+        try:
+            parse_host_port(rest, f"endpoint {uri!r}", allow_port_zero=scheme in ("udpin", "tcpin"))
+        except BadInput as err:
+            raise BadInput(f"{err}; {expected}") from None
+        return uri, dict(_NETWORK_SCHEMES[scheme])
     if scheme == "serial":
         device, _, baud = rest.rpartition(":")
-        if device and baud.isdigit():
+        if device and baud.isdigit() and int(baud) > 0:
             return device, {"baud": int(baud)}
-    raise LinkError(f"endpoint {uri!r} not understood: expected udpin:HOST:PORT, udpout:HOST:PORT, "
-                    f"tcp:HOST:PORT or serial:DEVICE:BAUD")
+    raise BadInput(f"endpoint {uri!r} not understood: {expected}")
 
 
 @dataclass

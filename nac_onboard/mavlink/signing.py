@@ -12,6 +12,8 @@ import struct
 import time
 from pathlib import Path
 
+from nac_onboard.errors import BadInput
+
 SIGNING_EPOCH_UNIX_S = 1420070400  # 2015-01-01, the origin of MAVLink signing timestamps
 
 
@@ -26,7 +28,7 @@ def signature_block(key: bytes, frame: bytes, link_id: int, timestamp: int) -> b
     return stamp + hashlib.sha256(key + frame + stamp).digest()[:6]
 
 
-class SigningKeyError(ValueError):
+class SigningKeyError(BadInput):
     pass
 
 

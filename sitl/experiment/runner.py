@@ -25,6 +25,7 @@ from missions.model import MavCmd
 from nac_onboard.agent.config import dump_toml
 from nac_onboard.child_process import AgentProcess, ChildStartError
 from nac_onboard.compute.options import core_binding
+from nac_onboard.errors import OperationFailed
 from nac_onboard.mavlink.client import CommandError, LinkError, M, MissionError, VehicleClient
 from sitl.experiment.progress import Progress, follow, render_progress
 from sitl.experiment.scenario import Fault, Scenario
@@ -54,10 +55,11 @@ class Outcome(enum.Enum):
         return self.value[1]
 
 
-class ExperimentError(RuntimeError):
+class ExperimentError(OperationFailed):
     def __init__(self, outcome: Outcome, detail: str):
         super().__init__(f"{outcome.text}: {detail}")
         self.outcome, self.detail = outcome, detail
+        self.exit_code = outcome.exit_code
 
 
 @dataclass

@@ -27,13 +27,14 @@ else:  # pragma: no cover
 from missions import MissionFileError, load_mission
 from missions.geo import Home
 from missions.model import Mission
+from nac_onboard.errors import BadInput
 from nac_onboard.link.channel import ChannelError, load_channel
 
 FAULT_KINDS = ("link_down", "gps_lost", "battery_pct", "packet_loss_pct", "kill_agent", "kill_worker")
 SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
 
 
-class ScenarioError(ValueError):
+class ScenarioError(BadInput):
     """A scenario file that cannot be run; the message names the file and the key."""
 
 

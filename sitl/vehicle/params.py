@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nac_onboard.errors import BadInput
 from sitl.vehicle.physics import PhysicsParams
 
 
@@ -54,7 +55,7 @@ PARAMS_BY_NAME = {p.name: p for p in PARAM_DEFS}
 READ_ONLY = frozenset({"SYSID_THISMAV", "SIM_SPEEDUP"})
 
 
-class ParamError(ValueError):
+class ParamError(BadInput):
     pass
 
 

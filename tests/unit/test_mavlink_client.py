@@ -1,6 +1,7 @@
 import pytest
 
-from nac_onboard.mavlink.client import LinkError, mavutil_device
+from nac_onboard.errors import BadInput
+from nac_onboard.mavlink.client import mavutil_device
 
 
 def test_uris_map_to_pymavlink_devices():
@@ -11,7 +12,7 @@ def test_uris_map_to_pymavlink_devices():
 
 @pytest.mark.parametrize("uri", ["udp:14550", "serial:/dev/ttyUSB0", "http://x", "tcp:host:port"])
 def test_bad_uris_are_explained(uri):
-    with pytest.raises(LinkError, match="expected udpin:HOST:PORT"):
+    with pytest.raises(BadInput, match="expected udpin:HOST:PORT"):
         mavutil_device(uri)
 
 

@@ -1,0 +1,32 @@
+"""CLIs turn the one error base into exit codes, and show a bug as a bug."""
+
+from nac_onboard.errors import BadInput, OperationFailed, run_cli
+
+
+def _raise(error):
+    def command():
+        raise error
+    return command
+
+
+def test_operator_errors_become_their_exit_codes(capsys):
+    assert run_cli("nac-x", _raise(BadInput("plan.plan: item 3: latitude 91 outside -90..90"))) == 2
+    assert run_cli("nac-x", _raise(OperationFailed("vehicle 1 did not answer"))) == 1
+    assert run_cli("nac-x", lambda: 0) == 0
+    err = capsys.readouterr().err
+    assert "nac-x: plan.plan: item 3" in err and "Traceback" not in err
+
+
+def test_a_programming_error_is_a_traceback_asking_to_be_reported(capsys):
+    assert run_cli("nac-x", _raise(KeyError("boom"))) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" in err and "KeyError" in err and "please report it" in err
+
+
+def test_a_runtime_error_is_not_mistaken_for_an_operator_error(capsys):
+    assert run_cli("nac-x", _raise(RuntimeError("internal"))) == 1
+    assert "please report it" in capsys.readouterr().err
+
+
+def test_interrupt_is_130():
+    assert run_cli("nac-x", _raise(KeyboardInterrupt())) == 130
