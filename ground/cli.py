@@ -92,9 +92,10 @@ def run_logs(args: argparse.Namespace, out=sys.stdout) -> int:
         for line in tables.missing:
             print(f"  missing: {line}", file=out)
     elif args.action == "compare":
-        runs = report.compare_runs(args.run_a, args.run_b, args.out, args.master, args.bin_m, args.threshold_mbps)
-        print(f"{args.out / 'report.md'}", file=out)
-        for tables in runs:
+        comparison = report.compare_runs(args.run_a, args.run_b, args.out, args.master, args.bin_m,
+                                         args.threshold_mbps)
+        print(f"{comparison.report_path}", file=out)
+        for tables in comparison.tables:
             print(f"  {tables.name}: {_brief(tables.summary)}", file=out)
     else:
         model, fit, path = report.calibrate_run(args.run_dir, args.out, args.base, args.name)

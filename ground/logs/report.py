@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -112,11 +113,18 @@ def _relative(path: Path, base: Path) -> str:
     return os.path.relpath(path, base)
 
 
+@dataclass(frozen=True)
+class Comparison:
+    tables: list[RunTables]
+    findings: list[str]
+    report_path: Path
+
+
 def compare_runs(run_a: str | Path, run_b: str | Path, out: str | Path, master: str | None = None,
                  bin_m: float = DEFAULT_BIN_M, threshold_mbps: float = DEFAULT_THRESHOLD_MBPS,
-                 report_path: Path | None = None, findings=None) -> list[RunTables]:
+                 report_path: Path | None = None, findings=None) -> Comparison:
     """Each figure with both runs side by side, into out; report.md there or at report_path. `findings`, if given,
-    turns the two runs' tables into lines for a Findings section."""
+    turns the two runs' tables into lines for a Findings section (also returned)."""
     reads = [read_run(run_a), read_run(run_b)]
     tables = [analyze(r, master, bin_m, threshold_mbps) for r in reads]
     names = [t.name for t in tables]
@@ -128,8 +136,9 @@ def compare_runs(run_a: str | Path, run_b: str | Path, out: str | Path, master: 
     out.mkdir(parents=True, exist_ok=True)
     report_path = Path(report_path) if report_path else out / "report.md"
     report = [f"# NAC runs compared: {names[0]} and {names[1]}", ""]
-    if findings:
-        report += ["## Findings", "", *[f"- {line}" for line in findings(*tables)], ""]
+    lines = findings(*tables) if findings else []
+    if lines:
+        report += ["## Findings", "", *[f"- {line}" for line in lines], ""]
     report += [*_notes(tables, None), "## Summary", "", summary_table([t.summary for t in tables], names), ""]
     for name in figures.FIGURES:
         path = figures.draw(name, tables, out / f"{name}.png")
@@ -137,7 +146,7 @@ def compare_runs(run_a: str | Path, run_b: str | Path, out: str | Path, master: 
     for t in tables:
         report += [f"## Throughput vs distance: {t.name}", "", markdown_table(t.throughput_by_distance), ""]
     report_path.write_text("\n".join(report))
-    return tables
+    return Comparison(tables, lines, report_path)
 
 
 # ---- calibration -------------------------------------------------------------------------------------------

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from nac_onboard.address import parse_host_port
 from nac_onboard.errors import BadInput
+from nac_onboard.link.channel import ChannelModel, load_channel
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -101,6 +102,7 @@ class AgentConfig:
     state_feed: StateFeedSection = field(default_factory=StateFeedSection)
     throughput: ThroughputSection = field(default_factory=ThroughputSection)
     source: str = "<config>"
+    emulated_channel: ChannelModel | None = None  # throughput.emulate_channel, loaded
 
 
 def _section(cls, data: dict, name: str, source: str):
@@ -159,6 +161,12 @@ def parse_agent_config(data: dict, source: str = "<config>") -> AgentConfig:
     sections = {name: _section(cls, data[name], name, source) for name, cls in SECTIONS.items() if name in data}
     config = AgentConfig(source=source, **sections)
     _check(config)
+    if config.throughput.emulate_channel:  # loaded here, once, and handed to the probes
+        try:
+            channel = load_channel(config.throughput.emulate_channel)
+        except BadInput as err:
+            raise ConfigError(f"{source}: throughput.emulate_channel: {err}") from None
+        config = dataclasses.replace(config, emulated_channel=channel)
     return config
 
 
@@ -194,10 +202,6 @@ def _check(c: AgentConfig) -> None:
             if not eq or not name:
                 raise BadInput(f"throughput.targets: expected ID=HOST:PORT, got {target!r}")
             parse_host_port(address, "throughput.targets")
-        if t.emulate_channel:
-            from nac_onboard.link.channel import load_channel
-
-            load_channel(t.emulate_channel)
     except BadInput as err:
         raise ConfigError(f"{src}: {err}") from None
 

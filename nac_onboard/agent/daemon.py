@@ -34,6 +34,7 @@ from nac_onboard.agent.probes import ProbeScheduler
 from nac_onboard.agent.state_feed import encode_answer
 from nac_onboard.agent.systemd_notify import SystemdNotifier
 from nac_onboard.flight_log import JsonlLog, TlogWriter
+from nac_onboard.link.emulation import SleepEmulation
 from nac_onboard.link.throughput import ThroughputServer
 from nac_onboard.mavlink import client as mav
 from nac_onboard.mavlink.signing import load_signing_key
@@ -110,8 +111,9 @@ class Agent:
             except OSError as err:
                 raise OSError(f"throughput.port: cannot listen on {t.bind}:{t.port}: {err.strerror}") from None
         if t.probe:
+            emulation = SleepEmulation(c.emulated_channel) if c.emulated_channel else None
             self.scheduler = ProbeScheduler(t, c.vehicle.id, self._probe_targets, self.positions,
-                                            self.throughput_log, self.stop_event).start()
+                                            self.throughput_log, self.stop_event, emulation).start()
         self.log.write("agent_ready", peers_listen=c.peers.listen, state_feed=c.state_feed.listen,
                        throughput_port=self.throughput_server.port if self.throughput_server else None,
                        probing=t.probe, probe_duty_cycle=t.duty_cycle if t.probe else None)

@@ -17,7 +17,7 @@ import time
 from nac_onboard.agent.config import ThroughputSection
 from nac_onboard.agent.state_feed import distance_between, position_of
 from nac_onboard.flight_log import JsonlLog
-from nac_onboard.link.channel import load_channel
+from nac_onboard.link.emulation import SleepEmulation
 from nac_onboard.link.throughput import ProbeError, probe
 
 log = logging.getLogger(__name__)
@@ -26,12 +26,12 @@ _POSITION_KEYS = ("lat_deg", "lon_deg", "alt_m")
 
 class ProbeScheduler:
     def __init__(self, settings: ThroughputSection, self_id: str, targets, positions, out: JsonlLog,
-                 stop: threading.Event):
+                 stop: threading.Event, emulation: SleepEmulation | None = None):
         self.settings, self.self_id = settings, self_id
         self.targets, self.positions = targets, positions  # callables: [(id, host, port)], state-feed answer
         self.out, self.stop_event = out, stop
         self.rounds = 0
-        self.channel = load_channel(settings.emulate_channel) if settings.emulate_channel else None
+        self.emulation = emulation  # SITL: pace each probe at the channel model's rate for the pair's distance
         self._thread = threading.Thread(target=self._run, name="throughput-probes", daemon=True)
 
     def start(self) -> ProbeScheduler:
@@ -57,14 +57,14 @@ class ProbeScheduler:
         before = self.positions()
         fields: dict = {"client": self.self_id, "server": peer_id, "host": host, "port": port}
         distance_m = distance_between(before, self.self_id, peer_id)
-        if self.channel is not None and distance_m is None:
+        if self.emulation is not None and distance_m is None:
             # no distance, no emulated link: nothing was measured, so it is not a failed probe either
             return self.out.write("probe_skipped", **fields, reason="no position for one of the pair yet")
         rate_bps = s.rate_bps or None
         try:
-            if self.channel is not None:
+            if self.emulation is not None:
                 rate_bps = self._emulated_rate_bps(distance_m, rate_bps)
-                fields["emulated_channel"] = self.channel.name
+                fields["emulated_channel"] = self.emulation.channel.name
                 fields["emulated_rate_bps"] = rate_bps
             result = probe(host, port, duration_s=None if s.bytes else s.duration_s, nbytes=s.bytes or None,
                            interval_s=s.interval_s, rate_bps=rate_bps)
@@ -77,13 +77,14 @@ class ProbeScheduler:
         return self.out.write("throughput", **fields, **result)
 
     def _emulated_rate_bps(self, distance_m: float, cap_bps: float | None) -> float:
-        capacity = self.channel.capacity_bps(distance_m)
-        if capacity < self.channel.min_rate_bps:
+        link = self.emulation.link(distance_m)
+        channel = self.emulation.channel
+        if not link.in_range:
             # a real probe would wait out its connect timeout; the path is idle for the probe's slot either way
             self.stop_event.wait(self.settings.duration_s)
-            raise ProbeError(f"out of range: {self.channel.name} gives {capacity / 1e6:.3f} Mbit/s at "
-                             f"{distance_m:.1f} m (minimum {self.channel.min_rate_bps / 1e6:g})")
-        return min(capacity, cap_bps) if cap_bps else capacity
+            raise ProbeError(f"out of range: {channel.name} gives {link.capacity_bps / 1e6:.3f} Mbit/s at "
+                             f"{distance_m:.1f} m (minimum {channel.min_rate_bps / 1e6:g})")
+        return min(link.capacity_bps, cap_bps) if cap_bps else link.capacity_bps
 
     def _pair(self, state: dict, peer_id: str) -> dict:
         out = {}

@@ -14,13 +14,15 @@ from nac_onboard.compute.positions import (
     ScriptedDistances,
     wait_for_feed,
 )
+from nac_onboard.compute.task import Task
+from nac_onboard.compute.tasks import all_tasks
 from nac_onboard.errors import BadInput, NacError
-from nac_onboard.link.channel import ChannelModel, load_channel
+from nac_onboard.link.channel import PRESETS, ChannelModel, load_channel
 
 
 @dataclass(frozen=True)
 class ComputeOptions:
-    task: str
+    task: str  # a name from nac_onboard.compute.tasks
     iterations: int | None
     duration_s: float | None
     out: str
@@ -32,7 +34,7 @@ class ComputeOptions:
     data: str | None = None
     learning_rate: float = 0.05
     emulate: str = "none"
-    channel: str = "paper-sim"
+    channel: ChannelModel = PRESETS["paper-sim"]  # loaded once, from --channel
     positions: str = "none"
     distances: tuple[float, ...] = ()
     positions_script: str | None = None
@@ -44,18 +46,27 @@ class ComputeOptions:
     allocation: str = "equal"
     save_results: bool = False
 
-    def channel_model(self) -> ChannelModel:
-        return load_channel(self.channel)
+    @property
+    def task_class(self) -> type[Task]:
+        return all_tasks()[self.task]
 
     def vehicle_of(self, rank: int) -> str:
         return self.vehicles[rank] if rank < len(self.vehicles) else f"rank{rank}"
 
 
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):
+        raise BadInput(message)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="nac-onboard compute", description=__doc__)
-    p.add_argument("--task", choices=["matmul", "linreg"], required=True)
+    p = _Parser(prog="nac-onboard compute", description=__doc__)
+    tasks = all_tasks()
+    p.add_argument("--task", choices=list(tasks), required=True,
+                   help="; ".join(f"{name}: {cls.summary}" for name, cls in tasks.items()))
     stop = p.add_mutually_exclusive_group()
-    stop.add_argument("--iterations", type=int, help="iterations to run (default 40 for matmul, 200 for linreg)")
+    stop.add_argument("--iterations", type=int, help="iterations to run (default: " + ", ".join(
+        f"{cls.default_iterations} for {name}" for name, cls in tasks.items()) + ")")
     stop.add_argument("--duration-s", type=float, help="run this long instead of a fixed number of iterations")
     p.add_argument("--out", default="compute-out", help="directory for compute.jsonl (and results.npz)")
     p.add_argument("--seed", type=int, default=0)
@@ -84,22 +95,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def parse_args(argv: list[str] | None = None) -> ComputeOptions:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    """options_from_argv for a rank's main: bad input prints one line and exits 2 on every rank."""
     try:
-        return _options(args)
+        return options_from_argv(argv)
     except NacError as err:
         print(f"nac-onboard compute: {err}", file=sys.stderr)
         raise SystemExit(err.exit_code) from None
 
 
-def _options(args) -> ComputeOptions:
+def options_from_argv(argv: list[str] | None) -> ComputeOptions:
+    """Parsed and checked options (task options and data included); BadInput says what is wrong."""
+    args = build_parser().parse_args(argv)
+    task = all_tasks()[args.task]
     iterations = args.iterations
     if iterations is None and args.duration_s is None:
-        iterations = 40 if args.task == "matmul" else 200
-    for name in ("m", "n", "l"):
-        if getattr(args, name) < 1:
-            raise BadInput(f"--{name} must be >= 1")
+        iterations = task.default_iterations
     if args.timeout_s <= 0 or args.idle_timeout_s <= 0:
         raise BadInput("--timeout-s and --idle-timeout-s must be > 0")
     distances = tuple(float(d) for d in args.distances.split(",")) if args.distances else ()
@@ -107,21 +117,15 @@ def _options(args) -> ComputeOptions:
     options = ComputeOptions(
         task=args.task, iterations=iterations, duration_s=args.duration_s, out=args.out, seed=args.seed, m=args.m,
         n=args.n, l=args.l, a_path=args.a_path, data=args.data, learning_rate=args.learning_rate,
-        emulate=args.emulate, channel=args.channel, positions=args.positions, distances=distances,
+        emulate=args.emulate, channel=load_channel(args.channel), positions=args.positions, distances=distances,
         positions_script=args.positions_script, feed=args.feed, vehicles=vehicles, timeout_s=args.timeout_s,
         idle_timeout_s=args.idle_timeout_s, on_missing=args.on_missing, allocation=args.allocation,
         save_results=args.save_results)
     if options.emulate == "sleep" and options.positions == "none":
         raise BadInput("--emulate sleep needs positions: --positions fixed|script|feed")
-    options.channel_model()
-    if options.a_path and not os.path.isfile(options.a_path):
-        raise BadInput(f"--a {options.a_path}: no such file")
+    task.check(options)
     if options.positions != "feed":  # the feed is asked once MPI runs, on the master only
         build_source(options)
-    if options.task == "linreg":
-        from nac_onboard.compute import forestfires
-
-        forestfires.find_csv(options.data)
     return options
 
 

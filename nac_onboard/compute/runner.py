@@ -24,21 +24,26 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from nac_onboard.compute import kernels
+from nac_onboard.compute.iteration import IterationLinks
+from nac_onboard.compute.messages import (
+    BITS_PER_FLOAT,
+    KIND_EXTRA,
+    KIND_STOP,
+    KIND_WARMUP,
+    KIND_WORK,
+    RESULT_COMPUTE_S,
+    RESULT_HEADER,
+    RESULT_ITERATION,
+    RESULT_UP_S,
+    TAG_RESULT,
+    TAG_WORK,
+    WARMUP_ANSWER,
+    WORK_HEADER,
+)
 from nac_onboard.compute.options import ComputeOptions, build_source, parse_args
+from nac_onboard.compute.task import Task
 from nac_onboard.flight_log import JsonlLog
-
-TAG_WORK, TAG_RESULT = 1, 2
-KIND_WORK, KIND_EXTRA, KIND_STOP, KIND_WARMUP = 1.0, 2.0, 3.0, 4.0
-HEADER = 4  # master -> worker: kind, iteration, rate_bps, rows of A that follow (extra work)
-RESULT_HEADER = 5  # worker -> master: iteration, compute_s, up_s, rows, sse
-BITS_PER_FLOAT = 64
-
-
-def matmul_inputs(seed: int, m: int, n: int, a_path: str | None = None):
-    """A (m x n) from the seed or a .npy file, and the generator of the B (n x l) sent each iteration."""
-    rng = np.random.default_rng(seed)
-    a = np.load(a_path) if a_path else rng.standard_normal((m, n))
-    return a, np.random.default_rng(seed + 1)
+from nac_onboard.link.emulation import SleepEmulation
 
 
 class _Poller:
@@ -94,70 +99,31 @@ class Inbox:
         self.mpi.Request.Waitall(self.requests)
 
 
-def largest_input(options: ComputeOptions, bounds: list[tuple[int, int]]) -> int:
-    """Floats in the largest message a worker can get: its input, or a re-assigned block of A with B."""
-    if options.task == "linreg":
-        from nac_onboard.compute.forestfires import FEATURES
-
-        return HEADER + len(FEATURES)
-    rows = max(stop - start for start, stop in bounds)
-    return HEADER + rows * options.n + options.n * options.l
-
-
-def largest_result(options: ComputeOptions, bounds: list[tuple[int, int]]) -> int:
-    if options.task == "linreg":
-        from nac_onboard.compute.forestfires import FEATURES
-
-        return RESULT_HEADER + len(FEATURES)
-    return RESULT_HEADER + max(stop - start for start, stop in bounds) * options.l
-
-
 # ---- workers ---------------------------------------------------------------------------------------------------
 def run_worker(comm, mpi, options: ComputeOptions) -> None:
     rank = comm.Get_rank()
     bounds = comm.bcast(None, root=0)
-    start, stop = bounds[rank - 1]
-    if options.task == "matmul":
-        a, _ = matmul_inputs(options.seed, options.m, options.n, options.a_path)
-        block = a[start:stop]
-    else:
-        from nac_onboard.compute import forestfires
-
-        x, y = forestfires.load(forestfires.find_csv(options.data))
-        x_shard, y_shard = x[start:stop], y[start:stop]
-    inbox = Inbox(comm, mpi, [0], TAG_WORK, largest_input(options, bounds))
-    channel = options.channel_model()
+    task = options.task_class(options)
+    task.take_block(*bounds[rank - 1])
+    inbox = Inbox(comm, mpi, [0], TAG_WORK, WORK_HEADER + task.largest_input(bounds))
+    emulation = SleepEmulation(options.channel)
     answers = {}  # reused answer buffers by result size: no allocation per iteration
     while True:
         _, message = inbox.receive(time.monotonic() + options.idle_timeout_s)
         if message is None:
             sys.stderr.write(f"worker {rank}: nothing from the master for {options.idle_timeout_s:g} s; aborting\n")
             comm.Abort(3)
-        kind, iteration, rate_bps, extra_rows = message[:HEADER].tolist()  # Python floats: cheaper to test
+        kind, iteration, rate_bps, extra_rows = message[:WORK_HEADER].tolist()  # Python floats: cheaper to test
         if kind == KIND_STOP:
             inbox.close()
             return
         if kind == KIND_WARMUP:
-            comm.Send([np.array([-1.0, 0.0, 0.0, 0.0, 0.0]), mpi.DOUBLE], dest=0, tag=TAG_RESULT)
+            comm.Send([np.array(WARMUP_ANSWER), mpi.DOUBLE], dest=0, tag=TAG_RESULT)
             continue
-        payload = message[HEADER:]
         t0 = time.perf_counter()
-        if options.task == "matmul":
-            rows = int(extra_rows)
-            if kind == KIND_EXTRA:
-                a_rows, b = payload[:rows * options.n].reshape(rows, options.n), payload[rows * options.n:]
-                result = kernels.matmul_block(a_rows, b.reshape(options.n, options.l)).ravel()
-            else:
-                result = kernels.matmul_block(block, payload.reshape(options.n, options.l)).ravel()
-                rows = len(block)
-            sse = 0.0
-        else:
-            gradient, sse, rows = kernels.local_gradient(x_shard, y_shard, payload)
-            result = gradient
+        result, rows, sse = task.work(kind == KIND_EXTRA, message[WORK_HEADER:], int(extra_rows))
         compute_s = time.perf_counter() - t0
-        up_s = channel.transfer_s(result.size * BITS_PER_FLOAT, rate_bps)
-        if up_s:
-            time.sleep(up_s)
+        up_s = emulation.delay(result.size * BITS_PER_FLOAT, rate_bps)
         answer = answers.get(result.size)
         if answer is None:
             answer = answers[result.size] = np.empty(RESULT_HEADER + result.size)
@@ -167,31 +133,6 @@ def run_worker(comm, mpi, options: ComputeOptions) -> None:
 
 
 # ---- master ----------------------------------------------------------------------------------------------------
-class IterationLinks:
-    """What happened on each worker's link in one iteration, one list per field (index = rank - 1): the record
-    keeps this columnar shape, which is also the cheapest to encode at thousands of iterations a second."""
-
-    FIELDS = ("distance_m", "rate_bps", "absent", "bytes_down", "bytes_up", "down_s", "up_s", "compute_s")
-
-    def __init__(self, workers: int):
-        self.distance_m: list = [None] * workers
-        self.rate_bps: list = [None] * workers
-        self.absent: list = [None] * workers  # None = present; else why: out_of_range, no_position, timeout
-        self.bytes_down = [0] * workers
-        self.bytes_up = [0] * workers
-        self.down_s = [0.0] * workers
-        self.up_s = [0.0] * workers
-        self.compute_s: list = [None] * workers
-
-    def present(self, rank: int) -> bool:
-        return self.absent[rank - 1] is None
-
-    def record(self, ranks: list[int], vehicles: list[str]) -> dict:
-        out = {"rank": ranks, "vehicle": vehicles, "present": [a is None for a in self.absent]}
-        out.update((name, getattr(self, name)) for name in self.FIELDS)
-        return out
-
-
 @dataclass
 class Tally:
     """What the run summary adds up over the iterations."""
@@ -207,12 +148,13 @@ class Master:
         self.workers = list(range(1, comm.Get_size()))
         self.vehicles = [options.vehicle_of(rank) for rank in self.workers]
         self.source = build_source(options)
-        self.channel = options.channel_model()
+        self.emulation = SleepEmulation(options.channel) if options.emulate == "sleep" else None
+        self.task: Task = options.task_class(options)
+        self.bounds: list[tuple[int, int]] = []
         self.stale_results = 0
         self.inbox: Inbox | None = None  # posted once the shards are known
         self.pending: tuple | None = None  # the last iteration, not yet tallied and written
         self.tally = Tally({r: 0 for r in self.workers})
-        self.saved: dict[str, np.ndarray] = {}  # --save-results
 
     def link(self, distances: dict) -> IterationLinks:
         """Per worker: distance, emulated rate and whether it is in range this iteration."""
@@ -220,12 +162,13 @@ class Master:
         for k, rank in enumerate(self.workers):
             d = distances.get(rank) if distances else None
             links.distance_m[k] = d
-            if self.options.emulate == "sleep":
+            if self.emulation is not None:
                 if d is None:
                     links.absent[k] = "no_position"
                 else:
-                    links.rate_bps[k] = rate = self.channel.capacity_bps(d)
-                    if rate < self.channel.min_rate_bps:
+                    now = self.emulation.link(d)
+                    links.rate_bps[k] = now.capacity_bps
+                    if not now.in_range:
                         links.absent[k] = "out_of_range"
         return links
 
@@ -243,22 +186,28 @@ class Master:
         """Send one input; `message` is a reusable buffer whose payload part is already filled."""
         k = rank - 1
         rate = links.rate_bps[k] or 0.0
-        down_s = self.channel.transfer_s(payload.size * BITS_PER_FLOAT, rate)
-        if down_s:
-            time.sleep(down_s)  # the research's emulation: the transfer takes I/C before it happens
+        # the research's emulation: the transfer takes I/C before it happens
+        down_s = self.emulation.delay(payload.size * BITS_PER_FLOAT, rate) if self.emulation else 0.0
         if message is None:
-            message = np.empty(HEADER + payload.size)
-            message[HEADER:] = payload
-        message[:HEADER] = (kind, iteration, rate, extra_rows)
+            message = np.empty(WORK_HEADER + payload.size)
+            message[WORK_HEADER:] = payload
+        message[:WORK_HEADER] = (kind, iteration, rate, extra_rows)
         self.comm.Send([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
         links.bytes_down[k] += message.nbytes
         links.down_s[k] += down_s
 
     def send_all(self, ranks: list[int], iteration: int, payload: np.ndarray, links: IterationLinks) -> None:
-        message = np.empty(HEADER + payload.size)
-        message[HEADER:] = payload
+        message = np.empty(WORK_HEADER + payload.size)
+        message[WORK_HEADER:] = payload
         for rank in ranks:
             self.send(rank, KIND_WORK, iteration, payload, links, message=message)
+
+    def send_extra(self, rank: int, iteration: int, payload: np.ndarray, extra_rows: int,
+                   links: IterationLinks) -> None:
+        self.send(rank, KIND_EXTRA, iteration, payload, links, extra_rows=extra_rows)
+
+    def receive_from(self, rank: int, deadline: float) -> np.ndarray | None:
+        return self.inbox.receive(deadline, source=rank)[1]
 
     def collect(self, iteration: int, waiting: set[int], links: IterationLinks,
                 deadline: float) -> dict[int, np.ndarray]:
@@ -267,12 +216,12 @@ class Master:
             rank, buf = self.inbox.receive(deadline)
             if buf is None:
                 break
-            if int(buf[0]) != iteration or rank not in waiting:
+            if int(buf[RESULT_ITERATION]) != iteration or rank not in waiting:
                 self.stale_results += 1  # an answer that came after its iteration was closed
                 continue
             waiting.discard(rank)
             k = rank - 1
-            links.compute_s[k], links.up_s[k] = float(buf[1]), float(buf[2])
+            links.compute_s[k], links.up_s[k] = float(buf[RESULT_COMPUTE_S]), float(buf[RESULT_UP_S])
             links.bytes_up[k] += buf.nbytes
             results[rank] = buf
         for rank in waiting:
@@ -280,25 +229,16 @@ class Master:
         return results
 
     def run(self) -> int:
-        o = self.options
-        if o.task == "matmul":
-            a, b_rng = matmul_inputs(o.seed, o.m, o.n, o.a_path)
-            bounds = self.allocation(len(a))
-            matmul_state = {"a": a, "b_rng": b_rng, "bounds": bounds}
-            input_floats = o.n * o.l
-        else:
-            from nac_onboard.compute import forestfires
-
-            x, y = forestfires.load(forestfires.find_csv(o.data))
-            bounds = self.allocation(len(y))
-            linreg_state = {"w": np.zeros(x.shape[1]), "rows": len(y), "cost": None}
-            input_floats = x.shape[1]
-        self.comm.bcast(bounds, root=0)
-        self.inbox = Inbox(self.comm, self.mpi, self.workers, TAG_RESULT, largest_result(o, bounds))
-        warmup_s = self.warm_up(input_floats)
-        self.log.write("run_started", warmup_s=warmup_s, task=o.task, workers=len(self.workers), shards=bounds,
-                       emulate=o.emulate, channel=self.channel.name if o.emulate == "sleep" else None,
-                       channel_validity=self.channel.validity() if o.emulate == "sleep" else None,
+        o, task = self.options, self.task
+        self.bounds = self.allocation(task.rows())
+        self.comm.bcast(self.bounds, root=0)
+        self.inbox = Inbox(self.comm, self.mpi, self.workers, TAG_RESULT,
+                           RESULT_HEADER + task.largest_result(self.bounds))
+        warmup_s = self.warm_up(task.input_floats())
+        emulating = self.emulation is not None
+        self.log.write("run_started", warmup_s=warmup_s, task=task.name, workers=len(self.workers),
+                       shards=self.bounds, emulate=o.emulate, channel=o.channel.name if emulating else None,
+                       channel_validity=o.channel.validity() if emulating else None,
                        iterations=o.iterations, duration_s=o.duration_s, timeout_s=o.timeout_s,
                        on_missing=o.on_missing, allocation=o.allocation, pid=os.getpid())
         t_run = time.monotonic()
@@ -312,28 +252,23 @@ class Master:
             t_start, start_unix = time.monotonic(), time.time()
             links = self.link(self.source.distances_m(iteration, t_start - t_run) if self.source else {})
             present = [r for r in self.workers if links.present(r)]
-            if o.task == "matmul":
-                record = self.matmul_iteration(iteration, present, links, t_start, matmul_state)
-            else:
-                record = self.linreg_iteration(iteration, present, links, t_start, linreg_state)
+            record = task.iterate(self, iteration, present, links, t_start)
             self.pending = (iteration, start_unix, time.monotonic() - t_start, links, record)
             iteration += 1
         self.write_pending()
         for rank in self.workers:
             self.comm.Send([np.array([KIND_STOP, iteration, 0.0, 0.0]), self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
         self.inbox.close()
-        if o.task == "linreg":
-            self.saved["weights"] = linreg_state["w"]
-        if o.save_results or o.task == "linreg":
-            np.savez(os.path.join(o.out, "results.npz"), **self.saved)
+        results = task.results()
+        if results or o.save_results:
+            np.savez(os.path.join(o.out, "results.npz"), **results)
         t = self.tally
         d = np.array(t.durations) if t.durations else np.array([np.nan])
-        self.log.write("run_summary", task=o.task, iterations=iteration, complete_iterations=t.complete,
+        self.log.write("run_summary", task=task.name, iterations=iteration, complete_iterations=t.complete,
                        ended_by=ended_by, elapsed_s=time.monotonic() - t_run, mean_duration_s=float(np.mean(d)),
-                       p95_duration_s=float(np.percentile(d, 95)), absent_iterations={str(r): n for r, n in
-                                                                                     t.absences.items()},
-                       final_cost=linreg_state["cost"] if o.task == "linreg" else None,
-                       stale_results=self.stale_results)
+                       p95_duration_s=float(np.percentile(d, 95)),
+                       absent_iterations={str(r): n for r, n in t.absences.items()},
+                       stale_results=self.stale_results, **task.final())
         return 0
 
     def write_pending(self) -> None:
@@ -353,44 +288,11 @@ class Master:
         self.log.write("iteration", t_s=end_s, iteration=iteration, start_s=start_unix, end_s=end_s,
                        duration_s=duration_s, workers=links.record(self.workers, self.vehicles), **record)
 
-    def matmul_iteration(self, iteration: int, present: list[int], links: IterationLinks, t_start: float,
-                         state: dict) -> dict:
-        o = self.options
-        b = state["b_rng"].standard_normal((o.n, o.l))
-        self.send_all(present, iteration, b.ravel(), links)
-        self.write_pending()
-        results = self.collect(iteration, set(present), links, t_start + o.timeout_s)
-        blocks = {r: results[r][RESULT_HEADER:].reshape(-1, o.l) for r in results}
-        record = {}
-        missing = [r for r in self.workers if r not in blocks]
-        if missing and o.on_missing == "reassign" and blocks:
-            record["reassigned"] = self.reassign(iteration, state["a"], b, state["bounds"], missing, blocks, links,
-                                                 t_start + 2 * o.timeout_s)
-        record["complete"] = all(r in blocks for r in self.workers)
-        if record["complete"] and o.save_results:
-            self.saved[f"B_{iteration}"] = b
-            self.saved[f"C_{iteration}"] = kernels.stack_blocks([blocks[r] for r in self.workers])
-        return record
-
-    def linreg_iteration(self, iteration: int, present: list[int], links: IterationLinks, t_start: float,
-                         state: dict) -> dict:
-        o = self.options
-        self.send_all(present, iteration, state["w"], links)
-        self.write_pending()
-        results = self.collect(iteration, set(present), links, t_start + o.timeout_s)
-        if not results:
-            return {"cost": None, "rows_used": 0, "complete": False}
-        parts = [(buf[RESULT_HEADER:], float(buf[4]), int(buf[3])) for buf in results.values()]
-        gradient, cost, rows = kernels.combine_gradients(parts)
-        state["w"] = state["w"] - o.learning_rate * gradient
-        state["cost"] = cost
-        return {"cost": cost, "rows_used": rows, "complete": rows == state["rows"]}
-
     def warm_up(self, floats: int) -> float:
         """One untimed exchange of an input-sized message with every worker: MPI sets up its connections and
         buffers on first use, which would otherwise land in the first iteration's time."""
         t0 = time.monotonic()
-        message = np.zeros(HEADER + floats)
+        message = np.zeros(WORK_HEADER + floats)
         message[0] = KIND_WARMUP
         for rank in self.workers:
             self.comm.Send([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
@@ -398,25 +300,6 @@ class Master:
             if self.inbox.receive(t0 + self.options.timeout_s, source=rank)[0] is None:
                 raise TimeoutError(f"worker {rank} did not answer the warm-up within {self.options.timeout_s:g} s")
         return time.monotonic() - t0
-
-    def reassign(self, iteration, a, b, bounds, missing, blocks, links, deadline) -> list[dict]:
-        """Send each missing block's rows of A, with B, to a worker that answered; wait for those answers."""
-        helpers = [r for r in self.workers if r in blocks]
-        plan = {}
-        for k, rank in enumerate(missing):
-            helper = helpers[k % len(helpers)]
-            start, stop = bounds[rank - 1]
-            payload = np.concatenate([a[start:stop].ravel(), b.ravel()])
-            self.send(helper, KIND_EXTRA, iteration, payload, links, extra_rows=stop - start)
-            plan.setdefault(helper, []).append(rank)
-        done = []
-        for helper, ranks in plan.items():
-            for rank in ranks:
-                _, buf = self.inbox.receive(deadline, source=helper)
-                if buf is not None and int(buf[0]) == iteration:
-                    blocks[rank] = buf[RESULT_HEADER:].reshape(-1, self.options.l)
-                    done.append({"rows_of": rank, "by": helper})
-        return done
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -85,12 +85,12 @@ class ChannelModel:
         rate = shannon_capacity_bps(self.received_dbm(distance_m), self.bandwidth_hz, self.noise_w)
         return min(rate, self.max_rate_bps) if self.max_rate_bps else rate
 
-    def transfer_s(self, payload_bits: float, rate_bps: float) -> float:
-        """How long an emulated transfer of payload_bits takes at rate_bps (0 when no rate is emulated)."""
-        return (payload_bits + self.overhead_bits) / rate_bps if rate_bps > 0 else 0.0
+    def usable(self, rate_bps: float) -> bool:
+        """The one out-of-range rule: below min_rate_bps there is no link (emulated transfers do not happen)."""
+        return rate_bps >= self.min_rate_bps
 
     def in_range(self, distance_m: float) -> bool:
-        return self.capacity_bps(distance_m) >= self.min_rate_bps
+        return self.usable(self.capacity_bps(distance_m))
 
     def range_m(self, step_m: float = 0.01, limit_m: float = 100_000.0) -> float:
         """The distance where the capacity falls below min_rate_bps (capacity falls with distance)."""

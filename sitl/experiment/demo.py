@@ -35,11 +35,11 @@ def run_demo(out: Path, speedup: float, base_port: int, stream=sys.stdout,
         from ground.logs.findings import research_findings
         from ground.logs.report import compare_runs
 
-        compare_runs(results[0].run_dir, results[1].run_dir, out / "comparison", report_path=out / "report.md",
-                     findings=research_findings)
-        print(f"\ncomparison: {out / 'report.md'}", file=stream)
-        for line in (out / "report.md").read_text().split("## Findings")[1].split("\n## ")[0].strip().splitlines():
-            print(line, file=stream)
+        comparison = compare_runs(results[0].run_dir, results[1].run_dir, out / "comparison",
+                                  report_path=out / "report.md", findings=research_findings)
+        print(f"\ncomparison: {comparison.report_path}", file=stream)
+        for line in comparison.findings:
+            print(f"- {line}", file=stream)
     failed = [r for r in results if r.outcome is not Outcome.COMPLETED]
     return failed[0].outcome.exit_code if failed else 0
 

@@ -64,13 +64,13 @@ def last_record(path: Path, kind: str) -> dict | None:
             tail = f.read()
     except OSError:
         return None
-    marker = f'"kind":"{kind}"'.encode()  # JsonlLog writes compact JSON
     for line in reversed(tail.split(b"\n")[1 if size > TAIL_BYTES else 0:]):
-        if marker in line:
-            try:
-                return json.loads(line)
-            except ValueError:
-                continue
+        try:
+            record = json.loads(line)
+        except ValueError:  # the line being written, or damage: the reader's problem list has it
+            continue
+        if isinstance(record, dict) and record.get("kind") == kind:
+            return record
     return None
 
 

@@ -24,8 +24,9 @@ from pathlib import Path
 from missions.model import MavCmd
 from nac_onboard.agent.config import dump_toml
 from nac_onboard.child_process import AgentProcess, ChildStartError
-from nac_onboard.compute.options import core_binding
-from nac_onboard.errors import OperationFailed
+from nac_onboard.compute.options import core_binding, options_from_argv
+from nac_onboard.errors import NacError, OperationFailed
+from nac_onboard.flight_log import read_jsonl
 from nac_onboard.mavlink.client import CommandError, LinkError, M, MissionError, VehicleClient
 from sitl.experiment.progress import Progress, follow, render_progress
 from sitl.experiment.scenario import Fault, Scenario
@@ -116,17 +117,23 @@ def agent_config(scenario: Scenario, index: int, run_dir: Path, ports: Ports) ->
     })
 
 
-def mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, wall_limit_s: float) -> list[str]:
+def compute_args(scenario: Scenario, run_dir: Path, ports: Ports, wall_limit_s: float) -> list[str]:
+    """The `nac-onboard compute` arguments of the scenario's MPI job."""
     c = scenario.compute
-    bin_dir = Path(sys.executable).parent
-    mpiexec = bin_dir / "mpiexec"
     ids = [scenario.master.id, *(w.id for w in scenario.workers)]
     stop = ["--iterations", str(c.iterations)] if c.iterations else ["--duration-s", f"{wall_limit_s:.3f}"]
-    return [str(mpiexec if mpiexec.exists() else "mpiexec"), "-n", str(len(ids)), "-bind-to", core_binding(len(ids)),
-            sys.executable, "-m", "mpi4py", "-m", "nac_onboard.compute", "--task", c.task, *stop,
-            "--out", str(run_dir / "compute"), "--emulate", "sleep", "--channel", scenario.channel,
-            "--positions", "feed", "--feed", f"127.0.0.1:{ports.feed()}", "--vehicles", ",".join(ids),
-            "--timeout-s", str(c.timeout_s), "--on-missing", c.on_missing, "--allocation", c.allocation, *c.args]
+    return ["--task", c.task, *stop, "--out", str(run_dir / "compute"), "--emulate", "sleep",
+            "--channel", scenario.channel, "--positions", "feed", "--feed", f"127.0.0.1:{ports.feed()}",
+            "--vehicles", ",".join(ids), "--timeout-s", str(c.timeout_s), "--on-missing", c.on_missing,
+            "--allocation", c.allocation, *c.args]
+
+
+def mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, wall_limit_s: float) -> list[str]:
+    mpiexec = Path(sys.executable).parent / "mpiexec"
+    ranks = 1 + len(scenario.workers)
+    return [str(mpiexec if mpiexec.exists() else "mpiexec"), "-n", str(ranks), "-bind-to", core_binding(ranks),
+            sys.executable, "-m", "mpi4py", "-m", "nac_onboard.compute",
+            *compute_args(scenario, run_dir, ports, wall_limit_s)]
 
 
 class Experiment:
@@ -184,13 +191,11 @@ class Experiment:
 
     def _preflight(self) -> None:
         """What would only fail minutes later (the MPI job's data) is checked before anything starts."""
-        if self.scenario.compute and self.scenario.compute.task == "linreg":
-            from nac_onboard.compute.forestfires import DataError, find_csv
-
+        if self.scenario.compute:
             try:
-                find_csv(None)
-            except DataError as err:
-                raise ExperimentError(Outcome.BAD_INPUT, str(err)) from None
+                options_from_argv(compute_args(self.scenario, self.run_dir, self.ports, self.scenario.duration_s))
+            except NacError as err:
+                raise ExperimentError(Outcome.BAD_INPUT, f"the MPI job's options: {err}") from None
 
     def _start(self) -> None:
         s = self.scenario
@@ -340,10 +345,11 @@ class Experiment:
         rank = 1 + [w.id for w in self.scenario.workers].index(vehicle_id)
         rank_log = self.run_dir / "compute" / f"rank-{rank}.jsonl"
         try:
-            pid = next(json.loads(line)["pid"] for line in rank_log.read_text().splitlines()
-                       if '"worker_started"' in line)
-            os.kill(pid, signal.SIGKILL)
-        except (OSError, StopIteration, ValueError) as err:
+            started = read_jsonl(rank_log).of_kind("worker_started")
+            if not started:
+                raise OSError(f"{rank_log} has no worker_started record yet")
+            os.kill(int(started[-1]["pid"]), signal.SIGKILL)
+        except (OSError, KeyError, ValueError) as err:
             log.warning("kill_worker %s: %s", vehicle_id, err)
 
     # ---- the end ---------------------------------------------------------------------------------------------

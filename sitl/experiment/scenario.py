@@ -27,6 +27,7 @@ else:  # pragma: no cover
 from missions import MissionFileError, load_mission
 from missions.geo import Home
 from missions.model import Mission
+from nac_onboard.compute.tasks import all_tasks
 from nac_onboard.errors import BadInput
 from nac_onboard.link.channel import ChannelError, load_channel
 
@@ -189,8 +190,9 @@ def _vehicle(table: dict, scenario_path: Path, where: str) -> VehiclePlan:
 
 def _compute(table: dict, where: str) -> ComputePlan:
     task = _get(table, "task", str, where)
-    if task not in ("matmul", "linreg"):
-        raise ScenarioError(f"{where}: task must be \"matmul\" or \"linreg\", got {task!r}")
+    tasks = all_tasks()
+    if task not in tasks:
+        raise ScenarioError(f"{where}: task must be one of {', '.join(tasks)}, got {task!r}")
     args = table.get("args", [])
     if not isinstance(args, list) or not all(isinstance(a, str) for a in args):
         raise ScenarioError(f"{where}: args must be a list of strings (extra nac-onboard compute arguments)")

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from nac_onboard.compute import forestfires, kernels
-from nac_onboard.compute.runner import matmul_inputs
+from nac_onboard.compute.tasks.matmul import matmul_inputs
 from nac_onboard.flight_log import read_jsonl
 from nac_onboard.link.channel import PRESETS, save_channel
 from tests.conftest import SHARED_DATA

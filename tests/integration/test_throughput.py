@@ -15,6 +15,7 @@ from nac_onboard.agent.probes import ProbeScheduler
 from nac_onboard.flight_log import JsonlLog, read_jsonl
 from nac_onboard.link import iperf3
 from nac_onboard.link.channel import PRESETS
+from nac_onboard.link.emulation import SleepEmulation
 from nac_onboard.link.iperf3 import compare, iperf3_result, iperf3_server, nac_server
 from nac_onboard.link.throughput import ThroughputServer
 from tests.conftest import free_port
@@ -104,9 +105,10 @@ def test_emulated_probes_follow_the_channel_model_at_the_live_distance(tmp_path)
                 "peers": {"w": peer} if peer else {}}
 
     settings = ThroughputSection(probe=True, duration_s=0.5, interval_s=0.1, emulate_channel="wifi-flight")
+    emulation = SleepEmulation(PRESETS["wifi-flight"])
     try:
         with JsonlLog(tmp_path / "throughput.jsonl") as out:
-            scheduler = ProbeScheduler(settings, "m", lambda: [], positions, out, threading.Event())
+            scheduler = ProbeScheduler(settings, "m", lambda: [], positions, out, threading.Event(), emulation)
             near = scheduler.probe_once("w", "127.0.0.1", server.port)
             east_m["value"] = 30.0
             far = scheduler.probe_once("w", "127.0.0.1", server.port)

@@ -1,0 +1,28 @@
+"""What happened on each worker's link in one iteration of the MPI job."""
+
+from __future__ import annotations
+
+
+class IterationLinks:
+    """One list per field (index = rank - 1): the iteration record keeps this columnar shape, which is also the
+    cheapest to encode at thousands of iterations a second."""
+
+    FIELDS = ("distance_m", "rate_bps", "absent", "bytes_down", "bytes_up", "down_s", "up_s", "compute_s")
+
+    def __init__(self, workers: int):
+        self.distance_m: list = [None] * workers
+        self.rate_bps: list = [None] * workers
+        self.absent: list = [None] * workers  # None = present; else why: out_of_range, no_position, timeout
+        self.bytes_down = [0] * workers
+        self.bytes_up = [0] * workers
+        self.down_s = [0.0] * workers
+        self.up_s = [0.0] * workers
+        self.compute_s: list = [None] * workers
+
+    def present(self, rank: int) -> bool:
+        return self.absent[rank - 1] is None
+
+    def record(self, ranks: list[int], vehicles: list[str]) -> dict:
+        out = {"rank": ranks, "vehicle": vehicles, "present": [a is None for a in self.absent]}
+        out.update((name, getattr(self, name)) for name in self.FIELDS)
+        return out

@@ -1,0 +1,67 @@
+"""Linear regression by gradient descent on the UCI Forest Fires data (DESIGN.md 5): the rows split into one shard
+per worker; each iteration the master sends the weights, the workers return their shards' gradient sums, and the
+master steps on whichever shards arrived (exact gradient descent over those rows, weighted by shard size)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from nac_onboard.compute import forestfires, kernels
+from nac_onboard.compute.iteration import IterationLinks
+from nac_onboard.compute.messages import RESULT_HEADER, RESULT_ROWS, RESULT_SSE
+from nac_onboard.compute.task import Master, Task
+
+
+class Linreg(Task):
+    name = "linreg"
+    default_iterations = 200
+    summary = "gradient descent on Forest Fires, one shard of rows per worker, the master combines gradients"
+
+    def __init__(self, options):
+        super().__init__(options)
+        self.x, self.y = forestfires.load(forestfires.find_csv(options.data))
+        self.total_rows = len(self.y)
+        self.w = np.zeros(self.x.shape[1])
+        self.cost: float | None = None
+
+    @classmethod
+    def check(cls, options) -> None:
+        forestfires.find_csv(options.data)
+
+    def rows(self) -> int:
+        return self.total_rows
+
+    def input_floats(self) -> int:
+        return self.x.shape[1]
+
+    def largest_input(self, bounds: list[tuple[int, int]]) -> int:
+        return self.x.shape[1]
+
+    def largest_result(self, bounds: list[tuple[int, int]]) -> int:
+        return self.x.shape[1]
+
+    def take_block(self, start: int, stop: int) -> None:
+        self.x, self.y = self.x[start:stop], self.y[start:stop]
+
+    def work(self, extra: bool, payload: np.ndarray, extra_rows: int) -> tuple[np.ndarray, int, float]:
+        gradient, sse, rows = kernels.local_gradient(self.x, self.y, payload)
+        return gradient, rows, sse
+
+    def iterate(self, master: Master, iteration: int, present: list[int], links: IterationLinks,
+                t_start: float) -> dict:
+        master.send_all(present, iteration, self.w, links)
+        master.write_pending()
+        results = master.collect(iteration, set(present), links, t_start + self.options.timeout_s)
+        if not results:
+            return {"cost": None, "rows_used": 0, "complete": False}
+        parts = [(buf[RESULT_HEADER:], float(buf[RESULT_SSE]), int(buf[RESULT_ROWS])) for buf in results.values()]
+        gradient, cost, rows = kernels.combine_gradients(parts)
+        self.w = self.w - self.options.learning_rate * gradient
+        self.cost = cost
+        return {"cost": cost, "rows_used": rows, "complete": rows == self.total_rows}
+
+    def results(self) -> dict[str, np.ndarray]:
+        return {"weights": self.w}
+
+    def final(self) -> dict:
+        return {"final_cost": self.cost}
