@@ -85,7 +85,7 @@ else
         "$here/$role.toml" > "$etc/agent.toml.new"
     "$venv/bin/python" - "$etc/agent.toml.new" <<'EOF'
 import sys
-from nac_onboard.config import ConfigError, load_agent_config
+from nac_onboard.agent.config import ConfigError, load_agent_config
 try:
     load_agent_config(sys.argv[1])
 except ConfigError as err:

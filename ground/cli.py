@@ -14,7 +14,8 @@ from pathlib import Path
 from ground.operator import commands as ops
 from missions import load_mission
 from nac_onboard.errors import BadInput, run_cli
-from nac_onboard.mavlink.client import COPTER_MODES, DEFAULT_URI, MavlinkClient
+from nac_onboard.mavlink.client import DEFAULT_URI, MavlinkClient
+from nac_onboard.mavlink.dialect import COPTER_MODES
 from nac_onboard.mavlink.signing import load_signing_key
 
 

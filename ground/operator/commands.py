@@ -11,17 +11,12 @@ import time
 from ground.operator.table import render
 from missions import convert_mission, load_mission, save_mission
 from missions.model import MavCmd, Mission, MissionType
-from nac_onboard.mavlink.client import (
-    COPTER_MODES,
-    MISSION_STATE_COMPLETE,
-    LinkError,
-    M,
-    MavlinkClient,
-    MissionError,
-)
+from nac_onboard.mavlink.client import LinkError, MavlinkClient
+from nac_onboard.mavlink.dialect import COPTER_MODES, M
+from nac_onboard.mavlink.mission_transfer import MissionError
 
 
-class Progress:
+class TransferProgress:
     """A transfer progress bar on stderr: redrawn in place on a terminal, one closing line otherwise."""
 
     def __init__(self, label: str, stream=sys.stderr, width: int = 30):
@@ -75,7 +70,7 @@ def mission_start(client: MavlinkClient, out) -> None:
 
 
 def _upload_list(client: MavlinkClient, items, mission_type: int, label: str) -> None:
-    result = client.upload(items, mission_type, progress=Progress(label))
+    result = client.upload(items, mission_type, progress=TransferProgress(label))
     if result != M.MAV_MISSION_ACCEPTED:
         raise MissionError(f"vehicle {client.sysid} refused the {label}", result)
 
@@ -93,7 +88,7 @@ def mission_upload(client: MavlinkClient, mission: Mission, out) -> None:
 
 
 def mission_download(client: MavlinkClient, path: str, out) -> Mission:
-    items = client.download(MissionType.MISSION, progress=Progress("mission"))
+    items = client.download(MissionType.MISSION, progress=TransferProgress("mission"))
     fence = client.download(MissionType.FENCE)
     rally = client.download(MissionType.RALLY)
     mission = Mission.from_wire(items)
@@ -136,7 +131,7 @@ def wait_for(client: MavlinkClient, what: str, timeout_s: float, out) -> None:
             print(f"vehicle {sysid}: on the ground{'' if v.armed else ', disarmed'}", file=out)
             return
         if what == "mission-complete" and v.mission_total and (
-                v.mission_state == MISSION_STATE_COMPLETE or v.mission_total in v.reached):
+                v.mission_state == M.MISSION_STATE_COMPLETE or v.mission_total in v.reached):
             print(f"vehicle {sysid}: mission complete ({v.mission_total} items)", file=out)
             return
         if v.link_age_s() > 5.0:

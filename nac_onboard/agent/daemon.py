@@ -37,6 +37,8 @@ from nac_onboard.flight_log import JsonlLog, TlogWriter
 from nac_onboard.link.emulation import SleepEmulation
 from nac_onboard.link.throughput import ThroughputServer
 from nac_onboard.mavlink import client as mav
+from nac_onboard.mavlink.dialect import M
+from nac_onboard.mavlink.routing import RawEndpoint
 from nac_onboard.mavlink.signing import load_signing_key
 
 log = logging.getLogger(__name__)
@@ -80,7 +82,7 @@ class Agent:
         self.lost_since_s = 0.0
         self.last_open_attempt_s = -1e9
         self.open_failures = 0
-        self.endpoints: list[mav.RawEndpoint] = []
+        self.endpoints: list[RawEndpoint] = []
         self.peers = PeerTable(config.vehicle.id, config.peers.timeout_s)
         self.peer_sock = self.feed_sock = None
         self.peer_targets = [parse_host_port(t, "peers.send_to") for t in config.peers.send_to]
@@ -99,7 +101,7 @@ class Agent:
         self._open_autopilot(time.monotonic())
         for uri in c.routing.endpoints:
             try:
-                self.endpoints.append(mav.RawEndpoint(uri))
+                self.endpoints.append(RawEndpoint(uri))
             except mav.LinkError as err:
                 self.log.write("routing_error", endpoint=uri, error=str(err))
         self.peer_sock = _udp_socket(c.peers.listen, "peers.listen", broadcast=True)
@@ -145,8 +147,8 @@ class Agent:
         try:
             self.client = mav.MavlinkClient(a.uri, sysid=self.sysid, signing_key=self.signing_key,
                                             source_system=self.config.vehicle.sysid or 1,
-                                            source_component=mav.M.MAV_COMP_ID_ONBOARD_COMPUTER,
-                                            mav_type=mav.M.MAV_TYPE_ONBOARD_CONTROLLER,
+                                            source_component=M.MAV_COMP_ID_ONBOARD_COMPUTER,
+                                            mav_type=M.MAV_TYPE_ONBOARD_CONTROLLER,
                                             decode_only=mav.CLIENT_MESSAGES)
         except mav.LinkError as err:
             self.open_failures += 1
@@ -223,7 +225,7 @@ class Agent:
             self.client = None
             return
         if self.sysid is None:
-            autopilots = [s for s, v in self.client.vehicles.items() if v.autopilot != mav.M.MAV_AUTOPILOT_INVALID]
+            autopilots = [s for s, v in self.client.vehicles.items() if v.autopilot != M.MAV_AUTOPILOT_INVALID]
             if autopilots:
                 self.sysid = self.client.sysid = autopilots[0]
         frames = [msg.get_msgbuf() for msg in messages]

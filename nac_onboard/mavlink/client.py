@@ -14,22 +14,20 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 
-os.environ.setdefault("MAVLINK20", "1")
-from pymavlink import mavutil  # noqa: E402
-
-from missions.model import MavCmd, MissionItem  # noqa: E402
+from missions.model import MavCmd
 from nac_onboard.address import parse_host_port
 from nac_onboard.errors import BadInput, OperationFailed
-from nac_onboard.mavlink.frames import frame_msgid, frame_source, split_frames  # noqa: E402
+from nac_onboard.mavlink.dialect import COPTER_MODES, M, enum_name, mavutil
+from nac_onboard.mavlink.frames import INCOMPAT_SIGNED, frame_msgid, frame_source, split_frames
+from nac_onboard.mavlink.mission_transfer import MissionTransfer
 
 log = logging.getLogger(__name__)
-M = mavutil.mavlink
 DEFAULT_URI = "udpin:0.0.0.0:14550"
-COPTER_MODES = {name: number for number, name in mavutil.mode_mapping_acm.items()}
-LANDED_STATES = {0: "unknown", 1: "on ground", 2: "in air", 3: "taking off", 4: "landing"}
-MISSION_STATE_COMPLETE = 5
+LANDED_STATES = {M.MAV_LANDED_STATE_UNDEFINED: "unknown", M.MAV_LANDED_STATE_ON_GROUND: "on ground",
+                 M.MAV_LANDED_STATE_IN_AIR: "in air", M.MAV_LANDED_STATE_TAKEOFF: "taking off",
+                 M.MAV_LANDED_STATE_LANDING: "landing"}
 HEARTBEAT_PERIOD_S = 1.0
-#: What VehicleState and the client's own operations (commands, mission transfer) read.
+#: What TelemetryState and the client's own operations (commands, mission transfer) read.
 CLIENT_MESSAGES = frozenset({
     "HEARTBEAT", "GLOBAL_POSITION_INT", "ATTITUDE", "SYS_STATUS", "EXTENDED_SYS_STATE", "MISSION_CURRENT",
     "MISSION_ITEM_REACHED", "COMMAND_ACK", "MISSION_COUNT", "MISSION_REQUEST", "MISSION_REQUEST_INT",
@@ -47,22 +45,12 @@ class LinkClosed(LinkError):
 class CommandError(OperationFailed):
     def __init__(self, command: int, result: int, sysid: int):
         self.command, self.result = command, result
-        name = _enum_name("MAV_RESULT", result)
-        cmd = _enum_name("MAV_CMD", command)
+        name = enum_name("MAV_RESULT", result)
+        cmd = enum_name("MAV_CMD", command)
         super().__init__(f"vehicle {sysid} refused {cmd}: {name}")
 
 
-class MissionError(OperationFailed):
-    def __init__(self, what: str, result: int | None = None):
-        self.result = result
-        if result is not None:
-            what += f": {_enum_name('MAV_MISSION_RESULT', result)}"
-        super().__init__(what)
 
-
-def _enum_name(enum: str, value: int) -> str:
-    entry = M.enums.get(enum, {}).get(value)
-    return entry.name if entry is not None else str(value)
 
 
 #: URI scheme -> pymavlink options; the device string is the URI itself for network links.
@@ -88,7 +76,7 @@ def mavutil_device(uri: str) -> tuple[str, dict]:
 
 
 @dataclass
-class VehicleState:
+class TelemetryState:
     """What a vehicle last told us about itself."""
 
     sysid: int
@@ -242,7 +230,7 @@ class Link:
         self.conn.close()
 
 
-class MavlinkClient:
+class MavlinkClient(MissionTransfer):
     """Several links, every vehicle heard on them; operations address a vehicle by system id."""
 
     def __init__(self, uris: list[str] | str | None = None, sysid: int | None = None, signing_key: bytes | None = None,
@@ -265,8 +253,7 @@ class MavlinkClient:
         self.wanted_ids = None if decode_only is None else frozenset(
             getattr(M, f"MAVLINK_MSG_ID_{name}") for name in set(decode_only) | CLIENT_MESSAGES)
         self.sysid = sysid  # default target; None = the first vehicle heard
-        self.vehicles: dict[int, VehicleState] = {}
-        self.seen: list = []  # every message received, in order (bounded; handy for tools and tests)
+        self.vehicles: dict[int, TelemetryState] = {}
         self._inbox: deque = deque()  # received, not yet offered to recv()
 
     @property
@@ -316,18 +303,15 @@ class MavlinkClient:
                 if "signature" in str(getattr(msg, "reason", "")).lower():
                     link.bad_signature_frames += 1
                 continue
-            if link.signing_key is None and msg.get_header().incompat_flags & 1:
+            if link.signing_key is None and msg.get_header().incompat_flags & INCOMPAT_SIGNED:
                 link.signed_frames_unverified += 1
             sysid = msg.get_srcSystem()
             if msg.get_srcComponent() == 1 or kind == "HEARTBEAT" and msg.type != M.MAV_TYPE_GCS:
                 state = self.vehicles.get(sysid)
                 if state is None and kind == "HEARTBEAT":
-                    state = self.vehicles[sysid] = VehicleState(sysid, link.index)
+                    state = self.vehicles[sysid] = TelemetryState(sysid, link.index)
                 if state is not None:
                     state.apply(msg, now_s)
-            if len(self.seen) > 10000:
-                del self.seen[:5000]
-            self.seen.append(msg)
             yield link, msg
 
     def poll(self, timeout_s: float) -> list:
@@ -356,16 +340,6 @@ class MavlinkClient:
             if left <= 0:
                 return None
             select.select(self.links, [], [], min(left, 0.1))
-
-    def wait_vehicles(self, count: int = 1, timeout_s: float = 5.0, sysids: list[int] | None = None) -> dict:
-        """Listen until `count` vehicles (or the given sysids) have sent a heartbeat."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            self.poll(min(0.1, deadline - time.monotonic()))
-            heard = set(self.vehicles)
-            if (sysids and set(sysids) <= heard) or (not sysids and len(heard) >= count):
-                break
-        return self.vehicles
 
     def wait_heartbeat(self, timeout_s: float = 5.0, sysid: int | None = None):
         target = self.sysid if sysid is None else sysid
@@ -407,7 +381,7 @@ class MavlinkClient:
                             lambda m: m.command == command and m.result != M.MAV_RESULT_IN_PROGRESS, sysid=target)
             if ack is not None:
                 return ack.result
-        raise LinkError(f"no answer from vehicle {target} to {_enum_name('MAV_CMD', command)} after {retries} "
+        raise LinkError(f"no answer from vehicle {target} to {enum_name('MAV_CMD', command)} after {retries} "
                         f"tries of {timeout_s:g} s.{self.signing_hint()}")
 
     def command_ok(self, command: int, *params: float, sysid: int | None = None, **kwargs) -> None:
@@ -421,131 +395,6 @@ class MavlinkClient:
             raise ValueError(f"unknown mode {name!r}; known: {', '.join(sorted(COPTER_MODES))}")
         return self.command(MavCmd.DO_SET_MODE, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, COPTER_MODES[name],
                             sysid=sysid)
-
-    # ---- missions ---------------------------------------------------------------------------------------
-    def upload(self, items: list[MissionItem], mission_type: int = 0, item_timeout_s: float = 1.5,
-               retries: int = 10, progress=None, sysid: int | None = None) -> int:
-        """Mission upload as the protocol asks of a GCS: answer each request once; when the vehicle goes quiet
-        for item_timeout_s, re-send COUNT (nothing requested yet) or the last item, at most `retries` times in
-        a row. Returns the vehicle's MISSION_ACK type. The spec asks for at least 5 retries; 10 keeps a
-        radio losing 30 % each way from failing one upload in fifty on a lost final ACK."""
-        target = self.sysid if sysid is None else sysid
-        conn = self._link_for(target)
-        conn.mav.mission_count_send(target, 1, len(items), mission_type)
-        last_sent, quiet_s = None, 0.0
-        while True:
-            # Mid-transfer the vehicle drives (it re-requests); before the first request and after the last item
-            # only we can, so we re-send three times as often for the same total patience.
-            we_drive = last_sent is None or last_sent == len(items) - 1
-            timeout_s = item_timeout_s / 3 if we_drive else item_timeout_s
-            msg = self.recv(["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"], timeout_s,
-                            lambda m: m.mission_type == mission_type and m.target_system in (0, conn.mav.srcSystem),
-                            sysid=target)
-            if msg is None:
-                quiet_s += timeout_s
-                if quiet_s > retries * item_timeout_s + 1e-9:
-                    waiting = "the first request" if last_sent is None else f"the answer to item {last_sent}"
-                    raise MissionError(f"mission upload to vehicle {target} gave up: no answer ({waiting}) after "
-                                       f"{quiet_s:.1f} s of retries.{self.signing_hint()}")
-                if last_sent is None:
-                    conn.mav.mission_count_send(target, 1, len(items), mission_type)
-                else:
-                    self.send_item(items[last_sent], mission_type, target)
-                continue
-            quiet_s = 0.0
-            if msg.get_type() == "MISSION_ACK":
-                return msg.type
-            if not 0 <= msg.seq < len(items):
-                continue
-            last_sent = msg.seq
-            self.send_item(items[msg.seq], mission_type, target)
-            if progress is not None:
-                progress(msg.seq + 1, len(items))
-
-    def send_item(self, it: MissionItem, mission_type: int, sysid: int | None = None) -> None:
-        target = self.sysid if sysid is None else sysid
-        self._link_for(target).mav.mission_item_int_send(
-            target, 1, it.seq, it.frame, it.command, 0, int(it.autocontinue), it.p1, it.p2, it.p3, it.p4,
-            int(round(it.lat_deg * 1e7)), int(round(it.lon_deg * 1e7)), it.alt_m, mission_type)
-
-    def download(self, mission_type: int = 0, item_timeout_s: float = 1.5, retries: int = 5, progress=None,
-                 sysid: int | None = None) -> list[MissionItem]:
-        target = self.sysid if sysid is None else sysid
-        conn = self._link_for(target)
-        count, quiet = None, 0
-        while count is None:
-            conn.mav.mission_request_list_send(target, 1, mission_type)
-            msg = self.recv("MISSION_COUNT", item_timeout_s, lambda m: m.mission_type == mission_type, sysid=target)
-            if msg is not None:
-                count = msg.count
-            elif (quiet := quiet + 1) > retries:
-                raise MissionError(f"mission download from vehicle {target}: no MISSION_COUNT after {retries} "
-                                   f"retries.{self.signing_hint()}")
-        items: list[MissionItem] = []
-        quiet = 0
-        while len(items) < count:
-            conn.mav.mission_request_int_send(target, 1, len(items), mission_type)
-            msg = self.recv("MISSION_ITEM_INT", item_timeout_s, lambda m: m.seq == len(items), sysid=target)
-            if msg is None:
-                if (quiet := quiet + 1) > retries:
-                    raise MissionError(f"mission download from vehicle {target}: item {len(items)} of {count} "
-                                       f"never came after {retries} retries")
-                continue
-            quiet = 0
-            items.append(MissionItem(msg.seq, msg.command, msg.frame, msg.param1, msg.param2, msg.param3,
-                                     msg.param4, msg.x / 1e7, msg.y / 1e7, msg.z, bool(msg.autocontinue),
-                                     mission_type=msg.mission_type))
-            if progress is not None:
-                progress(len(items), count)
-        conn.mav.mission_ack_send(target, 1, M.MAV_MISSION_ACCEPTED, mission_type)
-        return items
-
-    def set_current(self, seq: int, sysid: int | None = None) -> None:
-        """Make mission item `seq` the current one (MAV_CMD_DO_SET_MISSION_CURRENT)."""
-        self.command_ok(MavCmd.DO_SET_MISSION_CURRENT, seq, sysid=sysid)
-
-    def clear(self, mission_type: int = 0, timeout_s: float = 1.5, retries: int = 3,
-              sysid: int | None = None) -> int:
-        target = self.sysid if sysid is None else sysid
-        for _ in range(retries):
-            self._link_for(target).mav.mission_clear_all_send(target, 1, mission_type)
-            ack = self.recv("MISSION_ACK", timeout_s, lambda m: m.mission_type == mission_type, sysid=target)
-            if ack is not None:
-                return ack.type
-        raise MissionError(f"vehicle {target} did not acknowledge the mission clear after {retries} tries")
-
-
-class RawEndpoint:
-    """A MAVLink endpoint whose frames are relayed byte for byte (the agent's routing to MAVProxy and tools)."""
-
-    def __init__(self, uri: str):
-        self.uri = uri
-        device, options = mavutil_device(uri)
-        try:
-            self.conn = mavutil.mavlink_connection(device, **options)
-        except OSError as err:
-            raise LinkError(f"cannot open routing endpoint {uri}: {err.strerror or err}") from None
-        self.conn.mav.robust_parsing = True
-
-    def fileno(self) -> int:
-        return self.conn.fd if getattr(self.conn, "fd", None) is not None else self.conn.port.fileno()
-
-    def read_frames(self) -> list[bytes]:
-        frames = []
-        while (msg := self.conn.recv_msg()) is not None:
-            if msg.get_type() != "BAD_DATA":
-                frames.append(bytes(msg.get_msgbuf()))
-        return frames
-
-    def write(self, frame: bytes) -> bool:
-        try:
-            self.conn.write(frame)
-        except OSError:
-            return False  # nobody listening yet (udpout before the tool starts): the frame is simply not routed
-        return True
-
-    def close(self) -> None:
-        self.conn.close()
 
 
 class VehicleClient(MavlinkClient):

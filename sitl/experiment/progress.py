@@ -9,14 +9,15 @@ import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from nac_onboard.mavlink.client import COPTER_MODES, LinkError, M, VehicleClient
+from nac_onboard.mavlink.client import LinkError, VehicleClient
+from nac_onboard.mavlink.dialect import COPTER_MODES, M
 
 MODES = {number: name for name, number in COPTER_MODES.items()}
 TAIL_BYTES = 65536
 
 
 @dataclass
-class Progress:
+class VehicleProgress:
     vehicle: str
     mode: str = "?"
     armed: bool = False
@@ -29,7 +30,7 @@ class Progress:
     error: str = ""
 
 
-def follow(client: VehicleClient, progress: Progress, stop: threading.Event) -> None:
+def follow(client: VehicleClient, progress: VehicleProgress, stop: threading.Event) -> None:
     """Keep progress up to date from the vehicle's messages until stop is set."""
     wanted = ["HEARTBEAT", "GLOBAL_POSITION_INT", "MISSION_ITEM_REACHED", "MISSION_CURRENT"]
     while not stop.is_set():
@@ -74,7 +75,7 @@ def last_record(path: Path, kind: str) -> dict | None:
     return None
 
 
-def render_progress(t_s: float, states: list[Progress], run_dir: Path, master: str) -> str:
+def render_progress(t_s: float, states: list[VehicleProgress], run_dir: Path, master: str) -> str:
     cells = [f"{s.vehicle} {s.mode:<6}{'A' if s.armed else '-'} {s.rel_alt_m:4.1f} m {s.speed_mps:3.1f} m/s "
              f"item {s.item}/{s.total}" for s in states]
     line = f"t={t_s:6.1f}s | " + " | ".join(cells)

@@ -27,8 +27,10 @@ from nac_onboard.child_process import AgentProcess, ChildStartError
 from nac_onboard.compute.options import core_binding, options_from_argv
 from nac_onboard.errors import NacError, OperationFailed
 from nac_onboard.flight_log import read_jsonl
-from nac_onboard.mavlink.client import CommandError, LinkError, M, MissionError, VehicleClient
-from sitl.experiment.progress import Progress, follow, render_progress
+from nac_onboard.mavlink.client import CommandError, LinkError, VehicleClient
+from nac_onboard.mavlink.dialect import M
+from nac_onboard.mavlink.mission_transfer import MissionError
+from sitl.experiment.progress import VehicleProgress, follow, render_progress
 from sitl.experiment.scenario import Fault, Scenario
 from sitl.server import Sitl, SitlConfig, SitlError
 
@@ -148,7 +150,7 @@ class Experiment:
         self.clients: list[VehicleClient] = []
         self.mpi: subprocess.Popen | None = None
         self.mpi_log = None
-        self.progress = [Progress(v.id) for v in scenario.vehicles]
+        self.progress = [VehicleProgress(v.id) for v in scenario.vehicles]
         self.pilots: list[threading.Thread] = []
         self.mission_start_sim_s: float | None = None
         self.fault_log: list[dict] = []

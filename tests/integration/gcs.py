@@ -1,7 +1,8 @@
 """Test-side ground station: the product's MAVLink client on a vehicle's SITL port."""
 
 from missions.model import MavCmd
-from nac_onboard.mavlink.client import M, VehicleClient
+from nac_onboard.mavlink.client import VehicleClient
+from nac_onboard.mavlink.dialect import M
 
 __all__ = ["Gcs", "M", "take_off"]
 

@@ -15,7 +15,7 @@ from missions.geo import lla_to_enu
 from missions.model import MavCmd
 from nac_onboard.agent.state_feed import fetch_state
 from nac_onboard.flight_log import read_jsonl
-from nac_onboard.mavlink.client import M
+from nac_onboard.mavlink.dialect import M
 from tests.conftest import free_port
 from tests.integration.agents import agent_toml, kind, wait_for_record
 

@@ -19,7 +19,7 @@ from ground.logs.report import CalibrationError, analyze_run, fit_log_distance
 from ground.logs.runlog import read_run
 from nac_onboard.flight_log import TlogWriter
 from nac_onboard.link.channel import PRESETS, ChannelModel
-from nac_onboard.mavlink.client import M
+from nac_onboard.mavlink.dialect import M
 from tests.logfiles import write_dataflash, write_ulog
 
 GOLDEN = Path(__file__).parents[1] / "data" / "golden-run"
