@@ -7,18 +7,13 @@ that names the file, the key and what was expected (a typo must not silently fal
 from __future__ import annotations
 
 import dataclasses
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from nac_onboard.address import parse_host_port
 from nac_onboard.errors import BadInput
 from nac_onboard.link.channel import ChannelModel, load_channel
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # Jetson images ship Python 3.10
-    import tomli as tomllib
+from nac_onboard.tomlfile import read_toml, to_dataclass
 
 ROLES = ("master", "worker")
 
@@ -105,48 +100,6 @@ class AgentConfig:
     emulated_channel: ChannelModel | None = None  # throughput.emulate_channel, loaded
 
 
-def _section(cls, data: dict, name: str, source: str):
-    if not isinstance(data, dict):
-        raise ConfigError(f"{source}: [{name}] must be a table")
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    values = {}
-    for key, value in data.items():
-        if key not in fields:
-            raise ConfigError(f"{source}: unknown key {name}.{key} (known: {', '.join(fields)})")
-        want = fields[key].type
-        values[key] = _coerce(value, want, f"{source}: {name}.{key}")
-    missing = [f.name for f in fields.values()
-               if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
-               and f.name not in values]
-    if missing:
-        raise ConfigError(f"{source}: [{name}] needs {', '.join(missing)}")
-    return cls(**values)
-
-
-def _coerce(value, type_name: str, where: str):
-    if type_name == "bool":
-        if isinstance(value, bool):
-            return value
-        raise ConfigError(f"{where}: expected true or false, got {value!r}")
-    if type_name == "int":
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-        raise ConfigError(f"{where}: expected an integer, got {value!r}")
-    if type_name == "float":
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
-        raise ConfigError(f"{where}: expected a number, got {value!r}")
-    if type_name == "str":
-        if isinstance(value, str):
-            return value
-        raise ConfigError(f"{where}: expected a string, got {value!r}")
-    if type_name.startswith("tuple"):
-        if isinstance(value, list) and all(isinstance(v, str) for v in value):
-            return tuple(value)
-        raise ConfigError(f"{where}: expected a list of strings, got {value!r}")
-    raise AssertionError(type_name)
-
-
 SECTIONS = {"vehicle": VehicleSection, "autopilot": AutopilotSection, "log": LogSection,
             "routing": RoutingSection, "peers": PeersSection, "state_feed": StateFeedSection,
             "throughput": ThroughputSection}
@@ -158,7 +111,8 @@ def parse_agent_config(data: dict, source: str = "<config>") -> AgentConfig:
         raise ConfigError(f"{source}: unknown section [{sorted(unknown)[0]}] (known: {', '.join(SECTIONS)})")
     if "vehicle" not in data:
         raise ConfigError(f"{source}: missing [vehicle] with id and role")
-    sections = {name: _section(cls, data[name], name, source) for name, cls in SECTIONS.items() if name in data}
+    sections = {name: to_dataclass(cls, data[name], source, ConfigError, table=name)
+                for name, cls in SECTIONS.items() if name in data}
     config = AgentConfig(source=source, **sections)
     _check(config)
     if config.throughput.emulate_channel:  # loaded here, once, and handed to the probes
@@ -207,31 +161,4 @@ def _check(c: AgentConfig) -> None:
 
 
 def load_agent_config(path: str | Path) -> AgentConfig:
-    path = Path(path)
-    try:
-        with path.open("rb") as f:
-            data = tomllib.load(f)
-    except OSError as err:
-        raise ConfigError(f"cannot read agent config {path}: {err.strerror}") from None
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"{path}: not valid TOML: {err}") from None
-    return parse_agent_config(data, str(path))
-
-
-def dump_toml(sections: dict[str, dict]) -> str:
-    """A config as TOML text (sections of scalars and lists: what the agent's config holds)."""
-    lines = []
-    for name, values in sections.items():
-        lines.append(f"[{name}]")
-        lines += [f"{key} = {_toml_value(value)}" for key, value in values.items()]
-    return "\n".join(lines) + "\n"
-
-
-def _toml_value(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (int, float)):
-        return repr(value)
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    return '"' + str(value).replace("\\", "\\\\").replace('"', '\\"') + '"'
+    return parse_agent_config(read_toml(path, "agent config", ConfigError), str(path))

@@ -20,16 +20,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 from nac_onboard.errors import BadInput
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:
-    import tomli as tomllib
+from nac_onboard.tomlfile import read_toml, to_dataclass, write_toml
 
 PATH_LOSS_MODELS = ("free-space", "log-distance", "hata-urban", "hata-large-city", "hata-suburban", "hata-rural")
 MIN_DISTANCE_M = 0.1  # closer than this the formulas are meaningless; distances are clamped
@@ -168,27 +163,10 @@ def load_channel(name_or_path: str) -> ChannelModel:
     path = Path(name_or_path)
     if not path.exists():
         raise ChannelError(f"channel {name_or_path!r}: not a preset ({', '.join(PRESETS)}) nor a file")
-    try:
-        with path.open("rb") as f:
-            data = tomllib.load(f)
-    except (OSError, tomllib.TOMLDecodeError) as err:
-        raise ChannelError(f"{path}: cannot read channel model: {err}") from None
-    fields = {f.name for f in dataclasses.fields(ChannelModel)}
-    unknown = set(data) - fields
-    if unknown:
-        raise ChannelError(f"{path}: unknown channel keys {', '.join(sorted(unknown))} (known: {', '.join(fields)})")
-    data.setdefault("name", path.stem)
-    try:
-        return ChannelModel(**data)
-    except TypeError as err:
-        raise ChannelError(f"{path}: {err}") from None
+    values = read_toml(path, "channel model", ChannelError)
+    values.setdefault("name", path.stem)
+    return to_dataclass(ChannelModel, values, str(path), ChannelError)
 
 
 def save_channel(model: ChannelModel, path: str | Path) -> None:
-    lines = []
-    for f in dataclasses.fields(model):
-        value = getattr(model, f.name)
-        if value is None:
-            continue
-        lines.append(f"{f.name} = {value!r}" if not isinstance(value, str) else f'{f.name} = "{value}"')
-    Path(path).write_text("\n".join(lines) + "\n")
+    write_toml(path, dataclasses.asdict(model))

@@ -22,16 +22,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from missions.model import MavCmd
-from nac_onboard.agent.config import dump_toml
 from nac_onboard.child_process import AgentProcess, ChildStartError
 from nac_onboard.compute.options import core_binding, options_from_argv
 from nac_onboard.errors import NacError, OperationFailed
-from nac_onboard.flight_log import read_jsonl
 from nac_onboard.mavlink.client import CommandError, LinkError, VehicleClient
 from nac_onboard.mavlink.dialect import M
 from nac_onboard.mavlink.mission_transfer import MissionError
+from nac_onboard.tomlfile import dumps_toml
+from sitl.experiment.faults import Fault, FaultInjector, FaultKind
 from sitl.experiment.progress import VehicleProgress, follow, render_progress
-from sitl.experiment.scenario import Fault, Scenario
+from sitl.experiment.scenario import Scenario
 from sitl.server import Sitl, SitlConfig, SitlError
 
 log = logging.getLogger(__name__)
@@ -108,7 +108,7 @@ def agent_config(scenario: Scenario, index: int, run_dir: Path, ports: Ports) ->
                           emulate_channel=scenario.channel,
                           targets=[f"{scenario.vehicles[k].id}=127.0.0.1:{ports.throughput(k)}" for k in others
                                    if scenario.vehicles[k].role == "worker"])
-    return dump_toml({
+    return dumps_toml({
         "vehicle": {"id": vehicle.id, "role": vehicle.role, "sysid": index + 1},
         "autopilot": {"uri": f"udpin:127.0.0.1:{ports.companion(index)}", "link_timeout_s": 3.0},
         "log": {"dir": str(run_dir.parent), "run_id": run_dir.name, "telemetry_hz": 10.0, "tlog": True},
@@ -210,6 +210,7 @@ class Experiment:
         except (SitlError, OSError) as err:  # e.g. a base port already taken
             raise ExperimentError(Outcome.SITL_FAILED, f"cannot start the simulator: {err}") from None
         self.sim.world.step_observers.extend(self.step_observers)
+        self.faults = FaultInjector(self.sim, lambda index: self.agents[index].kill(), self._rank_log)
         self.sim.start()
         config_dir = self.run_dir / "config"
         config_dir.mkdir(exist_ok=True)
@@ -312,47 +313,28 @@ class Experiment:
         if not self.sim.alive:
             raise ExperimentError(Outcome.SITL_FAILED, "the simulation loop stopped (see the log)")
         for agent, vehicle in zip(self.agents, self.scenario.vehicles, strict=False):
-            if not agent.alive() and not self._killed_on_purpose(vehicle.id, "kill_agent"):
+            if not agent.alive() and not self._killed_on_purpose(vehicle.id, FaultKind.KILL_AGENT):
                 raise ExperimentError(Outcome.AGENT_FAILED, f"{vehicle.id}'s agent exited "
                                                             f"({agent.proc.returncode}): {agent.stderr_text()[-500:]}")
         if self.mpi is not None and self.mpi.poll() not in (None, 0):
             raise ExperimentError(Outcome.COMPUTE_FAILED, f"mpiexec exited {self.mpi.returncode} (see "
                                                           f"{self.run_dir / 'compute' / 'mpiexec.log'})")
 
-    def _killed_on_purpose(self, vehicle_id: str, kind: str) -> bool:
-        return any(f["vehicle"] == vehicle_id and f["kind"] == kind for f in self.fault_log)
+    def _killed_on_purpose(self, vehicle_id: str, kind: FaultKind) -> bool:
+        return any(f["vehicle"] == vehicle_id and f["kind"] == kind.value for f in self.fault_log)
 
     def _inject(self, fault: Fault, on: bool) -> None:
         index = next(k for k, v in enumerate(self.scenario.vehicles) if v.id == fault.vehicle)
-        sim = self.sim
-        if fault.kind == "link_down":
-            sim.set_link_down(index, "companion", on)
-        elif fault.kind == "gps_lost":
-            sim.set_gps_lost(index, on)
-        elif fault.kind == "packet_loss_pct":
-            sim.set_loss(index, "companion", fault.value if on else 0.0)
-        elif fault.kind == "battery_pct" and on:
-            sim.set_battery_pct(index, fault.value)
-        elif fault.kind == "kill_agent" and on:
-            self.agents[index].kill()
-        elif fault.kind == "kill_worker" and on:
-            self._kill_worker(fault.vehicle)
-        record = {"t_sim_s": round(self._sim_elapsed_s(), 3), "vehicle": fault.vehicle, "kind": fault.kind,
+        self.faults.apply(fault, index, on)
+        record = {"t_sim_s": round(self._sim_elapsed_s(), 3), "vehicle": fault.vehicle, "kind": fault.kind.value,
                   "state": "on" if on else "off"}
         self.fault_log.append(record)
-        print(f"fault: {fault.kind} {record['state']} for {fault.vehicle} at t={record['t_sim_s']:.1f} s",
+        print(f"fault: {fault.kind.value} {record['state']} for {fault.vehicle} at t={record['t_sim_s']:.1f} s",
               file=self.out, flush=True)
 
-    def _kill_worker(self, vehicle_id: str) -> None:
+    def _rank_log(self, vehicle_id: str) -> Path:
         rank = 1 + [w.id for w in self.scenario.workers].index(vehicle_id)
-        rank_log = self.run_dir / "compute" / f"rank-{rank}.jsonl"
-        try:
-            started = read_jsonl(rank_log).of_kind("worker_started")
-            if not started:
-                raise OSError(f"{rank_log} has no worker_started record yet")
-            os.kill(int(started[-1]["pid"]), signal.SIGKILL)
-        except (OSError, KeyError, ValueError) as err:
-            log.warning("kill_worker %s: %s", vehicle_id, err)
+        return self.run_dir / "compute" / f"rank-{rank}.jsonl"
 
     # ---- the end ---------------------------------------------------------------------------------------------
     def _shutdown(self, land: bool) -> None:

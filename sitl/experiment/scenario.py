@@ -15,14 +15,8 @@ a mission gives `home = [lat, lon, alt_m]` and stays on the ground. Paths are re
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 from missions import MissionFileError, load_mission
 from missions.geo import Home
@@ -30,8 +24,9 @@ from missions.model import Mission
 from nac_onboard.compute.tasks import all_tasks
 from nac_onboard.errors import BadInput
 from nac_onboard.link.channel import ChannelError, load_channel
+from nac_onboard.tomlfile import get_value, read_toml, to_dataclass
+from sitl.experiment.faults import Fault, FaultKind
 
-FAULT_KINDS = ("link_down", "gps_lost", "battery_pct", "packet_loss_pct", "kill_agent", "kill_worker")
 SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
 
 
@@ -63,15 +58,6 @@ class ProbePlan:
     period_s: float = 2.0
     duration_s: float = 0.5
     interval_s: float = 0.1
-
-
-@dataclass(frozen=True)
-class Fault:
-    at_s: float
-    vehicle: str
-    kind: str
-    duration_s: float = 0.0  # 0: until the end
-    value: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -110,25 +96,9 @@ def find_scenario(name_or_path: str) -> Path:
     raise ScenarioError(f"{name_or_path}: no such scenario file, nor a shipped scenario ({names})")
 
 
-def _get(table: dict, key: str, kind, where: str, default=None):
-    value = table.get(key, default)
-    if value is None:
-        raise ScenarioError(f"{where}: missing key {key!r}")
-    if kind is float and isinstance(value, int) and not isinstance(value, bool):
-        value = float(value)
-    if not isinstance(value, kind) or isinstance(value, bool) and kind is not bool:
-        raise ScenarioError(f"{where}: {key} must be {getattr(kind, '__name__', kind)}, got {value!r}")
-    return value
-
-
 def load_scenario(name_or_path: str) -> Scenario:
     path = find_scenario(name_or_path).resolve()
-    try:
-        data = tomllib.loads(path.read_text())
-    except OSError as err:
-        raise ScenarioError(f"{path}: cannot read ({err.strerror})") from None
-    except tomllib.TOMLDecodeError as err:
-        raise ScenarioError(f"{path}: not valid TOML: {err}") from None
+    data = read_toml(path, "scenario", ScenarioError)
     where = str(path)
     duration_s = _get(data, "duration_s", float, where)
     if duration_s <= 0:
@@ -158,7 +128,7 @@ def load_scenario(name_or_path: str) -> Scenario:
         max_speedup=float(speedup), default_speedup=float(data.get("default_speedup", 1.0)),
         notes=tuple(data.get("notes", [])))
     for k, fault in enumerate(scenario.faults):
-        if fault.kind == "kill_worker" and (scenario.compute is None or fault.vehicle not in
+        if fault.kind is FaultKind.KILL_WORKER and (scenario.compute is None or fault.vehicle not in
                                             [w.id for w in scenario.workers]):
             raise ScenarioError(f"{where}: fault {k + 1}: kill_worker needs a worker of the MPI job ([compute]), "
                                 f"got {fault.vehicle!r}")
@@ -189,32 +159,31 @@ def _vehicle(table: dict, scenario_path: Path, where: str) -> VehiclePlan:
 
 
 def _compute(table: dict, where: str) -> ComputePlan:
-    task = _get(table, "task", str, where)
+    plan = to_dataclass(ComputePlan, table, where, ScenarioError, table="compute")
     tasks = all_tasks()
-    if task not in tasks:
-        raise ScenarioError(f"{where}: task must be one of {', '.join(tasks)}, got {task!r}")
-    args = table.get("args", [])
-    if not isinstance(args, list) or not all(isinstance(a, str) for a in args):
-        raise ScenarioError(f"{where}: args must be a list of strings (extra nac-onboard compute arguments)")
-    return ComputePlan(task, _get(table, "iterations", int, where, 0), _get(table, "timeout_s", float, where, 3.0),
-                       _get(table, "on_missing", str, where, "incomplete"),
-                       _get(table, "allocation", str, where, "equal"), tuple(args))
+    if plan.task not in tasks:
+        raise ScenarioError(f"{where}: compute.task must be one of {', '.join(tasks)}, got {plan.task!r}")
+    return plan
 
 
 def _probes(table: dict, where: str) -> ProbePlan:
-    plan = ProbePlan(*(_get(table, k, float, where, d) for k, d in
-                       (("period_s", 2.0), ("duration_s", 0.5), ("interval_s", 0.1))))
+    plan = to_dataclass(ProbePlan, table, where, ScenarioError, table="throughput")
     if not 0 < plan.duration_s <= plan.period_s:
-        raise ScenarioError(f"{where}: need 0 < duration_s <= period_s")
+        raise ScenarioError(f"{where}: [throughput] needs 0 < duration_s <= period_s")
     return plan
 
 
 def _fault(table: dict, ids: list[str], where: str) -> Fault:
+    kinds = [k.value for k in FaultKind]
     kind = _get(table, "kind", str, where)
-    if kind not in FAULT_KINDS:
-        raise ScenarioError(f"{where}: kind must be one of {', '.join(FAULT_KINDS)}, got {kind!r}")
-    vehicle = _get(table, "vehicle", str, where)
-    if vehicle not in ids:
-        raise ScenarioError(f"{where}: no vehicle {vehicle!r} in this scenario ({', '.join(ids)})")
-    return Fault(_get(table, "at_s", float, where), vehicle, kind, _get(table, "duration_s", float, where, 0.0),
-                 _get(table, "value", float, where, 0.0))
+    if kind not in kinds:
+        raise ScenarioError(f"{where}: kind must be one of {', '.join(kinds)}, got {kind!r}")
+    fault = to_dataclass(Fault, {k: v for k, v in table.items() if k != "kind"}, where, ScenarioError, table="fault",
+                         kind=FaultKind(kind))
+    if fault.vehicle not in ids:
+        raise ScenarioError(f"{where}: no vehicle {fault.vehicle!r} in this scenario ({', '.join(ids)})")
+    return fault
+
+
+def _get(table: dict, key: str, kind: type, where: str, default=None):
+    return get_value(table, key, kind.__name__, where, ScenarioError, *(() if default is None else (default,)))

@@ -5,8 +5,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from nac_onboard.agent.config import dump_toml
 from nac_onboard.flight_log import read_jsonl
+from nac_onboard.tomlfile import dumps_toml
 from tests.conftest import free_port
 
 
@@ -24,7 +24,7 @@ def agent_toml(vehicle_id: str, role: str, sysid: int, autopilot_uri: str, log_d
     }
     for name, values in sections.items():
         config.setdefault(name, {}).update(values)
-    return dump_toml(config)
+    return dumps_toml(config)
 
 
 def wait_for_record(path: Path, predicate, timeout_s: float = 10.0) -> dict:

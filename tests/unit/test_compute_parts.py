@@ -64,7 +64,7 @@ def test_channel_files_round_trip_and_errors_name_the_file(tmp_path):
     assert load_channel(str(path)) == PRESETS["wifi-flight"]
     (tmp_path / "bad.toml").write_text('path_loss = "log-distance"\nfreq_mhz = 2437\nbandwidth_hz = 2e7\n'
                                        'tx_power_dbm = 15\nnoise_w = 1e-12\ncolour = "red"\n')
-    with pytest.raises(ChannelError, match="bad.toml: unknown channel keys colour"):
+    with pytest.raises(ChannelError, match="bad.toml: unknown key colour"):
         load_channel(str(tmp_path / "bad.toml"))
     with pytest.raises(ChannelError, match="not a preset"):
         load_channel("moon-link")

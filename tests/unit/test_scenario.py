@@ -36,7 +36,7 @@ def test_the_shipped_scenarios_load_with_the_research_geometry():
     ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n",
      "needs one [[vehicle]] with role \"master\" and at least one worker"),
     ("[[vehicle]]\nid = 'a'\nrole = 'master'\n", "missing key 'duration_s'"),
-    ("duration_s = 'long'\n", "duration_s must be float"),
+    ("duration_s = 'long'\n", "duration_s: expected a finite number, got 'long'"),
     ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'pilot'\n", "vehicle 1: role must be"),
     ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nmission = 'nope.plan'\n", "vehicle 1 (a): "),
     ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
@@ -48,6 +48,12 @@ def test_the_shipped_scenarios_load_with_the_research_geometry():
      "role = 'worker'\nhome = [47, 8, 500]\n[[fault]]\nat_s = 5\nvehicle = 'a'\nkind = 'kill_worker'\n",
      "fault 1: kill_worker needs a worker of the MPI job"),
     ("duration_s = 10\n[compute\n", "not valid TOML"),
+    ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
+     "role = 'worker'\nhome = [47, 8, 500]\n[[fault]]\nat_s = 5\nvehicle = 'a'\nkind = 'gps_lost'\ncolour = 1\n",
+     "unknown key fault.colour"),
+    ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
+     "role = 'worker'\nhome = [47, 8, 500]\n[compute]\ntask = 'sorting'\n",
+     "compute.task must be one of linreg, matmul"),
 ])
 def test_bad_scenarios_name_the_file_and_the_key(tmp_path, text, message):
     path = tmp_path / "bad.toml"
