@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from nac_onboard.address import parse_host_port
+from nac_onboard.agent.autopilot_link import AutopilotLink
 from nac_onboard.agent.config import AgentConfig
 from nac_onboard.agent.peers import (
     MAX_DATAGRAM_BYTES,
@@ -36,7 +37,7 @@ from nac_onboard.agent.systemd_notify import SystemdNotifier
 from nac_onboard.flight_log import JsonlLog, TlogWriter
 from nac_onboard.link.emulation import SleepEmulation
 from nac_onboard.link.throughput import ThroughputServer
-from nac_onboard.mavlink import client as mav
+from nac_onboard.mavlink.client import LinkError
 from nac_onboard.mavlink.dialect import M
 from nac_onboard.mavlink.routing import RawEndpoint
 from nac_onboard.mavlink.signing import load_signing_key
@@ -75,13 +76,9 @@ class Agent:
         self.log = JsonlLog(run_dir / "agent.jsonl")
         self.throughput_log = JsonlLog(run_dir / "throughput.jsonl")
         self.tlog = TlogWriter(run_dir / "mavlink.tlog") if config.log.tlog else None
-        self.client: mav.MavlinkClient | None = None
-        self.sysid = config.vehicle.sysid or None
-        self.link_up = False
-        self.link_ever_up = False
-        self.lost_since_s = 0.0
-        self.last_open_attempt_s = -1e9
-        self.open_failures = 0
+        self.autopilot = AutopilotLink(a, config.vehicle.sysid or 1, config.vehicle.sysid or None, self.signing_key,
+                                       self.log, lambda text: self.notifier.status(f"{text}; logging to {run_dir}"),
+                                       self._log_sent if self.tlog is not None else None)
         self.endpoints: list[RawEndpoint] = []
         self.peers = PeerTable(config.vehicle.id, config.peers.timeout_s)
         self.peer_sock = self.feed_sock = None
@@ -98,11 +95,11 @@ class Agent:
         c = self.config
         self.log.write("agent_started", vehicle=c.vehicle.id, role=c.vehicle.role, config=c.source,
                        autopilot=c.autopilot.uri, run_dir=str(self.run_dir), pid=os.getpid())
-        self._open_autopilot(time.monotonic())
+        self.autopilot.open(time.monotonic())
         for uri in c.routing.endpoints:
             try:
                 self.endpoints.append(RawEndpoint(uri))
-            except mav.LinkError as err:
+            except LinkError as err:
                 self.log.write("routing_error", endpoint=uri, error=str(err))
         self.peer_sock = _udp_socket(c.peers.listen, "peers.listen", broadcast=True)
         self.feed_sock = _udp_socket(c.state_feed.listen, "state_feed.listen")
@@ -129,9 +126,8 @@ class Agent:
             self.scheduler.join(timeout_s=self.config.throughput.duration_s + 15.0)
         if self.throughput_server is not None:
             self.throughput_server.stop()
-        for closable in [*self.endpoints, self.client]:
-            if closable is not None:
-                closable.close()
+        for closable in [*self.endpoints, self.autopilot]:
+            closable.close()
         for sock in (self.peer_sock, self.feed_sock):
             if sock is not None:
                 sock.close()
@@ -140,26 +136,6 @@ class Agent:
             if f is not None:
                 f.close()
         self.notifier.close()
-
-    def _open_autopilot(self, now_s: float) -> None:
-        self.last_open_attempt_s = now_s
-        a = self.config.autopilot
-        try:
-            self.client = mav.MavlinkClient(a.uri, sysid=self.sysid, signing_key=self.signing_key,
-                                            source_system=self.config.vehicle.sysid or 1,
-                                            source_component=M.MAV_COMP_ID_ONBOARD_COMPUTER,
-                                            mav_type=M.MAV_TYPE_ONBOARD_CONTROLLER,
-                                            decode_only=mav.CLIENT_MESSAGES)
-        except mav.LinkError as err:
-            self.open_failures += 1
-            if self.open_failures == 1 or self.open_failures % 30 == 0:
-                self.log.write("link_open_failed", uri=a.uri, error=str(err), attempts=self.open_failures)
-            return
-        if self.open_failures:
-            self.log.write("link_opened", uri=a.uri, after_attempts=self.open_failures + 1)
-        self.open_failures = 0
-        if self.tlog is not None:
-            self.client.tap_sent(self._log_sent)
 
     def _log_sent(self, frame: bytes) -> None:
         self.counters["frames_out"] += 1
@@ -178,8 +154,7 @@ class Agent:
             now = time.monotonic()
             due = [t.due_s for t in (telemetry, publish, expire, sync, watchdog) if t is not None]
             readers = [s for s in (self.peer_sock, self.feed_sock) if s is not None] + self.endpoints
-            if self.client is not None:
-                readers += self.client.links
+            readers += self.autopilot.readers()
             try:
                 ready, _, _ = select.select(readers, [], [], min(max(min(due) - now, 0.0), 0.5))
             except (OSError, ValueError):
@@ -192,7 +167,7 @@ class Agent:
                 self._read_peers(now)
             if self.feed_sock in ready:
                 self._answer_feed(now)
-            self._check_link(now)
+            self.autopilot.check(now)
             if telemetry.fire(now):
                 self._log_telemetry()
             if publish.fire(now):
@@ -214,47 +189,37 @@ class Agent:
 
     # ---- autopilot -----------------------------------------------------------------------------------------
     def _read_autopilot(self, now: float) -> None:
-        if self.client is None:
+        messages = self.autopilot.read(now)
+        if not messages:
             return
-        try:
-            messages = self.client.poll(0.0)
-        except (OSError, mav.LinkError) as err:  # a serial adapter unplugged, a TCP peer gone
-            self.log.write("link_error", uri=self.config.autopilot.uri, error=str(err))
-            self._mark_lost(now, "error")
-            self.client.close()
-            self.client = None
-            return
-        if self.sysid is None:
-            autopilots = [s for s, v in self.client.vehicles.items() if v.autopilot != M.MAV_AUTOPILOT_INVALID]
-            if autopilots:
-                self.sysid = self.client.sysid = autopilots[0]
         frames = [msg.get_msgbuf() for msg in messages]
         self.counters["frames_in"] += len(frames)
         if self.tlog is not None:
             self.tlog.write_many(frames)
+        sysid = self.autopilot.sysid
         for msg, frame in zip(messages, frames, strict=True):
             for endpoint in self.endpoints:
                 if endpoint.write(frame):
                     self.counters["frames_routed"] += 1
-            if msg.get_srcSystem() == self.sysid:
-                self._on_autopilot_message(msg, now)
+            if msg.get_srcSystem() == sysid:
+                self._on_autopilot_message(msg)
 
-    def _on_autopilot_message(self, msg, now: float) -> None:
+    def _on_autopilot_message(self, msg) -> None:
         kind = msg.get_type()
-        if kind == "HEARTBEAT" and msg.get_srcComponent() == 1:
-            if not self.link_up:
-                self._link_came_up(msg, now)
-            self._note_change("mode", "mode", self.client.vehicles[self.sysid].mode)
-            self._note_change("armed", "armed", self.client.vehicles[self.sysid].armed)
+        vehicle = self.autopilot.vehicle()
+        if vehicle is None:
+            return
+        if kind == "HEARTBEAT" and msg.get_srcComponent() == M.MAV_COMP_ID_AUTOPILOT1:
+            self._note_change("mode", "mode", vehicle.mode)
+            self._note_change("armed", "armed", vehicle.armed)
         elif kind == "MISSION_ITEM_REACHED":
             self.log.write("mission_item_reached", seq=msg.seq)
         elif kind == "MISSION_CURRENT":
-            state = self.client.vehicles[self.sysid]
-            self._note_change("mission_seq", "mission_current", msg.seq, total=state.mission_total)
-            if state.mission_state:
-                self._note_change("mission_state", "mission_state", state.mission_state)
+            self._note_change("mission_seq", "mission_current", msg.seq, total=vehicle.mission_total)
+            if vehicle.mission_state:
+                self._note_change("mission_state", "mission_state", vehicle.mission_state)
         elif kind == "EXTENDED_SYS_STATE":
-            self._note_change("landed", "landed_state", self.client.vehicles[self.sysid].landed)
+            self._note_change("landed", "landed_state", vehicle.landed)
         elif kind == "STATUSTEXT":
             self.log.write("statustext", severity=msg.severity, text=msg.text)
 
@@ -264,50 +229,10 @@ class Agent:
             self._last[key] = value
             self.log.write(kind, value=value, previous=previous, **extra)
 
-    def _link_came_up(self, heartbeat, now: float) -> None:
-        self.link_up = True
-        if self.link_ever_up:
-            self.log.write("link_restored", sysid=self.sysid, outage_s=round(now - self.lost_since_s, 3))
-        else:
-            self.log.write("link_up", sysid=self.sysid, autopilot=heartbeat.autopilot, vehicle_type=heartbeat.type,
-                           mavlink_version=heartbeat.mavlink_version)
-        self.link_ever_up = True
-        self.notifier.status(f"autopilot {self.sysid} linked; logging to {self.run_dir}")
-        if self.config.autopilot.stream_hz > 0:
-            self.client.request_streams(self.config.autopilot.stream_hz, sysid=self.sysid)
-
-    def _check_link(self, now: float) -> None:
-        a = self.config.autopilot
-        if self.link_up and self.client is not None and self.sysid in self.client.vehicles:
-            silent_s = self.client.vehicles[self.sysid].link_age_s(now)
-            if silent_s > a.link_timeout_s:
-                self._mark_lost(now - silent_s, "silent", silent_s=round(silent_s, 3))
-        reopenable = not a.uri.startswith("udpin:")  # a listening UDP socket needs no reopening
-        if not self.link_up and now - self.last_open_attempt_s >= a.reconnect_s:
-            if self.client is None:
-                self._open_autopilot(now)
-            elif reopenable and self.link_ever_up:
-                self.last_open_attempt_s = now
-                try:
-                    self.client.reopen(0)
-                    if self.tlog is not None:
-                        self.client.tap_sent(self._log_sent)
-                except mav.LinkError:
-                    self.client.close()
-                    self.client = None
-
-    def _mark_lost(self, since_s: float, why: str, **extra) -> None:
-        if not self.link_up:
-            return
-        self.link_up = False
-        self.lost_since_s = since_s
-        self.log.write("link_lost", sysid=self.sysid, why=why, **extra)
-        self.notifier.status(f"autopilot link lost ({why}); retrying")
-
     def _log_telemetry(self) -> None:
-        if not self.link_up or self.sysid not in self.client.vehicles:
+        v = self.autopilot.vehicle()
+        if not self.autopilot.up or v is None:
             return  # nothing fresh to say: a lost link's last position is not today's
-        v = self.client.vehicles[self.sysid]
         if v.time_boot_ms < 0:
             return
         self.counters["telemetry"] += 1
@@ -321,11 +246,7 @@ class Agent:
     def _read_endpoints(self) -> None:
         for endpoint in self.endpoints:
             for frame in endpoint.read_frames():
-                if self.client is not None:
-                    try:
-                        self.client.links[0].write_frame(frame)
-                    except OSError:
-                        pass
+                self.autopilot.write_frame(frame)
                 for other in self.endpoints:
                     if other is not endpoint:
                         other.write(frame)
@@ -336,11 +257,11 @@ class Agent:
     # ---- peers and the state feed ----------------------------------------------------------------------------
     def own_state(self) -> PeerState:
         c = self.config
-        v = self.client.vehicles.get(self.sysid) if self.client is not None and self.sysid else None
+        v = self.autopilot.vehicle()
         known = v is not None and v.time_boot_ms >= 0
         port = self.throughput_server.port if self.throughput_server else 0
         if not known:
-            return PeerState(id=c.vehicle.id, role=c.vehicle.role, t_s=time.time(), sysid=self.sysid or 0,
+            return PeerState(id=c.vehicle.id, role=c.vehicle.role, t_s=time.time(), sysid=self.autopilot.sysid or 0,
                              probe_port=port)
         return PeerState(id=c.vehicle.id, role=c.vehicle.role, t_s=time.time(), sysid=v.sysid, lat_deg=v.lat_deg,
                          lon_deg=v.lon_deg, alt_m=v.alt_m, vel_ned_mps=tuple(v.vel_ned_mps),
@@ -378,7 +299,7 @@ class Agent:
             peers = self.peers.snapshot(time.monotonic())
         me = {k: getattr(own, k) for k in ("id", "role", "sysid", "lat_deg", "lon_deg", "alt_m", "vel_ned_mps",
                                            "battery_pct")}
-        me["link_up"] = self.link_up
+        me["link_up"] = self.autopilot.up
         return {"t_s": time.time(), "self": me, "peers": peers}
 
     def _answer_feed(self, now: float) -> None:
