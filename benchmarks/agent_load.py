@@ -25,6 +25,8 @@ from nac_onboard.mavlink.client import VehicleClient
 from sitl.launcher import SitlProcess, allocate_base_port, free_port
 from sitl.server import SitlConfig
 
+import _smoke  # noqa: E402 (benchmarks/_smoke.py, beside this script)
+
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 SMOKE = {"seconds": 2.0, "settle": 1.0}  # --smoke: the same measurement over a short window
 
@@ -103,10 +105,7 @@ def main() -> None:
     parser.add_argument("--stream-hz", type=float, default=50.0)
     parser.add_argument("--telemetry-hz", type=float, default=10.0)
     parser.add_argument("--settle", type=float, default=3.0, help="seconds from arming to the window")
-    parser.add_argument("--smoke", action="store_true", help=f"tiny run to check the benchmark works: {SMOKE}")
-    if parser.parse_known_args()[0].smoke:
-        parser.set_defaults(**SMOKE)
-    args = parser.parse_args()
+    args = _smoke.parse_args(parser, SMOKE)
     result = run(args.seconds, args.stream_hz, args.telemetry_hz, args.settle)
     print(f"agent over {args.seconds:g} s, streams at {args.stream_hz:g} Hz, log at {args.telemetry_hz:g} Hz:")
     print(f"  CPU {result['cpu_pct_of_one_core']:.2f} % of one core (target < 5 %)")

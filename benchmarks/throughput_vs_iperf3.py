@@ -13,6 +13,8 @@ import sys
 
 from nac_onboard.link import iperf3
 
+import _smoke  # noqa: E402 (benchmarks/_smoke.py, beside this script)
+
 SMOKE = {"runs": 2, "gib": 4 / 1024}  # --smoke: two pairs of 4 MiB runs
 
 
@@ -20,10 +22,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--runs", type=int, default=21)
     parser.add_argument("--gib", type=float, default=1.0, help="bytes per run, GiB")
-    parser.add_argument("--smoke", action="store_true", help=f"tiny run to check the benchmark works: {SMOKE}")
-    if parser.parse_known_args()[0].smoke:
-        parser.set_defaults(**SMOKE)
-    args = parser.parse_args()
+    args = _smoke.parse_args(parser, SMOKE)
     if not iperf3.available():
         print("iperf3 is not installed: nothing to compare against, skipped")
         return 0

@@ -8,7 +8,7 @@ import pytest
 
 from tests.conftest import REPO
 
-BENCHMARKS = sorted((REPO / "benchmarks").glob("*.py"))
+BENCHMARKS = sorted(p for p in (REPO / "benchmarks").glob("*.py") if not p.name.startswith("_"))  # _: helpers
 TIMEOUT_S = 120
 
 
