@@ -109,7 +109,10 @@ def run(config: SitlConfig, stop: threading.Event | None = None, out=sys.stdout)
         _wait(sim, stop)
     finally:
         sim.stop()
-        print(f"nac-sitl stopped at t={sim.t_s:.1f} s simulated", file=out, flush=True)
+        st = sim.stats
+        print(f"nac-sitl stopped at t={sim.t_s:.1f} s simulated: {st['steps']} steps, {st['overruns']} times behind "
+              f"the wall clock, {st['bad_frames']} bad frames, {st['handler_errors']} handler errors, "
+              f"{st['io_errors']} socket errors", file=out, flush=True)
 
 
 def _wait(sim: Sitl, stop: threading.Event | None) -> None:
