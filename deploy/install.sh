@@ -11,15 +11,16 @@
 #   --sysid N              the autopilot's MAVLink system id (default: the example's)
 #   --uri URI              autopilot endpoint (default: serial:/dev/ttyTHS2:921600)
 #   --force-config         overwrite an existing agent.toml (the old one is kept as agent.toml.bak)
+#   --fleet-key FILE       the fleet's peer key (the same on every vehicle); without it one is made once
 #   --no-system-packages   skip apt-get (iperf3, python3-venv) even without --prefix
 set -euo pipefail
 
-usage() { sed -n '2,16p' "$0" | sed 's/^# \{0,1\}//'; exit 2; }
+usage() { sed -n '2,17p' "$0" | sed 's/^# \{0,1\}//'; exit 2; }
 die() { echo "install.sh: $*" >&2; exit 2; }
 
 here=$(cd "$(dirname "$0")" && pwd)
 source_dir=$(dirname "$here")
-prefix="" role="" vehicle_id="" sysid="" uri="" force_config=0 system_packages=1
+prefix="" role="" vehicle_id="" sysid="" uri="" force_config=0 system_packages=1 fleet_key=""
 while [ $# -gt 0 ]; do
     case "$1" in
         --prefix) prefix=${2%/}; shift 2 ;;
@@ -28,6 +29,7 @@ while [ $# -gt 0 ]; do
         --sysid) sysid=$2; shift 2 ;;
         --uri) uri=$2; shift 2 ;;
         --force-config) force_config=1; shift ;;
+        --fleet-key) fleet_key=$2; shift 2 ;;
         --no-system-packages) system_packages=0; shift ;;
         -h|--help) usage ;;
         *) die "unknown option $1 (see --help)" ;;
@@ -75,6 +77,14 @@ cp -r "$here/mpi" "$app/deploy/"
 
 step "config $etc/agent.toml"
 mkdir -p "$etc"
+if [ -n "$fleet_key" ]; then
+    [ -s "$fleet_key" ] || die "--fleet-key $fleet_key: no such file, or empty"
+    install -m 0640 "$fleet_key" "$etc/fleet.key"
+elif [ ! -s "$etc/fleet.key" ]; then
+    (umask 027 && "$venv/bin/python" -c "import secrets; print(secrets.token_hex(32))" > "$etc/fleet.key")
+    echo "    made a new fleet key $etc/fleet.key: copy this same file to every vehicle (--fleet-key FILE)"
+fi
+chgrp "$(awk -F: '$1 == "nac" {print $4}' "$prefix/etc/passwd")" "$etc/fleet.key" 2>/dev/null || true
 if [ -f "$etc/agent.toml" ] && [ "$force_config" = 0 ]; then
     echo "    kept the existing config (use --force-config to replace it)"
 else

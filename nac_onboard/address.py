@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import ipaddress
+
 from nac_onboard.errors import BadInput
 
 
@@ -13,3 +15,11 @@ def parse_host_port(text: str, what: str, *, allow_port_zero: bool = False) -> t
     if not sep or not host or not port.isdigit() or not lowest <= int(port) <= 65535:
         raise BadInput(f"{what}: expected HOST:PORT with a port {lowest}-65535, got {text!r}")
     return host.strip("[]"), int(port)
+
+
+def is_loopback(host: str) -> bool:
+    """True for an address only this machine reaches (127.0.0.0/8, ::1, localhost)."""
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return host == "localhost"

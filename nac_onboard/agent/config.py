@@ -10,9 +10,11 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from nac_onboard.address import parse_host_port
+from nac_onboard.address import is_loopback, parse_host_port
+from nac_onboard.agent.peers import FleetKey
 from nac_onboard.errors import BadInput
 from nac_onboard.link.channel import ChannelModel, load_channel
+from nac_onboard.mavlink.signing import load_signing_key
 from nac_onboard.tomlfile import read_toml, to_dataclass
 
 ROLES = ("master", "worker")
@@ -57,12 +59,19 @@ class PeersSection:
     listen: str = "0.0.0.0:47100"
     send_to: tuple[str, ...] = ("255.255.255.255:47100",)
     rate_hz: float = 2.0
-    timeout_s: float = 3.0
+    timeout_s: float = 3.0  # silent this long: peer_lost
+    forget_s: float = 60.0  # silent this long: out of the table
+    max_peers: int = 64  # new ids beyond this are refused and counted
+    key_file: str = ""  # the fleet key, the same on every vehicle (docs/security.md); relative: beside this file
+    key_id: str = "fleet"  # names the key in each message, so a fleet can change keys
+    allow_unsigned: bool = False  # accept peers that do not sign (a lab without keys, at its own risk)
+    replay_window_s: float = 30.0  # signed messages dated further from our clock are refused (needs synced clocks)
 
 
 @dataclass(frozen=True)
 class StateFeedSection:
     listen: str = "127.0.0.1:47200"  # where the local compute job asks for positions
+    expose: bool = False  # must be true to listen beyond loopback: anyone who can reach it learns where we all are
 
 
 @dataclass(frozen=True)
@@ -98,6 +107,7 @@ class AgentConfig:
     throughput: ThroughputSection = field(default_factory=ThroughputSection)
     source: str = "<config>"
     emulated_channel: ChannelModel | None = None  # throughput.emulate_channel, loaded
+    fleet_key: FleetKey | None = None  # peers.key_file, loaded
 
 
 SECTIONS = {"vehicle": VehicleSection, "autopilot": AutopilotSection, "log": LogSection,
@@ -115,6 +125,15 @@ def parse_agent_config(data: dict, source: str = "<config>") -> AgentConfig:
                 for name, cls in SECTIONS.items() if name in data}
     config = AgentConfig(source=source, **sections)
     _check(config)
+    if config.peers.key_file:
+        key_path = Path(config.peers.key_file)
+        if not key_path.is_absolute() and source != "<config>":
+            key_path = Path(source).parent / key_path  # beside the config file, as install.sh puts it
+        try:
+            secret = load_signing_key(key_path)
+            config = dataclasses.replace(config, fleet_key=FleetKey(config.peers.key_id, secret))
+        except BadInput as err:
+            raise ConfigError(f"{source}: peers.key_file: {err}") from None
     if config.throughput.emulate_channel:  # loaded here, once, and handed to the probes
         try:
             channel = load_channel(config.throughput.emulate_channel)
@@ -133,11 +152,16 @@ def _check(c: AgentConfig) -> None:
                           f"got {c.vehicle.id!r}")
     positive = {"autopilot.link_timeout_s": c.autopilot.link_timeout_s, "autopilot.reconnect_s":
                 c.autopilot.reconnect_s, "log.telemetry_hz": c.log.telemetry_hz, "peers.rate_hz": c.peers.rate_hz,
-                "peers.timeout_s": c.peers.timeout_s, "throughput.period_s": c.throughput.period_s,
+                "peers.timeout_s": c.peers.timeout_s, "peers.forget_s": c.peers.forget_s,
+                "peers.max_peers": c.peers.max_peers, "peers.replay_window_s": c.peers.replay_window_s,
+                "throughput.period_s": c.throughput.period_s,
                 "throughput.duration_s": c.throughput.duration_s, "throughput.interval_s": c.throughput.interval_s}
     for key, value in positive.items():
         if not value > 0:
             raise ConfigError(f"{src}: {key} must be > 0, got {value}")
+    if not c.peers.key_file and not c.peers.allow_unsigned:
+        raise ConfigError(f"{src}: peers.key_file is not set: give the fleet key file (docs/security.md), or set "
+                          "peers.allow_unsigned = true to accept peer state that anyone on the network can forge")
     t = c.throughput
     if t.probe and t.bytes == 0 and t.duration_s > t.period_s:
         raise ConfigError(f"{src}: throughput.duration_s ({t.duration_s}) exceeds throughput.period_s "
@@ -149,6 +173,10 @@ def _check(c: AgentConfig) -> None:
             mavutil_device(uri)
         for key, text in [("peers.listen", c.peers.listen), ("state_feed.listen", c.state_feed.listen)]:
             parse_host_port(text, key, allow_port_zero=True)
+        feed_host, _ = parse_host_port(c.state_feed.listen, "state_feed.listen", allow_port_zero=True)
+        if not is_loopback(feed_host) and not c.state_feed.expose:
+            raise BadInput(f"state_feed.listen {c.state_feed.listen} is beyond loopback: anyone who reaches it learns "
+                           "every vehicle's position; set state_feed.expose = true if that is meant")
         for text in c.peers.send_to:
             parse_host_port(text, "peers.send_to")
         for target in t.targets:

@@ -32,6 +32,7 @@ from nac_onboard.agent.peers import (
     encode_peer_state,
 )
 from nac_onboard.agent.probes import ProbeScheduler
+from nac_onboard.agent.state_feed import REQUEST as FEED_REQUEST
 from nac_onboard.agent.state_feed import encode_answer
 from nac_onboard.agent.systemd_notify import SystemdNotifier
 from nac_onboard.flight_log import JsonlLog, TlogWriter
@@ -44,6 +45,7 @@ from nac_onboard.mavlink.signing import load_signing_key
 
 log = logging.getLogger(__name__)
 EXPIRE_CHECK_S = 0.1
+REJECT_LOG_PERIOD_S = 10.0
 
 
 def run_directory(config: AgentConfig, run_id: str | None = None) -> Path:
@@ -80,13 +82,18 @@ class Agent:
                                        self.log, lambda text: self.notifier.status(f"{text}; logging to {run_dir}"),
                                        self._log_sent if self.tlog is not None else None)
         self.endpoints: list[RawEndpoint] = []
-        self.peers = PeerTable(config.vehicle.id, config.peers.timeout_s)
+        p = config.peers
+        self.peers = PeerTable(config.vehicle.id, p.timeout_s, p.max_peers, p.forget_s,
+                               p.replay_window_s if config.fleet_key else None)
+        self.peer_rejects: dict[str, int] = {}  # refused peer datagrams by reason, since the start
+        self._rejects_logged: dict[str, int] = {}
+        self._last_reject_log_s = -1e9
         self.peer_sock = self.feed_sock = None
         self.peer_targets = [parse_host_port(t, "peers.send_to") for t in config.peers.send_to]
         self.throughput_server: ThroughputServer | None = None
         self.scheduler: ProbeScheduler | None = None
         self.counters = {"frames_in": 0, "frames_out": 0, "frames_routed": 0, "telemetry": 0, "peer_msgs": 0,
-                         "bad_peer_msgs": 0, "feed_requests": 0}
+                         "bad_peer_msgs": 0, "feed_requests": 0, "bad_feed_requests": 0}
         self._last = {"mode": None, "armed": None, "landed": None, "mission_seq": None, "mission_state": None}
         self._state_lock = threading.Lock()  # the probe thread reads positions while the loop updates them
 
@@ -103,6 +110,12 @@ class Agent:
                 self.log.write("routing_error", endpoint=uri, error=str(err))
         self.peer_sock = _udp_socket(c.peers.listen, "peers.listen", broadcast=True)
         self.feed_sock = _udp_socket(c.state_feed.listen, "state_feed.listen")
+        if c.state_feed.expose:
+            self.log.write("warning", text=f"the state feed listens on {c.state_feed.listen}: whoever reaches it "
+                                           "learns every vehicle's position")
+            log.warning("state feed exposed on %s", c.state_feed.listen)
+        if c.peers.allow_unsigned:
+            self.log.write("warning", text="peers.allow_unsigned: peer state from anyone on the network is believed")
         t = c.throughput
         if t.server:
             try:
@@ -131,7 +144,8 @@ class Agent:
         for sock in (self.peer_sock, self.feed_sock):
             if sock is not None:
                 sock.close()
-        self.log.write("agent_stopped", reason=self.stop_reason or "closed", **self.counters)
+        self.log.write("agent_stopped", reason=self.stop_reason or "closed", peer_rejects=self.peer_rejects,
+                       **self.counters)
         for f in (self.log, self.throughput_log, self.tlog):
             if f is not None:
                 f.close()
@@ -268,7 +282,7 @@ class Agent:
                          battery_pct=v.battery_pct, probe_port=port)
 
     def _publish_state(self) -> None:
-        data = encode_peer_state(self.own_state())
+        data = encode_peer_state(self.own_state(), self.config.fleet_key)
         for target in self.peer_targets:
             try:
                 self.peer_sock.sendto(data, target)
@@ -278,19 +292,31 @@ class Agent:
     def _read_peers(self, now: float) -> None:
         while True:
             try:
-                data, (host, _) = self.peer_sock.recvfrom(MAX_DATAGRAM_BYTES)
+                # one byte more than allowed, so a longer datagram shows as too big instead of cut short
+                data, (host, _) = self.peer_sock.recvfrom(MAX_DATAGRAM_BYTES + 1)
             except (BlockingIOError, InterruptedError):
                 return
             try:
-                peer = decode_peer_state(data, host)
-            except PeerMessageError:
-                self.counters["bad_peer_msgs"] += 1
+                peer = decode_peer_state(data, host, self.config.fleet_key, self.config.peers.allow_unsigned)
+                with self._state_lock:
+                    event = self.peers.update(peer, now, time.time())
+            except PeerMessageError as err:
+                self._peer_rejected(err.reason, host, now)
                 continue
             self.counters["peer_msgs"] += 1
-            with self._state_lock:
-                event = self.peers.update(peer, now)
             if event:
                 self.log.write(event, peer=peer.id, role=peer.role, host=host, probe_port=peer.probe_port)
+
+    def _peer_rejected(self, reason: str, host: str, now: float) -> None:
+        """Count it; log at most one peer_rejected record per REJECT_LOG_PERIOD_S, with the counts since the last."""
+        self.counters["bad_peer_msgs"] += 1
+        self.peer_rejects[reason] = self.peer_rejects.get(reason, 0) + 1
+        if now - self._last_reject_log_s >= REJECT_LOG_PERIOD_S:
+            since = {r: n - self._rejects_logged.get(r, 0) for r, n in self.peer_rejects.items()
+                     if n != self._rejects_logged.get(r, 0)}
+            self.log.write("peer_rejected", last_sender=host, last_reason=reason, since_last_record=since)
+            self._rejects_logged = dict(self.peer_rejects)
+            self._last_reject_log_s = now
 
     def positions(self) -> dict:
         """The state feed's answer: this vehicle and every peer, with ages."""
@@ -305,9 +331,12 @@ class Agent:
     def _answer_feed(self, now: float) -> None:
         while True:
             try:
-                _, sender = self.feed_sock.recvfrom(512)
+                request, sender = self.feed_sock.recvfrom(512)
             except (BlockingIOError, InterruptedError):
                 return
+            if request != FEED_REQUEST:  # anything else gets nothing back: no reflection, no amplification
+                self.counters["bad_feed_requests"] += 1
+                continue
             self.counters["feed_requests"] += 1
             try:
                 self.feed_sock.sendto(encode_answer(self.positions()), sender)

@@ -7,14 +7,15 @@ One UDP datagram each way on the companion itself (default 127.0.0.1:47200). The
 from __future__ import annotations
 
 import json
+import math
 import socket
 
 from missions.geo import distance_m
 from nac_onboard.address import parse_host_port
 from nac_onboard.errors import OperationFailed
 
-REQUEST = b'{"get":"state"}'
-MAX_ANSWER_BYTES = 65000
+REQUEST = b'{"get":"state"}'  # the only request answered: anything else is dropped, unanswered
+MAX_ANSWER_BYTES = 16384  # an answer always fits one datagram; peers that do not fit are left out and counted
 
 
 class StateFeedError(OperationFailed):
@@ -28,7 +29,7 @@ def fetch_state(address: str = "127.0.0.1:47200", timeout_s: float = 1.0) -> dic
         sock.settimeout(timeout_s)
         try:
             sock.sendto(REQUEST, (host, port))
-            data, _ = sock.recvfrom(MAX_ANSWER_BYTES)
+            data, _ = sock.recvfrom(65535)
         except (TimeoutError, OSError) as err:
             raise StateFeedError(f"no answer from the agent's state feed at {address} within {timeout_s:g} s "
                                  f"({err.strerror or err}); is nac-onboard agent running?") from None
@@ -39,10 +40,30 @@ def fetch_state(address: str = "127.0.0.1:47200", timeout_s: float = 1.0) -> dic
 
 
 def encode_answer(state: dict) -> bytes:
-    data = json.dumps(state, separators=(",", ":")).encode()
-    if len(data) > MAX_ANSWER_BYTES:
-        raise ValueError(f"state answer of {len(data)} bytes does not fit one datagram")
-    return data
+    """Standard JSON (no NaN: unknown values are null) that fits MAX_ANSWER_BYTES: the peers heard longest ago
+    are left out first, and "peers_left_out" says how many."""
+    peers = dict(state.get("peers", {}))
+    left_out = 0
+    while True:
+        answer = {**state, "peers": peers}
+        if left_out:
+            answer["peers_left_out"] = left_out
+        data = json.dumps(_finite(answer), separators=(",", ":"), allow_nan=False).encode()
+        if len(data) <= MAX_ANSWER_BYTES or not peers:
+            return data
+        oldest = max(peers, key=lambda pid: (bool(peers[pid].get("lost")), peers[pid].get("age_s") or 0.0))
+        del peers[oldest]
+        left_out += 1
+
+
+def _finite(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
+    return value
 
 
 def position_of(state: dict, vehicle: str) -> dict | None:

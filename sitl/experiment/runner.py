@@ -13,6 +13,7 @@ import enum
 import json
 import logging
 import os
+import secrets
 import signal
 import subprocess
 import sys
@@ -38,6 +39,7 @@ log = logging.getLogger(__name__)
 CLIENT_ERRORS = (OSError, LinkError, CommandError, MissionError)
 PORTS_PER_VEHICLE = 10  # ground, companion, peers, throughput server, (master) state feed
 TAKEOFF_TIMEOUT_S = 60.0  # simulated
+FLEET_KEY_FILE = "fleet.key"
 
 
 class Outcome(enum.Enum):
@@ -112,7 +114,7 @@ def agent_config(scenario: Scenario, index: int, run_dir: Path, ports: Ports) ->
         "vehicle": {"id": vehicle.id, "role": vehicle.role, "sysid": index + 1},
         "autopilot": {"uri": f"udpin:127.0.0.1:{ports.companion(index)}", "link_timeout_s": 3.0},
         "log": {"dir": str(run_dir.parent), "run_id": run_dir.name, "telemetry_hz": 10.0, "tlog": True},
-        "peers": {"listen": f"127.0.0.1:{ports.peers(index)}",
+        "peers": {"listen": f"127.0.0.1:{ports.peers(index)}", "key_file": FLEET_KEY_FILE,
                   "send_to": [f"127.0.0.1:{ports.peers(k)}" for k in others], "rate_hz": 2.0, "timeout_s": 3.0},
         "state_feed": {"listen": f"127.0.0.1:{ports.feed() if master else ports.of(index, 4)}"},
         "throughput": throughput,
@@ -214,6 +216,9 @@ class Experiment:
         self.sim.start()
         config_dir = self.run_dir / "config"
         config_dir.mkdir(exist_ok=True)
+        key = config_dir / FLEET_KEY_FILE  # a fresh fleet key per run, beside the agents' configs
+        key.touch(mode=0o600)
+        key.write_text(secrets.token_hex(32) + "\n")
         for i, vehicle in enumerate(s.vehicles):
             path = config_dir / f"{vehicle.id}.toml"
             path.write_text(agent_config(s, i, self.run_dir, self.ports))

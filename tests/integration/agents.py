@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import secrets
 import time
 from pathlib import Path
 
@@ -18,13 +19,22 @@ def agent_toml(vehicle_id: str, role: str, sysid: int, autopilot_uri: str, log_d
         "autopilot": {"uri": autopilot_uri, "link_timeout_s": 1.0, "reconnect_s": 0.5},
         "log": {"dir": str(log_dir), "run_id": "test"},
         "peers": {"listen": f"127.0.0.1:{peer_port}", "send_to": [f"127.0.0.1:{p}" for p in peer_targets],
-                  "rate_hz": 4.0, "timeout_s": 1.0},
+                  "rate_hz": 4.0, "timeout_s": 1.0, "key_file": str(fleet_key(log_dir))},
         "state_feed": {"listen": f"127.0.0.1:{free_port()}"},
         "throughput": {"bind": "127.0.0.1", "port": free_port()},
     }
     for name, values in sections.items():
         config.setdefault(name, {}).update(values)
     return dumps_toml(config)
+
+
+def fleet_key(log_dir: Path) -> Path:
+    """The test fleet's key, one per log directory, shared by the agents logging there."""
+    path = Path(log_dir) / "fleet.key"
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(secrets.token_hex(32) + "\n")
+    return path
 
 
 def wait_for_record(path: Path, predicate, timeout_s: float = 10.0) -> dict:

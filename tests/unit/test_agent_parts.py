@@ -2,8 +2,10 @@
 
 import json
 import math
+import shutil
 import socket
 import struct
+from pathlib import Path
 
 import pytest
 
@@ -14,7 +16,7 @@ from nac_onboard.agent.state_feed import distance_between
 from nac_onboard.agent.systemd_notify import SystemdNotifier
 from nac_onboard.flight_log import JsonlLog, TlogWriter, read_jsonl
 
-MINIMAL = {"vehicle": {"id": "uav1", "role": "worker"}}
+MINIMAL = {"vehicle": {"id": "uav1", "role": "worker"}, "peers": {"allow_unsigned": True}}
 
 
 def test_minimal_config_takes_the_jetson_defaults():
@@ -34,10 +36,13 @@ def test_minimal_config_takes_the_jetson_defaults():
     ({**MINIMAL, "log": {"telemetryhz": 5}}, "unknown key log.telemetryhz"),
     ({**MINIMAL, "logs": {}}, "unknown section [logs]"),
     ({**MINIMAL, "autopilot": {"uri": "serial:/dev/ttyTHS2"}}, "expected udpin:HOST:PORT"),
-    ({**MINIMAL, "peers": {"send_to": ["10.0.0.255"]}}, "peers.send_to: expected HOST:PORT"),
+    ({**MINIMAL, "peers": {"allow_unsigned": True, "send_to": ["10.0.0.255"]}}, "peers.send_to: expected HOST:PORT"),
+    ({"vehicle": MINIMAL["vehicle"]}, "peers.key_file is not set: give the fleet key file"),
+    ({**MINIMAL, "peers": {"key_file": "/nonexistent/fleet.key"}}, "peers.key_file: cannot read"),
+    ({**MINIMAL, "state_feed": {"listen": "0.0.0.0:47200"}}, "state_feed.listen 0.0.0.0:47200 is beyond loopback"),
     ({**MINIMAL, "throughput": {"probe": True, "duration_s": 20.0, "period_s": 10.0}}, "exceeds throughput.period_s"),
     ({**MINIMAL, "throughput": {"targets": ["10.0.0.2:5201"]}}, "expected ID=HOST:PORT"),
-    ({**MINIMAL, "peers": {"rate_hz": 0}}, "peers.rate_hz must be > 0"),
+    ({**MINIMAL, "peers": {"allow_unsigned": True, "rate_hz": 0}}, "peers.rate_hz must be > 0"),
     ({**MINIMAL, "log": {"tlog": "yes"}}, "log.tlog: expected true or false"),
 ])
 def test_bad_config_names_the_file_and_key(data, message):
@@ -55,38 +60,40 @@ def test_config_file_errors_name_the_file(tmp_path):
         load_agent_config(tmp_path / "missing.toml")
 
 
-def test_deploy_examples_are_valid_configs():
-    from pathlib import Path
-
+def test_deploy_examples_are_valid_configs(tmp_path):
     deploy = Path(__file__).resolve().parents[2] / "deploy"
-    roles = {load_agent_config(p).vehicle.role for p in deploy.glob("*.toml")}
-    assert roles == {"master", "worker"}
+    for example in deploy.glob("*.toml"):  # as install.sh lays them out: the fleet key beside the config
+        shutil.copy(example, tmp_path / example.name)
+    (tmp_path / "fleet.key").write_text("ab" * 32 + "\n")
+    configs = [load_agent_config(p) for p in tmp_path.glob("*.toml")]
+    assert {c.vehicle.role for c in configs} == {"master", "worker"}
+    assert all(c.fleet_key is not None and c.fleet_key.secret == bytes.fromhex("ab" * 32) for c in configs)
 
 
 def test_peer_message_round_trip_and_bad_datagrams():
     state = PeerState("uav2", "worker", 1.7e9, sysid=2, lat_deg=47.1, lon_deg=8.5, alt_m=500.0,
                       vel_ned_mps=(1.0, 0.5, 0.0), battery_pct=80, probe_port=5201)
-    back = decode_peer_state(encode_peer_state(state), "10.0.0.2")
+    back = decode_peer_state(encode_peer_state(state), "10.0.0.2", None)
     assert back == PeerState(**{**state.__dict__, "host": "10.0.0.2"})
     for garbage in (b"\xff\x00", b"[1, 2]", b'{"nac": "other/1"}', b'{"nac": "peer-state/1", "id": "x"}',
                     b'{"nac": "peer-state/1", "id": "x", "role": "worker", "t_s": "soon"}'):
         with pytest.raises(PeerMessageError):
-            decode_peer_state(garbage, "10.0.0.9")
+            decode_peer_state(garbage, "10.0.0.9", None)
 
 
 def test_peer_table_seen_lost_and_back():
     table = PeerTable("uav1", timeout_s=1.0)
     me = PeerState("uav1", "master", 0.0)
     other = PeerState("uav2", "worker", 0.0)
-    assert table.update(me, 0.0) is None, "our own looped-back broadcast is not a peer"
-    assert table.update(other, 0.0) == "peer_seen"
-    assert table.update(other, 0.5) is None
+    assert table.update(me, 0.0, 0.0) is None, "our own looped-back broadcast is not a peer"
+    assert table.update(other, 0.0, 0.0) == "peer_seen"
+    assert table.update(other, 0.5, 0.5) is None
     assert table.expire(1.4) == []
     lost = table.expire(1.6)
     assert [(p.id, round(s, 1)) for p, s in lost] == [("uav2", 1.1)]
     assert table.expire(3.0) == [], "lost is reported once"
     assert table.snapshot(3.0)["uav2"]["lost"] and table.live() == []
-    assert table.update(other, 3.1) == "peer_seen", "a peer that comes back is seen again"
+    assert table.update(other, 3.1, 3.1) == "peer_seen", "a peer that comes back is seen again"
 
 
 def test_jsonl_records_have_time_and_kind_and_no_nan(tmp_path):

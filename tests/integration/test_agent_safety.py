@@ -1,0 +1,58 @@
+"""A running agent under hostile peer traffic: it stays up, believes only signed state from its fleet, logs the
+refusals (rate-limited, naming the sender), and its state feed answers only a well-formed request."""
+
+import json
+import socket
+import time
+
+from nac_onboard.agent.peers import FleetKey, PeerState, encode_peer_state, sign
+from nac_onboard.agent.state_feed import REQUEST, fetch_state
+from nac_onboard.mavlink.signing import load_signing_key
+from tests.conftest import free_port
+from tests.integration.agents import agent_toml, fleet_key, kind, wait_for_record
+from tests.integration.test_agent import companion_uri, run_dir
+
+KILLERS = [b'{"nac":"peer-state/1","id":"w9","role":"worker","t_s":1,"battery_pct":1e400}',
+           b'{"nac":"peer-state/1","id":"w9","role":"worker","t_s":1,"lat_deg":' + b"9" * 400 + b"}",
+           b"[" * 1500]  # each once stopped the agent; signed here, as a fleet member with a bug would send them
+
+
+def test_hostile_peer_datagrams_do_not_stop_the_agent_and_forged_state_is_not_believed(start_sitl, start_agent,
+                                                                                      tmp_path):
+    sim = start_sitl(speedup=5.0)
+    peer_port, feed_port = free_port(), free_port()
+    config = agent_toml("uav1", "master", 1, companion_uri(sim, 0), tmp_path / "runs", peer_port, [],
+                        state_feed={"listen": f"127.0.0.1:{feed_port}"})
+    agent = start_agent(config)
+    log_path = run_dir(tmp_path) / "agent.jsonl"
+    wait_for_record(log_path, kind("agent_ready"))
+    key = FleetKey("fleet", load_signing_key(fleet_key(tmp_path / "runs")))
+    now = time.time()
+    forged = encode_peer_state(PeerState("intruder", "worker", now, lat_deg=47.0, lon_deg=8.0, alt_m=500.0))
+    wrong_key = encode_peer_state(PeerState("intruder2", "worker", now), FleetKey("fleet", b"y" * 32))
+    genuine = encode_peer_state(PeerState("w1", "worker", now, lat_deg=47.0, lon_deg=8.0, alt_m=500.0), key)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        hostile = [*(sign(k, key) for k in KILLERS), b"\x00" * 3000, forged, wrong_key]
+        for datagram in [*hostile, genuine, genuine]:  # the second genuine one is a replay
+            sock.sendto(datagram, ("127.0.0.1", peer_port))
+        wait_for_record(log_path, kind("peer_seen", peer="w1"))
+        # the feed answers only the request it knows: a 1-byte datagram gets nothing back
+        sock.sendto(b"x", ("127.0.0.1", feed_port))
+        sock.settimeout(0.5)
+        try:
+            reflected = sock.recvfrom(65535)
+        except TimeoutError:
+            reflected = None
+        assert reflected is None
+    state = fetch_state(f"127.0.0.1:{feed_port}")
+    assert set(state["peers"]) == {"w1"}, "only the fleet's signed state is believed"
+    assert agent.alive(), agent.stderr_text()
+    rejected = wait_for_record(log_path, kind("peer_rejected"))
+    assert rejected["last_sender"] == "127.0.0.1"
+    assert agent.stop() == 0
+    stopped = json.loads(log_path.read_text().splitlines()[-1])
+    assert stopped["kind"] == "agent_stopped"
+    assert stopped["peer_rejects"] == {"schema": 2, "not_json": 1, "too_big": 1, "unsigned": 1, "bad_signature": 1,
+                                       "replayed": 1}, stopped["peer_rejects"]
+    assert stopped["bad_feed_requests"] == 1 and stopped["feed_requests"] >= 1
+    assert REQUEST == b'{"get":"state"}'
