@@ -51,7 +51,9 @@ class LogSection:
 
 @dataclass(frozen=True)
 class RoutingSection:
-    endpoints: tuple[str, ...] = ()  # extra MAVLink endpoints sharing the autopilot link (MAVProxy, tools)
+    endpoints: tuple[str, ...] = ()  # MAVLink endpoints sharing the autopilot link (MAVProxy, tools): may command
+    watch: tuple[str, ...] = ()  # read-only endpoints: telemetry out, nothing they send reaches the autopilot
+    allow: tuple[str, ...] = ()  # HOST:PORT senders a udpin endpoint also accepts (besides the first that spoke)
 
 
 @dataclass(frozen=True)
@@ -169,8 +171,10 @@ def _check(c: AgentConfig) -> None:
     try:
         from nac_onboard.mavlink.client import mavutil_device  # the URI table lives with the MAVLink adapter
 
-        for uri in (c.autopilot.uri, *c.routing.endpoints):
+        for uri in (c.autopilot.uri, *c.routing.endpoints, *c.routing.watch):
             mavutil_device(uri)
+        for text in c.routing.allow:
+            parse_host_port(text, "routing.allow")
         for key, text in [("peers.listen", c.peers.listen), ("state_feed.listen", c.state_feed.listen)]:
             parse_host_port(text, key, allow_port_zero=True)
         feed_host, _ = parse_host_port(c.state_feed.listen, "state_feed.listen", allow_port_zero=True)

@@ -93,7 +93,8 @@ class Agent:
         self.throughput_server: ThroughputServer | None = None
         self.scheduler: ProbeScheduler | None = None
         self.counters = {"frames_in": 0, "frames_out": 0, "frames_routed": 0, "telemetry": 0, "peer_msgs": 0,
-                         "bad_peer_msgs": 0, "feed_requests": 0, "bad_feed_requests": 0}
+                         "bad_peer_msgs": 0, "feed_requests": 0, "bad_feed_requests": 0, "routing_refused": 0}
+        self._refusals_logged, self._last_refusal_log_s = 0, -1e9
         self._last = {"mode": None, "armed": None, "landed": None, "mission_seq": None, "mission_state": None}
         self._state_lock = threading.Lock()  # the probe thread reads positions while the loop updates them
 
@@ -103,9 +104,10 @@ class Agent:
         self.log.write("agent_started", vehicle=c.vehicle.id, role=c.vehicle.role, config=c.source,
                        autopilot=c.autopilot.uri, run_dir=str(self.run_dir), pid=os.getpid())
         self.autopilot.open(time.monotonic())
-        for uri in c.routing.endpoints:
+        allow = tuple(parse_host_port(text, "routing.allow") for text in c.routing.allow)
+        for uri, read_only in [*((u, False) for u in c.routing.endpoints), *((u, True) for u in c.routing.watch)]:
             try:
-                self.endpoints.append(RawEndpoint(uri))
+                self.endpoints.append(RawEndpoint(uri, read_only, allow))
             except LinkError as err:
                 self.log.write("routing_error", endpoint=uri, error=str(err))
         self.peer_sock = _udp_socket(c.peers.listen, "peers.listen", broadcast=True)
@@ -267,6 +269,13 @@ class Agent:
                 self.counters["frames_routed"] += 1
                 if self.tlog is not None:
                     self.tlog.write(frame)
+        dropped = self.counters["routing_refused"] = sum(e.dropped_frames for e in self.endpoints)
+        now = time.monotonic()
+        if dropped > self._refusals_logged and now - self._last_refusal_log_s >= REJECT_LOG_PERIOD_S:
+            senders = sorted({e.last_dropped_sender for e in self.endpoints if e.last_dropped_sender})
+            self.log.write("routing_refused", frames_since_last_record=dropped - self._refusals_logged,
+                           senders=senders)
+            self._refusals_logged, self._last_refusal_log_s = dropped, now
 
     # ---- peers and the state feed ----------------------------------------------------------------------------
     def own_state(self) -> PeerState:

@@ -56,3 +56,73 @@ def test_hostile_peer_datagrams_do_not_stop_the_agent_and_forged_state_is_not_be
                                        "replayed": 1}, stopped["peer_rejects"]
     assert stopped["bad_feed_requests"] == 1 and stopped["feed_requests"] >= 1
     assert REQUEST == b'{"get":"state"}'
+
+
+def test_routing_takes_commands_only_from_its_configured_tool(start_sitl, start_agent, tmp_path):
+    """An ARM from an unknown local address to a routing endpoint once armed the vehicle; now only the tool the
+    config names is heard, a watch endpoint gets telemetry and cannot command, and refusals are logged."""
+    from pymavlink import mavutil
+
+    from missions.model import MavCmd
+
+    sim = start_sitl(speedup=5.0)
+    tool_port, watcher_port = free_port(), free_port()
+    tool = mavutil.mavlink_connection(f"udpin:127.0.0.1:{tool_port}", source_system=250)
+    watcher = mavutil.mavlink_connection(f"udpin:127.0.0.1:{watcher_port}", source_system=251)
+    try:
+        start_agent(agent_toml("uav1", "master", 1, companion_uri(sim, 0), tmp_path / "runs", free_port(), [],
+                               routing={"endpoints": [f"udpout:127.0.0.1:{tool_port}"],
+                                        "watch": [f"udpout:127.0.0.1:{watcher_port}"]}))
+        for conn in (tool, watcher):
+            assert conn.recv_match(type="HEARTBEAT", blocking=True, timeout=5.0) is not None
+        agent_host, agent_port = next(iter(tool.clients))  # the agent's socket for the tool, as the tool saw it
+        attacker = mavutil.mavlink_connection(f"udpout:{agent_host}:{agent_port}", source_system=66)
+        try:
+            for _ in range(5):  # an intruder aims at the tool endpoint's socket; the watcher tries too
+                attacker.mav.command_long_send(1, 1, MavCmd.COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+                watcher.mav.command_long_send(1, 1, MavCmd.COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+            refused = wait_for_record(run_dir(tmp_path) / "agent.jsonl", kind("routing_refused"))
+            assert refused["frames_since_last_record"] >= 1
+            # a barrier: the tool's own request travels the same path after the intruders' frames
+            tool.mav.command_long_send(1, 1, MavCmd.REQUEST_MESSAGE, 0, 0, 0, 0, 0, 0, 0, 0)
+            assert tool.recv_match(type="COMMAND_ACK", blocking=True, timeout=3.0) is not None
+            assert not sim.truth(0)["armed"], "nobody but the configured tool may arm the vehicle"
+            tool.mav.command_long_send(1, 1, MavCmd.COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+            ack = tool.recv_match(type="COMMAND_ACK", blocking=True, timeout=3.0)
+            assert ack is not None and sim.truth(0)["armed"], "the configured tool still commands it"
+        finally:
+            attacker.close()
+    finally:
+        tool.close()
+        watcher.close()
+
+
+def test_a_udpin_routing_endpoint_answers_only_the_first_peer_or_the_allowed_ones():
+    from pymavlink.dialects.v20 import ardupilotmega as dialect
+
+    from nac_onboard.mavlink.routing import RawEndpoint
+
+    frame = dialect.MAVLink(None, srcSystem=250).heartbeat_encode(6, 8, 0, 0, 0).pack(dialect.MAVLink(None))
+    port = free_port()
+    endpoint = RawEndpoint(f"udpin:127.0.0.1:{port}")
+    senders = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(3)]
+    try:
+        for s in senders:
+            s.bind(("127.0.0.1", 0))
+        allowed = RawEndpoint(f"udpin:127.0.0.1:{free_port()}", allow=(senders[2].getsockname(),))
+        try:
+            for s in senders:
+                s.sendto(frame, ("127.0.0.1", port))
+                s.sendto(frame, allowed.sock.getsockname())
+            # loopback delivers a datagram into the receiver's queue before sendto returns: all are there now
+            assert len(endpoint.read_frames()) == 1 and endpoint.dropped_frames == 2
+            assert endpoint.peer == senders[0].getsockname()
+            assert endpoint.write(frame) and senders[0].recv(512) == frame
+            assert len(allowed.read_frames()) == 1 and allowed.dropped_frames == 2, "only the allowed sender"
+        finally:
+            allowed.close()
+    finally:
+        endpoint.close()
+        for s in senders:
+            s.close()
+
