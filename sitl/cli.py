@@ -54,6 +54,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--gcs-base-port", type=int, default=14550, help="ground link of vehicle i: base + step*i")
     run.add_argument("--companion-base-port", type=int, default=14551, help="companion link: base + step*i")
     run.add_argument("--tcp-base-port", type=int, default=5760, help="TCP server: base + step*i (0 = off)")
+    run.add_argument("--tcp-bind", default="127.0.0.1",
+                     help="address the TCP servers listen on (another address exposes the vehicles to that network)")
     run.add_argument("--port-step", type=int, default=10, help="port increment between vehicles")
     run.add_argument("--out", type=_host_port, action="append", default=[],
                      help="extra ground link HOST:PORT (port + step*i per vehicle); repeatable")
@@ -89,7 +91,7 @@ def config_from_args(args: argparse.Namespace) -> SitlConfig:
     return SitlConfig(
         vehicles=args.vehicles, speedup=args.speedup, home=args.home, spacing_m=args.spacing_m, seed=args.seed,
         params=params, host=args.host, gcs_base_port=args.gcs_base_port,
-        companion_base_port=args.companion_base_port, tcp_base_port=args.tcp_base_port,
+        companion_base_port=args.companion_base_port, tcp_base_port=args.tcp_base_port, tcp_bind=args.tcp_bind,
         port_step=args.port_step, extra_outs=tuple(args.out), signing_key=signing_key,
     )
 

@@ -16,7 +16,8 @@ def cli_args(config: SitlConfig) -> list[str]:
             "--home", f"{config.home.lat_deg},{config.home.lon_deg},{config.home.alt_m}",
             "--spacing-m", str(config.spacing_m), "--seed", str(config.seed), "--host", config.host,
             "--gcs-base-port", str(config.gcs_base_port), "--companion-base-port", str(config.companion_base_port),
-            "--tcp-base-port", str(config.tcp_base_port), "--port-step", str(config.port_step)]
+            "--tcp-base-port", str(config.tcp_base_port), "--tcp-bind", config.tcp_bind,
+            "--port-step", str(config.port_step)]
     for host, port in config.extra_outs:
         args += ["--out", f"{host}:{port}"]
     return args

@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass, field
 
 from missions.geo import Home
+from nac_onboard.address import is_loopback
 from nac_onboard.errors import OperationFailed
 from sitl.mavlink.codec import new_parser, parse_datagram
 from sitl.mavlink.telemetry import Streams, TelemetrySource
@@ -43,6 +44,7 @@ class SitlConfig:
     gcs_base_port: int = 14550
     companion_base_port: int = 14551
     tcp_base_port: int = 5760  # 0 = no TCP server
+    tcp_bind: str = "127.0.0.1"  # where the TCP server listens; another address exposes the vehicles to that network
     port_step: int = 10
     extra_outs: tuple = ()  # ((host, base_port), ...): more ground links, port + port_step * i
     dt_s: float = 0.01
@@ -84,10 +86,7 @@ class Connection:
         self.pending.clear()
         self.pending_bytes = 0
         try:
-            if self.tcp:
-                self.sock.send(data)
-            else:
-                self.sock.sendto(data, self.peer)
+            self.sock.send(data)  # UDP sockets are connected to their one client
         except BlockingIOError:
             pass  # a slow TCP reader loses telemetry, as over a real radio
         except OSError as err:
@@ -151,7 +150,10 @@ class Sitl:
     def _udp(self, vehicle: int, kind: str, host: str, port: int) -> None:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.setblocking(False)
-        sock.bind(("0.0.0.0", 0))
+        # Connected to its client: the kernel then delivers only that client's datagrams, so nobody else on the
+        # network can command the vehicle through this link (ArduPilot SITL's --out links answer anyone).
+        sock.bind(("127.0.0.1" if is_loopback(host) else "0.0.0.0", 0))
+        sock.connect((host, port))
         connection = Connection(self, vehicle, kind, sock, (host, port))
         self.protocols[vehicle].connections.append(connection)
         self._selector.register(sock, selectors.EVENT_READ, ("udp", connection))
@@ -175,7 +177,7 @@ class Sitl:
                     server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
                     server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
                     try:
-                        server.bind(("0.0.0.0", port))
+                        server.bind((c.tcp_bind, port))
                     except OSError as err:
                         server.close()
                         raise SitlError(f"TCP port {port} for vehicle {i + 1} is taken ({err.strerror}); "
@@ -184,7 +186,7 @@ class Sitl:
                     server.setblocking(False)
                     self._selector.register(server, selectors.EVENT_READ, ("listen", (server, i)))
                     self._sockets.append(server)
-                    ends["tcp"] = f"0.0.0.0:{port}"
+                    ends["tcp"] = f"{c.tcp_bind}:{port}"
                 self.endpoints.append(ends)
         except Exception:
             self._close_sockets()

@@ -1,7 +1,6 @@
 """Acceptance 5: garbage and nonsense do not stop the simulator; faults behave as on a real vehicle."""
 
 import random
-import socket
 
 from missions.model import MavCmd
 from sitl.mavlink.codec import mavlink
@@ -54,27 +53,29 @@ def test_garbage_and_nonsense_do_not_stop_the_vehicles(start_sitl, gcs_for):
     gcs = gcs_for(sim, 0)
     target = vehicle_socket_address(sim)
     rng = random.Random(42)
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
-        for _batch in range(10):
-            for _ in range(1000):
-                size = rng.randrange(1, 300)
-                data = bytes(rng.getrandbits(8) for _ in range(size))
-                if rng.random() < 0.3:  # start like a MAVLink frame so the parser goes deeper
-                    data = bytes([rng.choice([0xFD, 0xFE])]) + data
-                sender.sendto(data, target)
-            assert_still_answering(gcs)  # each batch processed before the next: the vehicle keeps up
+    # Sent from the ground station's own socket: the link is connected to it, so only it is heard (a radio
+    # that garbles frames, a client with a bug); anyone else's datagrams never reach the vehicle.
+    sender = gcs.conn.port
+    for _batch in range(10):
+        for _ in range(1000):
+            size = rng.randrange(1, 300)
+            data = bytes(rng.getrandbits(8) for _ in range(size))
+            if rng.random() < 0.3:  # start like a MAVLink frame so the parser goes deeper
+                data = bytes([rng.choice([0xFD, 0xFE])]) + data
+            sender.sendto(data, target)
+        assert_still_answering(gcs)  # each batch processed before the next: the vehicle keeps up
 
-        encoder = mavlink.MAVLink(None, srcSystem=200, srcComponent=1)
-        for _batch in range(10):
-            for _ in range(100):
-                msg = random_message(rng)
-                try:
-                    frame = msg.pack(encoder)
-                except Exception:
-                    continue  # values that pymavlink itself cannot encode are not well-formed
-                encoder.seq = (encoder.seq + 1) % 256
-                sender.sendto(frame, target)
-            assert_still_answering(gcs)
+    encoder = mavlink.MAVLink(None, srcSystem=200, srcComponent=1)
+    for _batch in range(10):
+        for _ in range(100):
+            msg = random_message(rng)
+            try:
+                frame = msg.pack(encoder)
+            except Exception:
+                continue  # values that pymavlink itself cannot encode are not well-formed
+            encoder.seq = (encoder.seq + 1) % 256
+            sender.sendto(frame, target)
+        assert_still_answering(gcs)
     assert sim.stats["bad_frames"] > 0
     assert sim.stats["handler_errors"] == 0, "a handler raised on a well-formed message"
     assert sim._thread.is_alive()
@@ -88,9 +89,8 @@ def test_truncated_frames_and_wrong_sysid_commands(start_sitl, gcs_for):
     target = vehicle_socket_address(sim)
     encoder = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
     frame = mavlink.MAVLink_command_long_message(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(encoder)
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
-        for cut in range(1, len(frame)):
-            sender.sendto(frame[:cut], target)
+    for cut in range(1, len(frame)):  # from the link's own client: nobody else is heard
+        gcs.conn.port.sendto(frame[:cut], target)
     assert_still_answering(gcs)
     assert not sim.truth(0)["armed"]  # no truncated copy was taken for a command
 
@@ -128,3 +128,25 @@ def test_low_battery_triggers_return_to_launch(start_sitl, gcs_for):
     assert gcs.recv("STATUSTEXT", 60.0, lambda m: m.text == "Landed") is not None
     truth = sim.truth(0)
     assert abs(truth["pos_m"][0]) < 2.5 and abs(truth["pos_m"][1]) < 2.5
+
+
+def test_only_the_links_own_client_can_command_a_vehicle(start_sitl, gcs_for):
+    """The SITL's UDP links once took commands from any sender; now each is connected to its one client."""
+    from pymavlink import mavutil
+
+    from missions.model import MavCmd
+
+    sim = start_sitl()
+    gcs = gcs_for(sim, 0)
+    vehicle_socket = next(iter(gcs.conn.clients))  # where the vehicle's ground link sends from
+    intruder = mavutil.mavlink_connection(f"udpout:{vehicle_socket[0]}:{vehicle_socket[1]}", source_system=66)
+    try:
+        for _ in range(5):
+            intruder.mav.command_long_send(1, 1, MavCmd.COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        # a barrier on the same link: the client's own command is answered after the intruder's were sent
+        assert gcs.command(MavCmd.REQUEST_MESSAGE, 0) is not None
+        assert not sim.truth(0)["armed"]
+        assert gcs.command(MavCmd.COMPONENT_ARM_DISARM, 1) == 0 and sim.truth(0)["armed"]
+    finally:
+        intruder.close()
+    assert all(ends["tcp"].startswith("127.0.0.1:") for ends in sim.endpoints if "tcp" in ends)
