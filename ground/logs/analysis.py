@@ -117,6 +117,8 @@ def _received(record: dict) -> dict:
 def throughput(run: RunLog, t0_s: float) -> pd.DataFrame:
     rows = []
     for r in run.probes:
+        if r.get("error_kind") == "server":
+            continue  # the server refused or broke: that says nothing about the link
         got, sent = _received(r), (r.get("end") or {}).get("sum_sent") or {}
         start = (r.get("start") or {}).get("timestamp", {}).get("timesecs")
         t_s = float(start) if start is not None else r["t_s"]
@@ -198,6 +200,9 @@ def summarize(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, probes: pd.
         summary["absent_iterations"] = {str(v): int(n) for v, n in absent.groupby("vehicle").size().items()}
         if "absent" in workers:
             summary["absence_reasons"] = sorted(set(absent["absent"].dropna().astype(str)))
+    server_errors = sum(1 for r in run.probes if r.get("error_kind") == "server")
+    if server_errors:
+        summary["probes_not_measured"] = server_errors  # the server refused or broke: left out of the tables
     if not probes.empty:
         ok = probes[probes["error"] == ""]
         summary.update(probes=len(probes), failed_probes=int((probes["error"] != "").sum()),

@@ -161,6 +161,8 @@ def _check(c: AgentConfig) -> None:
     for key, value in positive.items():
         if not value > 0:
             raise ConfigError(f"{src}: {key} must be > 0, got {value}")
+    if c.throughput.interval_s < 0.05:
+        raise ConfigError(f"{src}: throughput.interval_s must be >= 0.05 s (servers refuse finer intervals)")
     if not c.peers.key_file and not c.peers.allow_unsigned:
         raise ConfigError(f"{src}: peers.key_file is not set: give the fleet key file (docs/security.md), or set "
                           "peers.allow_unsigned = true to accept peer state that anyone on the network can forge")

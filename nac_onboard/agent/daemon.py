@@ -46,6 +46,7 @@ from nac_onboard.mavlink.signing import load_signing_key
 log = logging.getLogger(__name__)
 EXPIRE_CHECK_S = 0.1
 REJECT_LOG_PERIOD_S = 10.0
+SUPERVISE_S = 1.0
 
 
 def run_directory(config: AgentConfig, run_id: str | None = None) -> Path:
@@ -164,11 +165,12 @@ class Agent:
         telemetry = _Timer(1.0 / c.log.telemetry_hz)
         publish = _Timer(1.0 / c.peers.rate_hz)
         expire = _Timer(EXPIRE_CHECK_S)
+        supervise = _Timer(SUPERVISE_S)
         sync = _Timer(c.log.fsync_s) if c.log.fsync_s > 0 else None
         watchdog = _Timer(self.notifier.watchdog_period_s) if self.notifier.watchdog_period_s else None
         while not self.stop_event.is_set():
             now = time.monotonic()
-            due = [t.due_s for t in (telemetry, publish, expire, sync, watchdog) if t is not None]
+            due = [t.due_s for t in (telemetry, publish, expire, sync, watchdog, supervise) if t is not None]
             readers = [s for s in (self.peer_sock, self.feed_sock) if s is not None] + self.endpoints
             readers += self.autopilot.readers()
             try:
@@ -198,6 +200,8 @@ class Agent:
                         f.sync()
             if watchdog is not None and watchdog.fire(now):
                 self.notifier.watchdog()
+            if supervise.fire(now):
+                self._supervise_throughput_server()
 
     def stop(self, reason: str) -> None:
         self.stop_reason = reason
@@ -257,6 +261,20 @@ class Agent:
                        roll_deg=round(v.roll_deg, 3), pitch_deg=round(v.pitch_deg, 3), yaw_deg=round(v.yaw_deg, 3),
                        battery_pct=v.battery_pct, voltage_v=v.voltage_v, mode=v.mode, armed=v.armed,
                        landed=v.landed, mission_seq=v.mission_seq)
+
+    def _supervise_throughput_server(self) -> None:
+        """A server thread that died is started again on its port: without it every probe would read as a lost
+        link. Each restart is an event in the log."""
+        server = self.throughput_server
+        if server is None or server.alive:
+            return
+        t = self.config.throughput
+        try:
+            server.stop()
+            self.throughput_server = ThroughputServer(t.bind, t.port).start()
+            self.log.write("throughput_server_restarted", port=t.port, refused_before=server.refused)
+        except OSError as err:
+            self.log.write("throughput_server_failed", port=t.port, error=str(err))
 
     # ---- routing -------------------------------------------------------------------------------------------
     def _read_endpoints(self) -> None:

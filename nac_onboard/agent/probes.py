@@ -69,7 +69,7 @@ class ProbeScheduler:
             result = probe(host, port, duration_s=None if s.bytes else s.duration_s, nbytes=s.bytes or None,
                            interval_s=s.interval_s, rate_bps=rate_bps)
         except ProbeError as err:
-            result = {"error": str(err)}
+            result = {"error": str(err), "error_kind": err.kind}
         after = self.positions()
         fields["positions"] = {"start": self._pair(before, peer_id), "end": self._pair(after, peer_id)}
         fields["distance_m"] = distance_m

@@ -5,7 +5,13 @@ count, then half-closes; the server counts what arrives, per interval, and answe
 JSON line. The result reads like `iperf3 -J` (DESIGN.md section 4): `start`, `intervals[]` (sender side, each
 with `streams[]` and `sum`), `end.sum_sent` and `end.sum_received`, and the server's intervals under
 `server_output_json`, the key iperf3 uses for `--get-server-output`. A failed probe is `{"error": "..."}` as in
-iperf3. The receiver's figure is the path's: the sender's also counts what still sits in its socket buffer.
+iperf3, with `error_kind`: "link" (the path failed: no connection, a stall, a reset) or "server" (the server
+refused the probe or answered nonsense), so a broken server is never read as a broken link. The receiver's figure
+is the path's: the sender's also counts what still sits in its socket buffer.
+
+The server takes anything from the network: the header is checked (type, range) before it is used, the header
+must arrive within HEADER_TIMEOUT_S and the data within the probe's own length plus a grace, the answer has at
+most MAX_INTERVALS intervals, and no connection can stop the server (a failure is logged and answered).
 """
 
 from __future__ import annotations
@@ -27,9 +33,16 @@ DEFAULT_PORT = 5201  # iperf3's
 BLOCK_BYTES = 1024 * 1024  # per write: on a CPU-bound path (loopback) fewer, larger writes go faster
 PACING_S = 0.005
 RECV_BYTES = 1024 * 1024
+MAX_ANSWER_BYTES = 1 << 20
 HEADER_LIMIT_BYTES = 4096
+HEADER_TIMEOUT_S = 2.0  # a client that connects and sends nothing holds the server this long at most
 IDLE_TIMEOUT_S = 10.0
+MAX_PROBE_S = 60.0  # the longest probe a server accepts (by duration; by bytes it must finish in this time too)
+MAX_PROBE_BYTES = 10 ** 11
+MIN_INTERVAL_S, MAX_INTERVALS = 0.05, 1200
+GRACE_S = 5.0
 PROTOCOL = "nac-probe/1"
+LINK, SERVER = "link", "server"  # whose fault a failed probe is
 # Fields of Linux's struct tcp_info (include/uapi/linux/tcp.h) that iperf3 reports, by byte offset.
 _TCP_INFO = {"snd_mss": 16, "pmtu": 60, "rtt": 68, "rttvar": 72, "snd_cwnd": 80, "total_retrans": 100,
              "snd_wnd": 228}
@@ -37,7 +50,47 @@ _U32 = struct.Struct("=I")
 
 
 class ProbeError(OperationFailed):
-    """A probe could not run; the message names the peer and what went wrong."""
+    """A probe could not run; the message names the peer and what went wrong, `kind` whose fault it is."""
+
+    def __init__(self, message: str, kind: str = LINK):
+        super().__init__(message)
+        self.kind = kind
+
+
+class HeaderError(ValueError):
+    """A probe header the server refuses; the message says which field and what was expected."""
+
+
+def check_header(line: bytes) -> dict:
+    """The probe header as the server will use it: protocol, duration_s or bytes, interval_s, all in range."""
+    try:
+        header = json.loads(line, parse_constant=lambda c: c)  # NaN/Infinity come back as strings, refused below
+    except (ValueError, UnicodeDecodeError, RecursionError):
+        raise HeaderError("the probe header is not JSON") from None
+    if not isinstance(header, dict):
+        raise HeaderError("the probe header is not a JSON object")
+    if header.get("protocol") != PROTOCOL:
+        raise HeaderError(f"expected protocol {PROTOCOL}")
+    duration_s, nbytes, interval_s = header.get("duration_s"), header.get("bytes"), header.get("interval_s", 0.5)
+    if (duration_s is None) == (nbytes is None):
+        raise HeaderError("give exactly one of duration_s and bytes")
+    if duration_s is not None and not _number_within(duration_s, 0.0, MAX_PROBE_S, low_open=True):
+        raise HeaderError(f"duration_s must be a number in (0, {MAX_PROBE_S:g}]")
+    if nbytes is not None and (isinstance(nbytes, bool) or not isinstance(nbytes, int)
+                               or not 0 < nbytes <= MAX_PROBE_BYTES):
+        raise HeaderError(f"bytes must be an integer in 1..{MAX_PROBE_BYTES}")
+    if not _number_within(interval_s, MIN_INTERVAL_S, MAX_PROBE_S):
+        raise HeaderError(f"interval_s must be a number in [{MIN_INTERVAL_S:g}, {MAX_PROBE_S:g}]")
+    return {"duration_s": duration_s, "bytes": nbytes, "interval_s": float(interval_s)}
+
+
+def _number_within(value, low: float, high: float, low_open: bool = False) -> bool:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return (low < value if low_open else low <= value) and value <= high
+    except OverflowError:
+        return False
 
 
 def tcp_info(sock: socket.socket) -> dict:
@@ -84,7 +137,7 @@ class _IntervalCounter:
         self.total = total
         self.next_mark = now_mono_s + self.interval_s
         end_s = now_mono_s - self.t0
-        if end_s <= self.mark_s:
+        if end_s <= self.mark_s or len(self.intervals) >= MAX_INTERVALS:
             return
         retrans = None
         stream_extra = {}
@@ -139,9 +192,10 @@ def probe(host: str, port: int = DEFAULT_PORT, duration_s: float | None = 1.0, n
             sock.shutdown(socket.SHUT_WR)
             server = _read_answer(sock, where)
         except (OSError, TimeoutError) as err:
-            raise ProbeError(f"throughput probe to {where} failed: {err.strerror or err}") from None
-    if "error" in server:
-        raise ProbeError(f"throughput server {where}: {server['error']}")
+            raise ProbeError(f"throughput probe to {where} failed: {err.strerror or err}", LINK) from None
+    if not isinstance(server, dict) or "error" in server or not isinstance(server.get("sum_received"), dict):
+        detail = server.get("error") if isinstance(server, dict) else None
+        raise ProbeError(f"throughput server {where}: {detail or 'an answer without sum_received'}", SERVER)
     received = server["sum_received"]
     return {
         "start": {
@@ -198,24 +252,32 @@ def _read_answer(sock: socket.socket, where: str) -> dict:
         if not chunk:
             break
         data += chunk
+        if len(data) > MAX_ANSWER_BYTES:
+            raise ProbeError(f"throughput server {where}: an answer over {MAX_ANSWER_BYTES} bytes", SERVER)
     try:
         return json.loads(data)
-    except ValueError:
-        raise ProbeError(f"throughput server {where} gave no result (is it a NAC throughput server?)") from None
+    except (ValueError, RecursionError):
+        raise ProbeError(f"throughput server {where} gave no result (is it a NAC throughput server?)",
+                         SERVER) from None
 
 
 class ThroughputServer:
     """Accepts probes on a TCP port, one at a time, in a background thread (or serve_forever); stop() closes it."""
 
-    def __init__(self, bind: str = "0.0.0.0", port: int = DEFAULT_PORT):
+    def __init__(self, bind: str = "127.0.0.1", port: int = DEFAULT_PORT):
         self.sock = socket.create_server((bind, port), reuse_port=False)
         self.port = self.sock.getsockname()[1]
+        self.refused = 0  # probes refused or broken off, by the server's checks
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._serve, name="throughput-server", daemon=True)
 
     def start(self) -> ThroughputServer:
         self._thread.start()
         return self
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
 
     def stop(self) -> None:
         self._stop.set()
@@ -240,16 +302,21 @@ class ThroughputServer:
                 return
             # One probe at a time, as iperf3's server: concurrent probes would measure each other, and a receiver
             # in its own thread runs measurably slower on a fast path. Others wait in the listen backlog.
-            self._handle(conn, addr)
+            try:
+                self._handle(conn, addr)
+            except Exception:  # a connection must never stop the server: the agent would log every probe as lost
+                self.refused += 1
+                log.exception("throughput probe from %s:%s", addr[0], addr[1])
 
     def _handle(self, conn: socket.socket, addr) -> None:
         with conn:
-            conn.settimeout(IDLE_TIMEOUT_S)
             try:
                 answer = receive_probe(conn)
-            except (OSError, TimeoutError, ValueError) as err:
-                log.warning("throughput probe from %s:%s failed: %s", addr[0], addr[1], err)
+            except (OSError, TimeoutError, HeaderError) as err:
+                self.refused += 1
+                log.warning("throughput probe from %s:%s refused: %s", addr[0], addr[1], err)
                 try:
+                    conn.settimeout(1.0)
                     conn.sendall(json.dumps({"error": str(err)}).encode() + b"\n")
                 except OSError:
                     pass
@@ -260,22 +327,35 @@ class ThroughputServer:
                 log.warning("could not answer the probe from %s:%s: %s", addr[0], addr[1], err)
 
 
-def receive_probe(conn: socket.socket) -> dict:
-    """Read one probe's header and data until the sender half-closes; the receiver's measurement."""
+def _read_header(conn: socket.socket) -> tuple[bytes, bytes]:
+    """The header line and what came after it, within HEADER_TIMEOUT_S in all."""
+    deadline = time.monotonic() + HEADER_TIMEOUT_S
     header_bytes = b""
     while b"\n" not in header_bytes:
-        chunk = conn.recv(HEADER_LIMIT_BYTES - len(header_bytes))
+        left_s = deadline - time.monotonic()
+        if left_s <= 0:
+            raise TimeoutError(f"no probe header within {HEADER_TIMEOUT_S:g} s")
+        conn.settimeout(left_s)
+        try:
+            chunk = conn.recv(HEADER_LIMIT_BYTES - len(header_bytes))
+        except TimeoutError:
+            raise TimeoutError(f"no probe header within {HEADER_TIMEOUT_S:g} s") from None
         if not chunk:
-            raise ValueError("connection closed before the probe header")
+            raise HeaderError("connection closed before the probe header")
         header_bytes += chunk
         if b"\n" not in header_bytes and len(header_bytes) >= HEADER_LIMIT_BYTES:
-            raise ValueError("probe header too long")
+            raise HeaderError("probe header too long")
     line, _, rest = header_bytes.partition(b"\n")
-    header = json.loads(line)
-    if header.get("protocol") != PROTOCOL:
-        raise ValueError(f"expected protocol {PROTOCOL}, got {header.get('protocol')!r}")
+    return line, rest
+
+
+def receive_probe(conn: socket.socket) -> dict:
+    """Read one probe's header and data until the sender half-closes; the receiver's measurement."""
+    line, rest = _read_header(conn)
+    header = check_header(line)
     t0 = time.monotonic()
-    counter = _IntervalCounter(t0, float(header.get("interval_s") or 0.5), False, conn)
+    ends_by = t0 + (header["duration_s"] or MAX_PROBE_S) + GRACE_S
+    counter = _IntervalCounter(t0, header["interval_s"], False, conn)
     buf = mmap.mmap(-1, RECV_BYTES)
     conn.settimeout(None)
     set_kernel_timeouts(conn, send_s=IDLE_TIMEOUT_S, recv_s=IDLE_TIMEOUT_S)
@@ -291,6 +371,8 @@ def receive_probe(conn: socket.socket) -> dict:
         total += n
         last_s = monotonic()
         if last_s >= counter.next_mark:
+            if last_s > ends_by:
+                raise TimeoutError("the sender kept sending past the probe's length")
             counter.close_interval(last_s, total)
     counter.close_interval(last_s, total)
     return {"sum_received": interval_sum(0.0, last_s - t0, total, False), "intervals": counter.intervals}

@@ -126,3 +126,27 @@ def test_a_udpin_routing_endpoint_answers_only_the_first_peer_or_the_allowed_one
         for s in senders:
             s.close()
 
+
+
+def test_a_dead_throughput_server_is_restarted_with_an_event(tmp_path):
+    """Inside the agent the server thread once died silently, and every later probe read as a lost link."""
+    from nac_onboard.agent.config import parse_agent_config
+    from nac_onboard.agent.daemon import Agent
+    from nac_onboard.link.throughput import probe
+    from nac_onboard.tomlfile import read_toml
+
+    path = tmp_path / "agent.toml"
+    path.write_text(agent_toml("uav2", "worker", 2, f"udpin:127.0.0.1:{free_port()}", tmp_path / "runs",
+                               free_port(), []))
+    agent = Agent(parse_agent_config(read_toml(path, "agent config"), str(path)), tmp_path / "runs" / "test" / "uav2")
+    try:
+        agent.open()
+        port = agent.throughput_server.port
+        agent.throughput_server.stop()  # as if its thread had died
+        assert not agent.throughput_server.alive
+        agent._supervise_throughput_server()
+        assert agent.throughput_server.alive and agent.throughput_server.port == port
+        assert probe("127.0.0.1", port, duration_s=0.2, interval_s=0.1)["end"]["sum_received"]["bytes"] > 0
+    finally:
+        agent.close()
+    assert wait_for_record(tmp_path / "runs" / "test" / "uav2" / "agent.jsonl", kind("throughput_server_restarted"))

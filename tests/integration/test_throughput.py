@@ -7,8 +7,11 @@ import secrets
 import subprocess
 import sys
 import threading
+import time
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from nac_onboard.agent.config import ThroughputSection
 from nac_onboard.agent.probes import ProbeScheduler
@@ -125,3 +128,60 @@ def test_emulated_probes_follow_the_channel_model_at_the_live_distance(tmp_path)
     assert unknown["kind"] == "probe_skipped"
     kinds = [r["kind"] for r in read_jsonl(tmp_path / "throughput.jsonl").records]
     assert kinds == ["throughput", "throughput", "probe_skipped"]
+
+
+HEADER_FUZZ_EXAMPLES = 300
+BAD_HEADERS = [b"[1, 2]\n", b"42\n", b"null\n", b"[" * 4000 + b"\n", b'{"protocol": "nac-probe/1"}\n',
+               b'{"protocol": "nac-probe/1", "duration_s": 1, "interval_s": [1]}\n',
+               b'{"protocol": "nac-probe/1", "duration_s": 1, "interval_s": ' + b"9" * 400 + b"}\n",
+               b'{"protocol": "nac-probe/1", "duration_s": 1, "interval_s": -1}\n',
+               b'{"protocol": "nac-probe/1", "duration_s": NaN}\n', b'{"protocol": "nac-probe/1", "bytes": -5}\n',
+               b'{"protocol": "nac-probe/1", "duration_s": 1e9}\n', b'{"protocol": "iperf"}\n', b"\xff\xfe\n"]
+
+
+def test_the_server_refuses_malformed_headers_and_silent_clients_and_keeps_serving():
+    """7 of 12 malformed headers once killed the server, a silent client blocked it, and interval_s -1 with
+    1-byte writes grew it to 1 GB: each is refused with an answer, and a real probe still runs after them."""
+    import socket
+
+    from nac_onboard.link.throughput import HEADER_TIMEOUT_S, ProbeError, probe
+
+    server = ThroughputServer("127.0.0.1", free_port()).start()
+    try:
+        for header in BAD_HEADERS:
+            with socket.create_connection(("127.0.0.1", server.port), timeout=5.0) as conn:
+                conn.sendall(header)
+                conn.shutdown(socket.SHUT_WR)
+                answer = json.loads(conn.makefile("rb").readline())
+            assert "error" in answer, header
+        silent = socket.create_connection(("127.0.0.1", server.port), timeout=5.0)
+        try:
+            t0 = time.monotonic()
+            answer = json.loads(silent.makefile("rb").readline())  # the server gives up on it, not the reverse
+            assert "no probe header" in answer["error"] and time.monotonic() - t0 < HEADER_TIMEOUT_S + 1.0
+        finally:
+            silent.close()
+        assert server.alive and server.refused == len(BAD_HEADERS) + 1
+        result = probe("127.0.0.1", server.port, duration_s=0.3, interval_s=0.1)
+        assert result["end"]["sum_received"]["bytes"] > 0
+    finally:
+        server.stop()
+    with pytest.raises(ProbeError) as err:  # nobody there: the link's fault, not a server's
+        probe("127.0.0.1", free_port(), duration_s=0.2, connect_timeout_s=1.0)
+    assert err.value.kind == "link"
+
+
+@settings(max_examples=HEADER_FUZZ_EXAMPLES, deadline=None)
+@given(st.binary(max_size=600) | st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=20),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.sampled_from(
+        ["protocol", "duration_s", "bytes", "interval_s", "x"]), inner, max_size=5), max_leaves=12)
+       .map(lambda v: json.dumps(v).encode()))
+def test_fuzzed_probe_headers_are_checked_or_refused_never_raised_otherwise(line):
+    from nac_onboard.link.throughput import HeaderError, check_header
+
+    try:
+        header = check_header(line)
+    except HeaderError:
+        return
+    assert (header["duration_s"] is None) != (header["bytes"] is None) and header["interval_s"] >= 0.05
