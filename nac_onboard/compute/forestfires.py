@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import io
+import math
 import os
 import urllib.request
 import zipfile
@@ -31,6 +32,9 @@ COLUMNS = ["X", "Y", "month", "day", "FFMC", "DMC", "DC", "ISI", "temp", "RH", "
 NUMERIC = ["X", "Y", "FFMC", "DMC", "DC", "ISI", "temp", "RH", "wind", "rain"]
 MONTHS = ["jan", "feb", "mar", "apr", "may", "jun", "jul", "aug", "sep", "oct", "nov", "dec"]
 DAYS = ["mon", "tue", "wed", "thu", "fri", "sat", "sun"]
+#: What each column can be (UCI's description of the data set, with room): a value outside is a damaged file.
+DOMAIN = {"X": (1, 9), "Y": (1, 9), "FFMC": (0, 101), "DMC": (0, 1000), "DC": (0, 2000), "ISI": (0, 100),
+          "temp": (-60, 60), "RH": (0, 100), "wind": (0, 100), "rain": (0, 500), "area": (0, 1e5)}
 FEATURES = ["intercept", *NUMERIC, *(f"month_{m}" for m in MONTHS), *(f"day_{d}" for d in DAYS)]
 
 
@@ -99,11 +103,19 @@ def load(path: Path) -> tuple[np.ndarray, np.ndarray]:
         record = dict(zip(COLUMNS, row, strict=True))
         if record["month"] not in MONTHS or record["day"] not in DAYS:
             raise DataError(f"{path}: line {line}: unknown month or day {record['month']!r}, {record['day']!r}")
-        try:
-            numeric.append([float(record[c]) for c in NUMERIC])
-            area.append(float(record["area"]))
-        except ValueError:
-            raise DataError(f"{path}: line {line}: a numeric field is not a number") from None
+        values = {}
+        for column in (*NUMERIC, "area"):
+            low, high = DOMAIN[column]
+            try:
+                value = float(record[column])
+            except ValueError:
+                raise DataError(f"{path}: line {line}: {column} {record[column]!r} is not a number") from None
+            if not (math.isfinite(value) and low <= value <= high):
+                raise DataError(f"{path}: line {line}: {column} {record[column]!r} outside {low:g}..{high:g} "
+                                f"(the data set's domain)")
+            values[column] = value
+        numeric.append([values[c] for c in NUMERIC])
+        area.append(values["area"])
         months.append(MONTHS.index(record["month"]))
         days.append(DAYS.index(record["day"]))
     if not numeric:

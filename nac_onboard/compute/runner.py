@@ -42,8 +42,11 @@ from nac_onboard.compute.messages import (
 )
 from nac_onboard.compute.options import ComputeOptions, build_source, parse_args
 from nac_onboard.compute.task import Task
+from nac_onboard.errors import NacError
 from nac_onboard.flight_log import JsonlLog
 from nac_onboard.link.emulation import SleepEmulation
+
+IDLE_FIRST_S, IDLE_MAX_S = 0.05, 1.0  # back-off while no worker is in range
 
 
 class _Poller:
@@ -242,7 +245,7 @@ class Master:
                        iterations=o.iterations, duration_s=o.duration_s, timeout_s=o.timeout_s,
                        on_missing=o.on_missing, allocation=o.allocation, pid=os.getpid())
         t_run = time.monotonic()
-        iteration, ended_by = 0, "iterations"
+        iteration, ended_by, idle_s = 0, "iterations", 0.0
         while True:
             if o.iterations is not None and iteration >= o.iterations:
                 break
@@ -252,6 +255,11 @@ class Master:
             t_start, start_unix = time.monotonic(), time.time()
             links = self.link(self.source.distances_m(iteration, t_start - t_run) if self.source else {})
             present = [r for r in self.workers if links.present(r)]
+            if present:
+                idle_s = 0.0
+            else:  # nobody reachable: wait, longer each time, instead of spinning through empty iterations
+                idle_s = min(max(2 * idle_s, IDLE_FIRST_S), IDLE_MAX_S)
+                time.sleep(idle_s)
             record = task.iterate(self, iteration, present, links, t_start)
             self.pending = (iteration, start_unix, time.monotonic() - t_start, links, record)
             iteration += 1
@@ -321,8 +329,9 @@ def main(argv: list[str] | None = None) -> int:
             log.write("worker_stopped", rank=comm.Get_rank())
         return 0
     except Exception as err:  # one failing rank must end the job, not leave the others waiting
+        code = err.exit_code if isinstance(err, NacError) else 1
         sys.stderr.write(f"nac-onboard compute rank {comm.Get_rank()}: {type(err).__name__}: {err}\n")
         sys.stderr.flush()
-        comm.Abort(1)
-        return 1
+        comm.Abort(code)
+        return code
 

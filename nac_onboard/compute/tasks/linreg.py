@@ -26,7 +26,7 @@ class Linreg(Task):
 
     @classmethod
     def check(cls, options) -> None:
-        forestfires.find_csv(options.data)
+        forestfires.load(forestfires.find_csv(options.data))  # every value checked before MPI starts
 
     def rows(self) -> int:
         return self.total_rows
