@@ -72,15 +72,23 @@ class _Reader:
 
     def number(self, obj: dict, key: str, where: str, default: Any = ...) -> float:
         value = self.field(obj, key, where, ("a number",), default)
-        return value if value is default else float(value)
+        return value if value is default else self.to_float(value, f'field "{key}"', where)
+
+    def to_float(self, value, what: str, where: str) -> float:
+        """A JSON number as a double; an integer too large for one is an error naming it, not an OverflowError."""
+        try:
+            return float(value)
+        except OverflowError:
+            raise self.fail(where, f"{what} is a number too large for a double; expected at most 1.8e308") from None
 
     def integer(self, obj: dict, key: str, where: str, default: Any = ...) -> int:
         value = self.field(obj, key, where, ("a number",), default)
         if value is default:
             return value
-        if not math.isfinite(value) or value != int(value):
+        number = self.to_float(value, f'field "{key}"', where)
+        if not math.isfinite(number) or number != int(number):
             raise self.fail(where, f'field "{key}" is {value}; expected a whole number')
-        return int(value)
+        return int(number)
 
     def numbers(self, obj: dict, key: str, where: str, sizes: tuple[int, ...], default: Any = ...) -> list[float]:
         """A list of numbers where JSON null stands for NaN (QGC writes NaN params as null)."""
@@ -94,8 +102,12 @@ class _Reader:
         for k, x in enumerate(value):
             if _json_type(x) not in ("a number", "null"):
                 raise self.fail(where, f'field "{key}" entry {k} is {_json_type(x)}; expected a number or null')
-            out.append(math.nan if x is None else float(x))
+            out.append(math.nan if x is None else self.to_float(x, f'field "{key}" entry {k}', where))
         return out
+
+
+def _reject_constant(name: str):
+    raise ValueError(f"{name} is not a JSON number (QGroundControl writes null for an unset value)")
 
 
 def _json_type(value: Any) -> str:
@@ -116,9 +128,13 @@ def loads_plan(text: str, source: str = "<plan>") -> Mission:
     """Parse .plan JSON text; MissionFileError (`source: where: reason`) for anything malformed."""
     r = _Reader(source)
     try:
-        doc = json.loads(text)
+        doc = json.loads(text, parse_constant=_reject_constant)
     except json.JSONDecodeError as err:
         raise r.fail(f"line {err.lineno} column {err.colno}", f"not valid JSON ({err.msg})") from None
+    except ValueError as err:  # NaN/Infinity (not JSON), or an integer of more digits than Python converts
+        raise r.fail("top level", f"not valid JSON: {err}") from None
+    except RecursionError:
+        raise r.fail("top level", "not valid JSON: nested deeper than any plan is") from None
     top = r.obj(doc, "top level", "the file")
     file_type = r.field(top, "fileType", "top level", ("a string",))
     if file_type != "Plan":

@@ -39,6 +39,28 @@ POLYGON_COMMANDS = frozenset({5001, 5002})
 CIRCLE_COMMANDS = frozenset({5003, 5004})
 
 
+#: MISSION_ITEM_INT on the wire: params 1-4 and z are float32, x and y int32 in 1e-7 degrees, the count uint16.
+FLOAT32_MAX = 3.4028234663852886e38
+INT32_DEGREES_MAX = (2 ** 31 - 1) / 1e7  # 214.7483647
+MAX_ITEMS = 65535
+
+
+def _wire_problem(item: MissionItem) -> str | None:
+    """What of the item MAVLink cannot carry: NaN is allowed where MAVLink means "unset" (params, and x/y/z of a
+    command without a position, which go out as 0)."""
+    for label, value in (("param1", item.p1), ("param2", item.p2), ("param3", item.p3), ("param4", item.p4),
+                         ("altitude (param7)", item.alt_m)):
+        if math.isinf(value) or (math.isfinite(value) and abs(value) > FLOAT32_MAX):
+            return f"{label} is {_fmt(value)}; MAVLink carries it as a 32-bit float: expected |value| <= 3.4e38"
+    for label, value in (("latitude (param5)", item.lat_deg), ("longitude (param6)", item.lon_deg)):
+        if math.isinf(value) or (math.isfinite(value) and abs(value) > INT32_DEGREES_MAX):
+            return (f"{label} is {_fmt(value)}; MAVLink carries it as a 32-bit integer of 1e-7 degrees: "
+                    f"expected |value| <= {INT32_DEGREES_MAX}")
+    if not 0 <= item.frame <= 255:
+        return f"frame {item.frame} does not fit MAVLink's 8-bit frame field"
+    return None
+
+
 def _fmt(x: float) -> str:
     x = float(x)
     return "NaN" if math.isnan(x) else f"{x:g}" if abs(x) >= 1e6 else str(x)
@@ -54,6 +76,10 @@ def validate(mission: Mission, source: str = "<mission>") -> None:
     if not mission.items:
         raise MissionFileError(source, "mission", "is empty (no mission items); expected at least one "
                                "(a flyable mission starts with NAV_TAKEOFF and ends with NAV_LAND or RTL)")
+    for name, items, extra in (("mission", mission.items, 1), ("fence", mission.fence, 0), ("rally", mission.rally, 0)):
+        if len(items) + extra > MAX_ITEMS:
+            raise MissionFileError(source, name, f"has {len(items)} items; MAVLink counts items in 16 bits: at most "
+                                                 f"{MAX_ITEMS - extra}")
     for mission_type, items, first in ((MissionType.MISSION, mission.items, 1), (MissionType.FENCE, mission.fence, 0),
                                        (MissionType.RALLY, mission.rally, 0)):
         for k, item in enumerate(items, first):
@@ -63,7 +89,7 @@ def validate(mission: Mission, source: str = "<mission>") -> None:
             if item.mission_type != mission_type:
                 fail(mission_type, k, f"has mission_type {item.mission_type}, expected {int(mission_type)} "
                                       f"({MissionType(mission_type).name})")
-            reason = _item_problem(item, mission_type, len(mission.items))
+            reason = _wire_problem(item) or _item_problem(item, mission_type, len(mission.items))
             if reason:
                 fail(mission_type, k, reason)
     _check_fence_shapes(mission, fail)

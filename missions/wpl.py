@@ -9,6 +9,7 @@ for fence or rally points.
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 from missions.errors import MissionFileError
@@ -22,13 +23,18 @@ _INT_COLUMNS = frozenset({"INDEX", "CURRENT", "FRAME", "COMMAND", "AUTOCONTINUE"
 _FLAG_COLUMNS = frozenset({"CURRENT", "AUTOCONTINUE"})
 
 
+#: A number as the tools that write these files spell it: ASCII digits only (Python's float() would also take
+#: Arabic-Indic or full-width digits and underscores, which no tool writes), nan and inf in any case.
+_NUMBER = re.compile(r"[+-]?(?:(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?|nan|inf|infinity)", re.IGNORECASE | re.ASCII)
+_FIELD_SEPARATOR = re.compile(r"[ \t]+")  # tabs, or spaces as some writers use; never other Unicode spaces
+
+
 def _parse_row(fields: list[str], source: str, where: str) -> dict[str, float | int]:
     row: dict[str, float | int] = {}
     for name, text in zip(COLUMNS, fields, strict=True):
-        try:
-            value = float(text)  # accepts nan/NaN/inf as other writers spell them
-        except ValueError:
-            raise MissionFileError(source, where, f"{name} is {text!r}; expected a number") from None
+        if not _NUMBER.fullmatch(text):
+            raise MissionFileError(source, where, f"{name} is {text!r}; expected a number")
+        value = float(text)
         if name in _INT_COLUMNS:
             if not value.is_integer():
                 raise MissionFileError(source, where, f"{name} is {text!r}; expected a whole number")
@@ -41,17 +47,17 @@ def _parse_row(fields: list[str], source: str, where: str) -> dict[str, float | 
 
 def loads_wpl(text: str, source: str = "<waypoints>") -> Mission:
     """Parse QGC WPL 110 text; MissionFileError (`source: line N: reason`) for anything malformed."""
-    lines = text.splitlines()
+    lines = [line.removesuffix("\r") for line in text.split("\n")]  # only a newline ends a line, as in the tools
     first = lines[0].strip() if lines else ""
     if first != HEADER:
         raise MissionFileError(source, "line 1", f"header is {first!r}; expected {HEADER!r}")
     mission = Mission()
     expected_index = 0
     for lineno, line in enumerate(lines[1:], 2):
-        if not line.strip():
+        if not line.strip(" \t"):
             continue  # trailing or separating blank lines carry nothing
         where = f"line {lineno}"
-        fields = line.split()
+        fields = _FIELD_SEPARATOR.split(line.strip(" \t"))
         if len(fields) != len(COLUMNS):
             raise MissionFileError(source, where, f"has {len(fields)} columns; expected {len(COLUMNS)} "
                                                   f"({' '.join(COLUMNS)}, tab-separated)")

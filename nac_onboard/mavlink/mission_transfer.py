@@ -6,6 +6,8 @@ A mix-in of MavlinkClient: it uses the client's `recv`, `_link_for`, `sysid` and
 
 from __future__ import annotations
 
+import math
+
 from missions.model import MavCmd, MissionItem
 from nac_onboard.errors import OperationFailed
 from nac_onboard.mavlink.dialect import M, enum_name
@@ -63,7 +65,7 @@ class MissionTransfer:
         target = self.sysid if sysid is None else sysid
         self._link_for(target).mav.mission_item_int_send(
             target, 1, it.seq, it.frame, it.command, 0, int(it.autocontinue), it.p1, it.p2, it.p3, it.p4,
-            int(round(it.lat_deg * 1e7)), int(round(it.lon_deg * 1e7)), it.alt_m, mission_type)
+            _e7(it.lat_deg), _e7(it.lon_deg), it.alt_m, mission_type)
 
     def download(self, mission_type: int = 0, item_timeout_s: float = 1.5, retries: int = 5, progress=None,
                  sysid: int | None = None) -> list[MissionItem]:
@@ -110,3 +112,8 @@ class MissionTransfer:
             if ack is not None:
                 return ack.type
         raise MissionError(f"vehicle {target} did not acknowledge the mission clear after {retries} tries")
+
+
+def _e7(degrees: float) -> int:
+    """x or y of MISSION_ITEM_INT; NaN (unset, for a command without a position) goes out as 0, as QGC sends it."""
+    return 0 if math.isnan(degrees) else int(round(degrees * 1e7))
