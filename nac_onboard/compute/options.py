@@ -45,6 +45,7 @@ class ComputeOptions:
     on_missing: str = "incomplete"
     allocation: str = "equal"
     save_results: bool = False
+    checkpoint_s: float = 10.0  # results.npz rewritten (atomically) this often while the job runs; 0 = at the end
 
     @property
     def task_class(self) -> type[Task]:
@@ -91,6 +92,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--allocation", choices=["equal", "capacity"], default="equal",
                    help="capacity: shard sizes proportional to each link's predicted capacity at the start")
     p.add_argument("--save-results", action="store_true", help="matmul: keep every B and A@B in results.npz")
+    p.add_argument("--checkpoint-s", type=float, default=10.0,
+                   help="rewrite results.npz this often while running (0: only at the end)")
     return p
 
 
@@ -110,6 +113,8 @@ def options_from_argv(argv: list[str] | None) -> ComputeOptions:
     iterations = args.iterations
     if iterations is None and args.duration_s is None:
         iterations = task.default_iterations
+    if args.checkpoint_s < 0:
+        raise BadInput("--checkpoint-s must be >= 0")
     if args.timeout_s <= 0 or args.idle_timeout_s <= 0:
         raise BadInput("--timeout-s and --idle-timeout-s must be > 0")
     distances = tuple(float(d) for d in args.distances.split(",")) if args.distances else ()
@@ -120,7 +125,7 @@ def options_from_argv(argv: list[str] | None) -> ComputeOptions:
         emulate=args.emulate, channel=load_channel(args.channel), positions=args.positions, distances=distances,
         positions_script=args.positions_script, feed=args.feed, vehicles=vehicles, timeout_s=args.timeout_s,
         idle_timeout_s=args.idle_timeout_s, on_missing=args.on_missing, allocation=args.allocation,
-        save_results=args.save_results)
+        save_results=args.save_results, checkpoint_s=args.checkpoint_s)
     if options.emulate == "sleep" and options.positions == "none":
         raise BadInput("--emulate sleep needs positions: --positions fixed|script|feed")
     task.check(options)

@@ -47,6 +47,8 @@ from nac_onboard.flight_log import JsonlLog
 from nac_onboard.link.emulation import SleepEmulation
 
 IDLE_FIRST_S, IDLE_MAX_S = 0.05, 1.0  # back-off while no worker is in range
+UNRESPONSIVE_AFTER = 3  # iterations missed in a row before a worker is no longer waited for
+PING_S = 1.0  # how often an unresponsive worker is asked whether it is back
 
 
 class _Poller:
@@ -74,6 +76,18 @@ class Inbox:
         self.buffers = [np.empty(floats) for _ in self.sources]
         self.requests = [self._post(k) for k in range(len(self.sources))]
         self.status = mpi.Status()
+        self.lost: set[int] = set()  # sources whose process is gone (MPI reported the failure)
+
+    def _drop_failed(self) -> None:
+        """After MPI reported an error on a receive: find the failed sources and stop listening to them."""
+        for k, request in enumerate(self.requests):
+            if request == self.mpi.REQUEST_NULL:
+                continue
+            try:
+                request.Test()
+            except self.mpi.Exception:
+                self.lost.add(self.sources[k])
+                self.requests[k] = self.mpi.REQUEST_NULL
 
     def _post(self, k: int):
         return self.comm.Irecv([self.buffers[k], self.mpi.DOUBLE], source=self.sources[k], tag=self.tag)
@@ -84,7 +98,14 @@ class Inbox:
         testany, undefined, status = self.mpi.Request.Testany, self.mpi.UNDEFINED, self.status
         poller = None  # made on the first miss: a message already there costs no clock reads
         while True:
-            index, done = testany(requests, status)
+            try:
+                index, done = testany(requests, status)
+            except self.mpi.Exception:  # a worker's process died: the job goes on without it
+                self._drop_failed()
+                requests = self.requests if source is None else [self.requests[self.sources.index(source)]]
+                continue
+            if source is not None and source in self.lost:
+                return None, None
             if done and index != undefined:
                 k = index if source is None else self.sources.index(source)
                 message = self.buffers[k][:status.Get_count(self.mpi.DOUBLE)].copy()
@@ -96,10 +117,13 @@ class Inbox:
                 return None, None
             poller.pause()
 
-    def close(self) -> None:
-        for request in self.requests:
+    def close(self, wait: bool = True) -> None:
+        """Cancel the posted receives; wait for the cancellations unless a rank is gone (that can hang)."""
+        live = [r for r in self.requests if r != self.mpi.REQUEST_NULL]
+        for request in live:
             request.Cancel()
-        self.mpi.Request.Waitall(self.requests)
+        if wait and not self.lost:
+            self.mpi.Request.Waitall(live)
 
 
 # ---- workers ---------------------------------------------------------------------------------------------------
@@ -158,6 +182,12 @@ class Master:
         self.inbox: Inbox | None = None  # posted once the shards are known
         self.pending: tuple | None = None  # the last iteration, not yet tallied and written
         self.tally = Tally({r: 0 for r in self.workers})
+        self._announced_lost: set[int] = set()
+        self.unresponsive: set[int] = set()
+        self._missed: dict[int, int] = {}
+        self._next_ping_s: dict[int, float] = {}
+        self._pings: dict[int, tuple] = {}  # rank -> (request, buffer) of the ping in flight
+        self._next_checkpoint_s = 0.0
 
     def link(self, distances: dict) -> IterationLinks:
         """Per worker: distance, emulated rate and whether it is in range this iteration."""
@@ -165,7 +195,11 @@ class Master:
         for k, rank in enumerate(self.workers):
             d = distances.get(rank) if distances else None
             links.distance_m[k] = d
-            if self.emulation is not None:
+            if rank in self.lost:
+                links.absent[k] = "lost"  # MPI reported its process gone: never sent to again
+            elif rank in self.unresponsive:
+                links.absent[k] = "unresponsive"  # not waited for; pinged until it answers again
+            elif self.emulation is not None:
                 if d is None:
                     links.absent[k] = "no_position"
                 else:
@@ -195,9 +229,53 @@ class Master:
             message = np.empty(WORK_HEADER + payload.size)
             message[WORK_HEADER:] = payload
         message[:WORK_HEADER] = (kind, iteration, rate, extra_rows)
-        self.comm.Send([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
+        try:
+            self.comm.Send([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
+        except self.mpi.Exception as err:
+            self._lose(rank, f"send failed: {err}")
+            return
         links.bytes_down[k] += message.nbytes
         links.down_s[k] += down_s
+
+    @property
+    def lost(self) -> set[int]:
+        return self.inbox.lost if self.inbox is not None else set()
+
+    def _note_answers(self, iteration: int, waited: set[int], answered: set[int]) -> None:
+        """A worker that misses UNRESPONSIVE_AFTER iterations in a row (a dead or stopped process, which MPI may
+        not report) is no longer waited for: each of its misses would cost the whole timeout."""
+        for rank in answered:
+            self._missed[rank] = 0
+        for rank in waited - answered:
+            self._missed[rank] = self._missed.get(rank, 0) + 1
+            if self._missed[rank] >= UNRESPONSIVE_AFTER and rank not in self.unresponsive | self.lost:
+                self.unresponsive.add(rank)
+                self._next_ping_s[rank] = 0.0
+                self.log.write("worker_unresponsive", rank=rank, vehicle=self.options.vehicle_of(rank),
+                               iteration=iteration, missed=self._missed[rank])
+
+    def _ping_unresponsive(self) -> None:
+        """A small non-blocking message to each unresponsive worker every PING_S: its answer brings it back."""
+        now = time.monotonic()
+        for rank in sorted(self.unresponsive - self.lost):
+            pending = self._pings.get(rank)
+            if now < self._next_ping_s.get(rank, 0.0) or (pending is not None and not pending[0].Test()):
+                continue
+            message = np.zeros(WORK_HEADER)
+            message[0] = KIND_WARMUP
+            self._pings[rank] = (self.comm.Isend([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK), message)
+            self._next_ping_s[rank] = now + PING_S
+
+    def _back(self, rank: int) -> None:
+        self.unresponsive.discard(rank)
+        self._missed[rank] = 0
+        self.log.write("worker_back", rank=rank, vehicle=self.options.vehicle_of(rank))
+
+    def _lose(self, rank: int, why: str) -> None:
+        if rank not in self.lost:
+            self.inbox.lost.add(rank)
+            self.log.write("worker_lost", rank=rank, vehicle=self.options.vehicle_of(rank), why=why)
+            self._announced_lost.add(rank)
 
     def send_all(self, ranks: list[int], iteration: int, payload: np.ndarray, links: IterationLinks) -> None:
         message = np.empty(WORK_HEADER + payload.size)
@@ -214,11 +292,13 @@ class Master:
 
     def collect(self, iteration: int, waiting: set[int], links: IterationLinks,
                 deadline: float) -> dict[int, np.ndarray]:
-        results = {}
+        results, waited = {}, set(waiting)
         while waiting:
             rank, buf = self.inbox.receive(deadline)
             if buf is None:
                 break
+            if rank in self.unresponsive:
+                self._back(rank)  # any answer (a ping's, a late result) shows it is there again
             if int(buf[RESULT_ITERATION]) != iteration or rank not in waiting:
                 self.stale_results += 1  # an answer that came after its iteration was closed
                 continue
@@ -228,7 +308,11 @@ class Master:
             links.bytes_up[k] += buf.nbytes
             results[rank] = buf
         for rank in waiting:
-            links.absent[rank - 1] = "timeout"
+            links.absent[rank - 1] = "lost" if rank in self.lost else "timeout"
+        self._note_answers(iteration, waited, set(results))
+        for rank in self.lost - self._announced_lost:
+            self.log.write("worker_lost", rank=rank, vehicle=self.options.vehicle_of(rank), why="MPI reported it")
+        self._announced_lost |= self.lost
         return results
 
     def run(self) -> int:
@@ -255,6 +339,8 @@ class Master:
             t_start, start_unix = time.monotonic(), time.time()
             links = self.link(self.source.distances_m(iteration, t_start - t_run) if self.source else {})
             present = [r for r in self.workers if links.present(r)]
+            if self.unresponsive:
+                self._ping_unresponsive()
             if present:
                 idle_s = 0.0
             else:  # nobody reachable: wait, longer each time, instead of spinning through empty iterations
@@ -263,21 +349,42 @@ class Master:
             record = task.iterate(self, iteration, present, links, t_start)
             self.pending = (iteration, start_unix, time.monotonic() - t_start, links, record)
             iteration += 1
+            if o.checkpoint_s and time.monotonic() >= self._next_checkpoint_s:
+                self.checkpoint(iteration)
+                self._next_checkpoint_s = time.monotonic() + o.checkpoint_s
         self.write_pending()
+        self.checkpoint(iteration)
+        stop = np.array([KIND_STOP, iteration, 0.0, 0.0])
         for rank in self.workers:
-            self.comm.Send([np.array([KIND_STOP, iteration, 0.0, 0.0]), self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
-        self.inbox.close()
-        results = task.results()
-        if results or o.save_results:
-            np.savez(os.path.join(o.out, "results.npz"), **results)
+            if rank in self.lost:
+                continue
+            try:
+                if rank in self.unresponsive:  # it may never take it: do not wait for that
+                    self._pings[rank] = (self.comm.Isend([stop, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK), stop)
+                else:
+                    self.comm.Send([stop, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
+            except self.mpi.Exception as err:
+                self._lose(rank, f"stop failed: {err}")
+        self.inbox.close(wait=not (self.lost or self.unresponsive))
         t = self.tally
         d = np.array(t.durations) if t.durations else np.array([np.nan])
         self.log.write("run_summary", task=task.name, iterations=iteration, complete_iterations=t.complete,
                        ended_by=ended_by, elapsed_s=time.monotonic() - t_run, mean_duration_s=float(np.mean(d)),
                        p95_duration_s=float(np.percentile(d, 95)),
                        absent_iterations={str(r): n for r, n in t.absences.items()},
-                       stale_results=self.stale_results, **task.final())
+                       stale_results=self.stale_results, lost_workers=sorted(self.lost | self.unresponsive),
+                       **task.final())
         return 0
+
+    def checkpoint(self, iteration: int) -> None:
+        """results.npz as of this iteration, replaced atomically: a crash of the master leaves the last whole one."""
+        results = self.task.results()
+        if not results and not self.options.save_results:
+            return
+        path = os.path.join(self.options.out, "results.npz")
+        partial = path + ".partial.npz"
+        np.savez(partial, iteration=np.array(iteration), **results)
+        os.replace(partial, path)
 
     def write_pending(self) -> None:
         """The previous iteration's bookkeeping and record, done once this iteration's inputs are out: it overlaps
@@ -320,9 +427,17 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         os.makedirs(options.out, exist_ok=True)
+        comm.Set_errhandler(MPI.ERRORS_RETURN)  # a dead worker is an error to handle, not the job's end
         if comm.Get_rank() == 0:
             with JsonlLog(os.path.join(options.out, "compute.jsonl")) as log:
-                return Master(comm, MPI, options, log).run()
+                master = Master(comm, MPI, options, log)
+                code = master.run()
+            if master.lost or master.unresponsive:  # MPI_Finalize would wait on a rank that does not answer:
+                # everything is on disk, so the master ends here
+                sys.stdout.flush()
+                sys.stderr.flush()
+                os._exit(code)
+            return code
         with JsonlLog(os.path.join(options.out, f"rank-{comm.Get_rank()}.jsonl")) as log:
             log.write("worker_started", rank=comm.Get_rank(), pid=os.getpid(), host=MPI.Get_processor_name())
             run_worker(comm, MPI, options)

@@ -26,6 +26,7 @@ from missions.model import MavCmd
 from nac_onboard.child_process import AgentProcess, ChildStartError
 from nac_onboard.compute.options import core_binding, options_from_argv
 from nac_onboard.errors import NacError, OperationFailed
+from nac_onboard.flight_log import read_jsonl
 from nac_onboard.mavlink.client import CommandError, LinkError, VehicleClient
 from nac_onboard.mavlink.dialect import M
 from nac_onboard.mavlink.mission_transfer import MissionError
@@ -321,9 +322,15 @@ class Experiment:
             if not agent.alive() and not self._killed_on_purpose(vehicle.id, FaultKind.KILL_AGENT):
                 raise ExperimentError(Outcome.AGENT_FAILED, f"{vehicle.id}'s agent exited "
                                                             f"({agent.proc.returncode}): {agent.stderr_text()[-500:]}")
-        if self.mpi is not None and self.mpi.poll() not in (None, 0):
+        if self.mpi is not None and self.mpi.poll() not in (None, 0) and not self._compute_summary():
             raise ExperimentError(Outcome.COMPUTE_FAILED, f"mpiexec exited {self.mpi.returncode} (see "
                                                           f"{self.run_dir / 'compute' / 'mpiexec.log'})")
+
+    def _compute_summary(self) -> dict | None:
+        """The master's run_summary: a job that wrote it finished, even when mpiexec reports a worker it lost."""
+        path = self.run_dir / "compute" / "compute.jsonl"
+        summaries = read_jsonl(path).of_kind("run_summary") if path.exists() else []
+        return summaries[-1] if summaries else None
 
     def _killed_on_purpose(self, vehicle_id: str, kind: FaultKind) -> bool:
         return any(f["vehicle"] == vehicle_id and f["kind"] == kind.value for f in self.fault_log)

@@ -136,15 +136,16 @@ def test_matmul_reassigns_an_absent_workers_rows(tmp_path):
     assert [r["complete"] for r in records(incomplete_dir, "iteration")] == [False] * 3
 
 
-def test_a_killed_worker_ends_the_job_and_the_masters_records_are_intact(tmp_path):
+def test_a_killed_worker_ends_the_job_with_the_records_and_a_checkpoint_intact(tmp_path):
+    """mpiexec ends the job when a rank dies (see docs/security.md for why it is not kept going); the master's
+    records are whole and results.npz holds the weights of its last checkpoint, not nothing."""
     proc = subprocess.Popen(mpi_command(3, "--task", "linreg", "--iterations", "100000", "--out", str(tmp_path),
                                         "--emulate", "sleep", "--channel", wifi(tmp_path), "--positions", "fixed",
-                                        "--distances", "15,15"),
+                                        "--distances", "15,15", "--checkpoint-s", "0.2"),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV, start_new_session=True)
     try:
         deadline = time.monotonic() + 30
-        while len(read_jsonl(tmp_path / "compute.jsonl").of_kind("iteration")
-                   if (tmp_path / "compute.jsonl").exists() else []) < 5:
+        while not (tmp_path / "results.npz").exists():
             assert time.monotonic() < deadline and proc.poll() is None, "the job should be running"
             time.sleep(0.05)
         worker = read_jsonl(tmp_path / "rank-2.jsonl").of_kind("worker_started")[0]
@@ -157,6 +158,40 @@ def test_a_killed_worker_ends_the_job_and_the_masters_records_are_intact(tmp_pat
     assert code != 0
     read = read_jsonl(tmp_path / "compute.jsonl")
     assert read.problems == [] and len(read.of_kind("iteration")) >= 5
+    checkpoint = np.load(tmp_path / "results.npz")
+    assert checkpoint["weights"].shape == (len(forestfires.FEATURES),) and np.isfinite(checkpoint["weights"]).all()
+    assert int(checkpoint["iteration"]) >= 1
+
+
+def test_a_stopped_worker_is_no_longer_waited_for_and_rejoins_when_it_answers(tmp_path):
+    """Each iteration once waited the whole timeout for a worker that had stopped (SIGSTOP: a hung companion)."""
+    proc = subprocess.Popen(mpi_command(3, "--task", "linreg", "--duration-s", "8", "--out", str(tmp_path),
+                                        "--timeout-s", "0.5"),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 30
+        while len(read_jsonl(tmp_path / "compute.jsonl").of_kind("iteration")
+                   if (tmp_path / "compute.jsonl").exists() else []) < 5:  # past the warm-up, which needs everyone
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.05)
+        worker = read_jsonl(tmp_path / "rank-2.jsonl").of_kind("worker_started")[0]
+        os.kill(worker["pid"], signal.SIGSTOP)
+        while not read_jsonl(tmp_path / "compute.jsonl").of_kind("worker_unresponsive"):
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.05)
+        os.kill(worker["pid"], signal.SIGCONT)
+        code = proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert code == 0, proc.stderr.read().decode()[-2000:]
+    read = read_jsonl(tmp_path / "compute.jsonl")
+    unresponsive, back = read.of_kind("worker_unresponsive"), read.of_kind("worker_back")
+    assert unresponsive[0]["rank"] == 2 and back and back[0]["rank"] == 2
+    skipped = [r for r in read.of_kind("iteration") if per_worker(r)[1]["absent"] == "unresponsive"]
+    assert skipped and max(r["duration_s"] for r in skipped) < 0.5, "not waited for while unresponsive"
+    assert per_worker(read.of_kind("iteration")[-1])[1]["present"], "back in the job at the end"
 
 
 @pytest.mark.parametrize("row, message", [

@@ -147,7 +147,7 @@ def test_calibrate_recovers_the_channel_the_run_was_made_with(short_run, tmp_pat
     assert fitted.path_loss == "log-distance" and fitted.name == "calibrated-run"
 
 
-def test_scheduled_faults_happen_and_a_dead_worker_fails_the_run_with_its_records_kept(tmp_path):
+def test_scheduled_faults_happen_and_a_dead_worker_fails_the_run_with_its_records_and_checkpoint(tmp_path):
     faults = """
 [[fault]]
 at_s = 3.0
@@ -173,6 +173,7 @@ kind = "kill_worker"
     assert w2.of_kind("link_lost") and w2.of_kind("link_restored"), "the agent saw its autopilot link go and return"
     compute = read_jsonl(result.run_dir / "compute" / "compute.jsonl")
     assert compute.problems == [] and len(compute.of_kind("iteration")) > 5, "the master's records are intact"
+    assert (result.run_dir / "compute" / "results.npz").exists(), "the last checkpoint of the weights"
     report = (result.run_dir / "report.md").read_text()
     assert "ended: compute_failed" in report
     assert not any(agent.alive() for agent in experiment.agents) and not experiment.sim.alive
