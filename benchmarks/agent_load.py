@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import secrets
 import tempfile
 import time
 from pathlib import Path
@@ -48,6 +49,7 @@ def run(seconds: float, stream_hz: float, telemetry_hz: float, settle_s: float =
     with tempfile.TemporaryDirectory() as tmp, SitlProcess(config) as sitl:
         os.sched_setaffinity(sitl.pid, {cores[0]})
         agent_toml = Path(tmp) / "agent.toml"
+        (Path(tmp) / "fleet.key").write_text(secrets.token_hex(32) + "\n")
         agent_toml.write_text(f"""
 [vehicle]
 id = "bench"
@@ -64,6 +66,7 @@ tlog = true
 [peers]
 listen = "127.0.0.1:{free_port()}"
 send_to = ["127.0.0.1:{free_port()}"]
+key_file = "fleet.key"
 [state_feed]
 listen = "127.0.0.1:{free_port()}"
 [throughput]

@@ -52,10 +52,22 @@ def _free(port: int, kind: int) -> bool:
     return True
 
 
+def _port_range() -> tuple[int, int]:
+    """Ports to hand out: below the kernel's ephemeral range, so a socket bound to port 0 (the SITL's links, any
+    client) cannot take a port that was handed out and is about to be bound."""
+    try:
+        with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
+            low = int(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        low = 32768
+    return 10000, max(low, 12000)
+
+
 def free_port() -> int:
     """A loopback port free for both UDP and TCP right now, for a local SITL or agent process to bind."""
+    first, end = _port_range()
     for _ in range(200):
-        port = random.randrange(20000, 60000)
+        port = random.randrange(first, end)
         if _free(port, socket.SOCK_DGRAM) and _free(port, socket.SOCK_STREAM):
             return port
     raise RuntimeError("no free port found")
@@ -64,8 +76,9 @@ def free_port() -> int:
 def allocate_base_port(vehicles: int, step: int = 10, slots: int = 2) -> int:
     """A base port B on loopback with B+step*i+k free (UDP and TCP) for every vehicle i and slot k < slots (ground,
     companion, ...): the port block of a local SITL (SitlConfig's gcs/companion base ports and port_step)."""
+    first, end = _port_range()
     for _ in range(200):
-        base = random.randrange(20000, 60000 - step * vehicles, 2)
+        base = random.randrange(first, end - step * vehicles, 2)
         ports = [base + step * i + k for i in range(vehicles) for k in range(slots)]
         if all(_free(p, socket.SOCK_DGRAM) and _free(p, socket.SOCK_STREAM) for p in ports):
             return base

@@ -292,7 +292,10 @@ class ThroughputServer:
         self._serve()
 
     def _serve(self) -> None:
-        self.sock.settimeout(0.5)
+        try:
+            self.sock.settimeout(0.5)
+        except OSError:
+            return  # stopped before it started
         while not self._stop.is_set():
             try:
                 conn, addr = self.sock.accept()

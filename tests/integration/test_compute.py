@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -136,25 +137,40 @@ def test_matmul_reassigns_an_absent_workers_rows(tmp_path):
     assert [r["complete"] for r in records(incomplete_dir, "iteration")] == [False] * 3
 
 
-def test_a_killed_worker_ends_the_job_with_the_records_and_a_checkpoint_intact(tmp_path):
-    """mpiexec ends the job when a rank dies (see docs/security.md for why it is not kept going); the master's
-    records are whole and results.npz holds the weights of its last checkpoint, not nothing."""
-    proc = subprocess.Popen(mpi_command(3, "--task", "linreg", "--iterations", "100000", "--out", str(tmp_path),
-                                        "--emulate", "sleep", "--channel", wifi(tmp_path), "--positions", "fixed",
-                                        "--distances", "15,15", "--checkpoint-s", "0.2"),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV, start_new_session=True)
+@contextmanager
+def job(*args: str):
+    """A 3-rank job in its own session, killed with all its ranks if the test leaves it running."""
+    proc = subprocess.Popen(mpi_command(3, *args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV,
+                            start_new_session=True)
     try:
-        deadline = time.monotonic() + 30
-        while not (tmp_path / "results.npz").exists():
-            assert time.monotonic() < deadline and proc.poll() is None, "the job should be running"
-            time.sleep(0.05)
-        worker = read_jsonl(tmp_path / "rank-2.jsonl").of_kind("worker_started")[0]
-        os.kill(worker["pid"], signal.SIGKILL)
-        code = proc.wait(timeout=30)
+        yield proc
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
+
+
+def wait_until(condition, proc, timeout_s: float = 30.0) -> None:
+    """Until condition() holds on the job's files, the job still running."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline and proc.poll() is None, "the job should be running"
+        time.sleep(0.05)
+
+
+def iterations_logged(out: Path) -> int:
+    return len(read_jsonl(out / "compute.jsonl").of_kind("iteration")) if (out / "compute.jsonl").exists() else 0
+
+
+def test_a_killed_worker_ends_the_job_with_the_records_and_a_checkpoint_intact(tmp_path):
+    """mpiexec ends the job when a rank dies (see docs/security.md for why it is not kept going); the master's
+    records are whole and results.npz holds the weights of its last checkpoint, not nothing."""
+    with job("--task", "linreg", "--iterations", "100000", "--out", str(tmp_path), "--emulate", "sleep", "--channel",
+             wifi(tmp_path), "--positions", "fixed", "--distances", "15,15", "--checkpoint-s", "0.2") as proc:
+        wait_until(lambda: (tmp_path / "results.npz").exists(), proc)
+        worker = read_jsonl(tmp_path / "rank-2.jsonl").of_kind("worker_started")[0]
+        os.kill(worker["pid"], signal.SIGKILL)
+        code = proc.wait(timeout=30)
     assert code != 0
     read = read_jsonl(tmp_path / "compute.jsonl")
     assert read.problems == [] and len(read.of_kind("iteration")) >= 5
@@ -165,26 +181,13 @@ def test_a_killed_worker_ends_the_job_with_the_records_and_a_checkpoint_intact(t
 
 def test_a_stopped_worker_is_no_longer_waited_for_and_rejoins_when_it_answers(tmp_path):
     """Each iteration once waited the whole timeout for a worker that had stopped (SIGSTOP: a hung companion)."""
-    proc = subprocess.Popen(mpi_command(3, "--task", "linreg", "--duration-s", "8", "--out", str(tmp_path),
-                                        "--timeout-s", "0.5"),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV, start_new_session=True)
-    try:
-        deadline = time.monotonic() + 30
-        while len(read_jsonl(tmp_path / "compute.jsonl").of_kind("iteration")
-                   if (tmp_path / "compute.jsonl").exists() else []) < 5:  # past the warm-up, which needs everyone
-            assert time.monotonic() < deadline and proc.poll() is None
-            time.sleep(0.05)
+    with job("--task", "linreg", "--duration-s", "8", "--out", str(tmp_path), "--timeout-s", "0.5") as proc:
+        wait_until(lambda: iterations_logged(tmp_path) >= 5, proc)  # past the warm-up, which needs everyone
         worker = read_jsonl(tmp_path / "rank-2.jsonl").of_kind("worker_started")[0]
         os.kill(worker["pid"], signal.SIGSTOP)
-        while not read_jsonl(tmp_path / "compute.jsonl").of_kind("worker_unresponsive"):
-            assert time.monotonic() < deadline and proc.poll() is None
-            time.sleep(0.05)
+        wait_until(lambda: read_jsonl(tmp_path / "compute.jsonl").of_kind("worker_unresponsive"), proc)
         os.kill(worker["pid"], signal.SIGCONT)
         code = proc.wait(timeout=30)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
     assert code == 0, proc.stderr.read().decode()[-2000:]
     read = read_jsonl(tmp_path / "compute.jsonl")
     unresponsive, back = read.of_kind("worker_unresponsive"), read.of_kind("worker_back")
