@@ -16,7 +16,7 @@ from missions import load_mission
 from nac_onboard.errors import BadInput, run_cli
 from nac_onboard.mavlink.client import DEFAULT_URI, MavlinkClient
 from nac_onboard.mavlink.dialect import COPTER_MODES
-from nac_onboard.mavlink.signing import load_signing_key
+from nac_onboard.mavlink.signing import load_signing_key, state_path
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -130,8 +130,10 @@ def run(args: argparse.Namespace, out=sys.stdout) -> int:
     if args.command == "mode" and args.name.upper() not in COPTER_MODES:
         raise BadInput(f"unknown mode {args.name!r}; known: {', '.join(sorted(COPTER_MODES))}")
     signing_key = load_signing_key(args.signing_key_file) if args.signing_key_file else None
+    signing_state = str(state_path(args.signing_key_file)) if args.signing_key_file else None
 
-    with MavlinkClient(args.connect, sysid=args.sysid, signing_key=signing_key) as client:
+    with MavlinkClient(args.connect, sysid=args.sysid, signing_key=signing_key,
+                       signing_state_file=signing_state) as client:
         if args.command == "status":
             ops.status(client, args.listen_s, out)
             return 0

@@ -15,7 +15,7 @@ from pathlib import Path
 from missions.geo import Home
 from nac_onboard.address import parse_host_port
 from nac_onboard.errors import BadInput, run_cli
-from nac_onboard.mavlink.signing import load_signing_key
+from nac_onboard.mavlink.signing import load_signing_key, state_path
 from sitl.server import Sitl, SitlConfig, SitlError
 from sitl.vehicle.params import parse_param_file
 
@@ -85,14 +85,16 @@ def config_from_args(args: argparse.Namespace) -> SitlConfig:
         except OSError as err:
             raise BadInput(f"cannot read parameter file {args.params}: {err.strerror}") from None
         params = parse_param_file(text, str(args.params))
-    signing_key = None
+    signing_key = signing_state = None
     if args.signing_key_file is not None:
         signing_key = load_signing_key(args.signing_key_file)
+        signing_state = str(state_path(args.signing_key_file))
     return SitlConfig(
         vehicles=args.vehicles, speedup=args.speedup, home=args.home, spacing_m=args.spacing_m, seed=args.seed,
         params=params, host=args.host, gcs_base_port=args.gcs_base_port,
         companion_base_port=args.companion_base_port, tcp_base_port=args.tcp_base_port, tcp_bind=args.tcp_bind,
         port_step=args.port_step, extra_outs=tuple(args.out), signing_key=signing_key,
+        signing_state_file=signing_state,
     )
 
 

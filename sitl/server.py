@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from missions.geo import Home
 from nac_onboard.address import is_loopback
 from nac_onboard.errors import OperationFailed
+from nac_onboard.mavlink.signing import SigningState
 from sitl.mavlink.codec import new_parser, parse_datagram
 from sitl.mavlink.telemetry import Streams, TelemetrySource
 from sitl.mavlink.vehicle_protocol import VehicleProtocol
@@ -49,6 +50,7 @@ class SitlConfig:
     extra_outs: tuple = ()  # ((host, base_port), ...): more ground links, port + port_step * i
     dt_s: float = 0.01
     signing_key: bytes | None = None  # MAVLink 2 signing: sign everything sent, refuse unsigned input
+    signing_state_file: str | None = None  # where the signing timestamps outlive a restart (beside the key file)
 
 
 class Connection:
@@ -57,7 +59,7 @@ class Connection:
     def __init__(self, sim: Sitl, vehicle: int, kind: str, sock: socket.socket, peer=None, tcp: bool = False):
         self.sim, self.vehicle, self.kind = sim, vehicle, kind
         self.sock, self.peer, self.tcp = sock, peer, tcp
-        self.parser = new_parser(sim.config.signing_key)
+        self.parser = new_parser(sim.signing)
         self.closed = False
         self.pending: list[bytes] = []
         self.pending_bytes = 0
@@ -106,7 +108,7 @@ class Connection:
         except Exception as err:  # pymavlink raises on some malformed input even in robust mode
             self.sim.stats["bad_frames"] += 1
             log.debug("vehicle %d: unparseable input: %s", self.vehicle + 1, err)
-            self.parser = new_parser(self.sim.config.signing_key)
+            self.parser = new_parser(self.sim.signing)
             return
         protocol = self.sim.protocols[self.vehicle]
         for msg in messages:
@@ -132,7 +134,8 @@ class Sitl:
         self.world = World(homes, config.params, config.seed, config.speedup)
         self.streams = Streams(n)
         self.telemetry = TelemetrySource(self.world, time.time())
-        self.protocols = [VehicleProtocol(i, self.world, self.streams, self.telemetry, config.signing_key)
+        self.signing = SigningState(config.signing_key, config.signing_state_file) if config.signing_key else None
+        self.protocols = [VehicleProtocol(i, self.world, self.streams, self.telemetry, self.signing)
                           for i in range(n)]
         self.world.param_listeners.append(self._on_params_changed)
         self._faults_active = self.world.any_link_fault()
@@ -326,6 +329,8 @@ class Sitl:
                     self.step_once()
                     steps += 1
                 self.flush()
+                if self.signing is not None:
+                    self.signing.save()  # at most once a second
                 if target - self.t_s > 0.5 * speedup:  # fell behind by half a second: slip, don't spiral
                     self.stats["overruns"] += 1
                     wall0, sim0 = time.monotonic(), self.t_s
@@ -365,6 +370,8 @@ class Sitl:
             self._thread.join(timeout_s)
         self._close_sockets()
         self._selector.close()
+        if self.signing is not None:
+            self.signing.save(force=True)
 
     def __enter__(self) -> Sitl:
         return self.start()

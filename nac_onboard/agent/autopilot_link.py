@@ -12,6 +12,7 @@ from nac_onboard.agent.config import AutopilotSection
 from nac_onboard.flight_log import JsonlLog
 from nac_onboard.mavlink.client import CLIENT_MESSAGES, LinkError, MavlinkClient, TelemetryState
 from nac_onboard.mavlink.dialect import M
+from nac_onboard.mavlink.signing import state_path
 
 OPEN_FAILURES_LOGGED_EVERY = 30  # a long outage logs its first failure and then one in this many
 
@@ -58,6 +59,8 @@ class AutopilotLink:
         self.last_open_attempt_s = now_s
         try:
             self.client = MavlinkClient(self.config.uri, sysid=self.sysid, signing_key=self.signing_key,
+                                        signing_state_file=str(state_path(self.config.signing_key_file))
+                                        if self.signing_key else None,
                                         source_system=self.own_sysid, source_component=M.MAV_COMP_ID_ONBOARD_COMPUTER,
                                         mav_type=M.MAV_TYPE_ONBOARD_CONTROLLER, decode_only=CLIENT_MESSAGES)
         except LinkError as err:

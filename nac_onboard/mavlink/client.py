@@ -20,6 +20,7 @@ from nac_onboard.errors import BadInput, OperationFailed
 from nac_onboard.mavlink.dialect import COPTER_MODES, M, enum_name, mavutil
 from nac_onboard.mavlink.frames import INCOMPAT_SIGNED, frame_msgid, frame_source, split_frames
 from nac_onboard.mavlink.mission_transfer import MissionTransfer
+from nac_onboard.mavlink.signing import SigningState
 
 log = logging.getLogger(__name__)
 DEFAULT_URI = "udpin:0.0.0.0:14550"
@@ -161,8 +162,8 @@ class RawFrame:
 
 
 class Link:
-    def __init__(self, uri: str, index: int, source_system: int, source_component: int, signing_key: bytes | None,
-                 mav_type: int = M.MAV_TYPE_GCS):
+    def __init__(self, uri: str, index: int, source_system: int, source_component: int,
+                 signing: SigningState | None, mav_type: int = M.MAV_TYPE_GCS):
         self.uri, self.index, self.mav_type = uri, index, mav_type
         device, options = mavutil_device(uri)
         try:
@@ -170,14 +171,15 @@ class Link:
                                                    source_component=source_component, **options)
         except OSError as err:
             raise LinkError(f"cannot open {uri}: {err.strerror or err}") from None
-        self.signing_key = signing_key
+        self.signing_key = signing.key if signing is not None else None
         self.stream = not uri.startswith("udp")  # frames may straddle reads
         self.pending = bytearray()
         if uri.startswith("tcp"):
             # pymavlink prints and returns nothing forever on a closed TCP socket unless told to reconnect itself.
             self.conn.handle_eof = self.conn.handle_disconnect = self._closed
-        if signing_key is not None:
-            self.conn.setup_signing(signing_key, sign_outgoing=True)
+        if signing is not None:
+            self.conn.setup_signing(signing.key, sign_outgoing=True)
+            signing.install(self.conn.mav)
         self.last_heartbeat_sent_s = 0.0
         self.bad_signature_frames = 0
         self.signed_frames_unverified = 0  # signed frames heard while we have no key
@@ -235,7 +237,8 @@ class MavlinkClient(MissionTransfer):
 
     def __init__(self, uris: list[str] | str | None = None, sysid: int | None = None, signing_key: bytes | None = None,
                  source_system: int = 255, source_component: int = M.MAV_COMP_ID_MISSIONPLANNER,
-                 mav_type: int = M.MAV_TYPE_GCS, decode_only: set[str] | None = None):
+                 mav_type: int = M.MAV_TYPE_GCS, decode_only: set[str] | None = None,
+                 signing_state_file: str | None = None):
         """decode_only: message names to decode (plus what the client itself needs); every other frame is
         returned as a RawFrame. None decodes everything."""
         if uris is None or uris == []:
@@ -243,7 +246,9 @@ class MavlinkClient(MissionTransfer):
         elif isinstance(uris, str):
             uris = [uris]
         self.links: list[Link] = []
-        self._link_args = (source_system, source_component, signing_key, mav_type)
+        # one signing state for every link: the timestamps of one key on this machine (kept beside the key file)
+        self.signing = SigningState(signing_key, signing_state_file) if signing_key is not None else None
+        self._link_args = (source_system, source_component, self.signing, mav_type)
         try:
             for k, uri in enumerate(uris):
                 self.links.append(Link(uri, k, *self._link_args))
@@ -263,6 +268,8 @@ class MavlinkClient(MissionTransfer):
     def close(self) -> None:
         for link in self.links:
             link.close()
+        if self.signing is not None:
+            self.signing.save(force=True)
 
     def reopen(self, index: int = 0) -> Link:
         """Close and open a link again (a serial device that came back, a TCP peer that restarted)."""

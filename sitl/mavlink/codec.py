@@ -14,7 +14,7 @@ from pymavlink.dialects.v20 import all as mavlink  # noqa: E402
 from pymavlink.generator.mavcrc import x25crc  # noqa: E402
 
 from nac_onboard.mavlink.frames import CRC, HEADER_V2, INCOMPAT_SIGNED, MAGIC_V2  # noqa: E402
-from nac_onboard.mavlink.signing import initial_timestamp, signature_block  # noqa: E402
+from nac_onboard.mavlink.signing import SigningState, signature_block  # noqa: E402
 
 try:  # pymavlink's own optional accelerator; the pure-Python CRC is the fallback
     from fastcrc.crc16 import mcrf4xx as _mcrf4xx
@@ -31,13 +31,14 @@ __all__ = ["FrameEncoder", "mavlink", "new_parser", "parse_datagram"]
 
 
 
-def new_parser(signing_key: bytes | None = None) -> mavlink.MAVLink:
-    """A parser that turns garbage into BAD_DATA messages instead of raising. With a signing key, unsigned or
-    wrongly signed frames become BAD_DATA too (RADIO_STATUS excepted, as on ArduPilot: radios cannot sign)."""
+def new_parser(signing: SigningState | None = None) -> mavlink.MAVLink:
+    """A parser that turns garbage into BAD_DATA messages instead of raising. With signing, unsigned or wrongly
+    signed frames become BAD_DATA too (RADIO_STATUS excepted, as on ArduPilot: radios cannot sign), and the
+    timestamps checked live in the shared state: a new parser does not forget them."""
     parser = mavlink.MAVLink(None)
     parser.robust_parsing = True
-    if signing_key is not None:
-        parser.signing.secret_key = signing_key
+    if signing is not None:
+        signing.install(parser)
         parser.signing.sign_outgoing = False
         parser.signing.allow_unsigned_callback = (
             lambda _mav, msgid: msgid == mavlink.MAVLINK_MSG_ID_RADIO_STATUS)
@@ -79,17 +80,16 @@ def _layout(cls) -> _Layout:
 class FrameEncoder:
     """Encodes frames for one source (sysid/compid) with its own sequence counter."""
 
-    def __init__(self, sysid: int, compid: int = 1, signing_key: bytes | None = None, link_id: int = 0):
+    def __init__(self, sysid: int, compid: int = 1, signing: SigningState | None = None, link_id: int = 0):
         self.sysid = sysid
         self.compid = compid
         self.seq = 0
         self._mav = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
         self._cache: dict[int, tuple[tuple, bytes]] = {}
-        self.signing_key = signing_key
+        self.signing = signing  # timestamps follow the clock and never repeat, across restarts too
         self.link_id = link_id
-        self.sign_timestamp = initial_timestamp()
-        if signing_key is not None:
-            self._mav.signing.secret_key = signing_key
+        if signing is not None:
+            self._mav.signing.secret_key = signing.key
             self._mav.signing.sign_outgoing = True
             self._mav.signing.link_id = link_id
 
@@ -107,22 +107,21 @@ class FrameEncoder:
                 end -= 1
             payload = payload[:end]
             self._cache[layout.msgid] = (values, payload)
-        signed = self.signing_key is not None
+        signed = self.signing is not None
         header = HEADER_V2.pack(MAGIC_V2, len(payload), INCOMPAT_SIGNED if signed else 0, 0, self.seq, self.sysid,
                               self.compid, layout.msgid & 0xFFFF, layout.msgid >> 16)
         self.seq = (self.seq + 1) & 0xFF
         body = header + payload
         frame = body + CRC.pack(_crc(body[1:] + layout.crc_extra))
         if signed:
-            frame += signature_block(self.signing_key, frame, self.link_id, self.sign_timestamp)
-            self.sign_timestamp += 1
+            frame += signature_block(self.signing.key, frame, self.link_id, self.signing.next_timestamp())
         return frame
 
     def message(self, msg) -> bytes:
         """Encode any pymavlink message object (arrays, strings, extensions)."""
         self._mav.seq = self.seq
-        self._mav.signing.timestamp = self.sign_timestamp
+        if self.signing is not None:
+            self._mav.signing.timestamp = self.signing.next_timestamp()
         frame = msg.pack(self._mav)
-        self.sign_timestamp = self._mav.signing.timestamp
         self.seq = (self.seq + 1) & 0xFF
         return frame

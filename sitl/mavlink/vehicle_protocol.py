@@ -16,6 +16,7 @@ from typing import Protocol
 import numpy as np
 
 from missions.model import MavCmd, MissionItem, MissionType
+from nac_onboard.mavlink.signing import SigningState
 from sitl.mavlink.codec import FrameEncoder, mavlink
 from sitl.mavlink.mission_protocol import Ack, Complete, MissionReceiver, Request
 from sitl.mavlink.telemetry import BUILDERS, Streams, TelemetrySource
@@ -54,14 +55,14 @@ def _item_from_msg(msg, is_int: bool) -> MissionItem:
 
 class VehicleProtocol:
     def __init__(self, index: int, world: World, streams: Streams, telemetry: TelemetrySource,
-                 signing_key: bytes | None = None, clock: Callable[[], float] = time.monotonic):
+                 signing: SigningState | None = None, clock: Callable[[], float] = time.monotonic):
         self.i = index
         self.sysid = index + 1
         self.world = world
         self.fleet = world.fleet
         self.streams = streams
         self.telemetry = telemetry
-        self.encoder = FrameEncoder(self.sysid, 1, signing_key=signing_key)
+        self.encoder = FrameEncoder(self.sysid, 1, signing=signing)
         self.connections: list[Connection] = []
         self.receiver = MissionReceiver(validate_item)
         self.clock = clock  # wall clock: mission transfer timeouts are the client's, in real seconds
