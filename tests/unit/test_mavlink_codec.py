@@ -1,3 +1,4 @@
+from nac_onboard.mavlink.signing import SigningState, initial_timestamp
 from sitl.mavlink.codec import FrameEncoder, mavlink, new_parser
 
 
@@ -36,18 +37,20 @@ def test_parser_survives_garbage():
 
 def test_signed_frames_match_pymavlink_and_verify():
     key = bytes(range(32))
-    enc = FrameEncoder(4, 1, signing_key=key, link_id=0)
+    signing = SigningState(key)
+    signing.own = initial_timestamp() + 100_000  # a second ahead: the next timestamp is own + 1, known here
+    enc = FrameEncoder(4, 1, signing=signing, link_id=0)
     ref = mavlink.MAVLink(None, srcSystem=4, srcComponent=1)
     ref.signing.secret_key, ref.signing.sign_outgoing, ref.signing.link_id = key, True, 0
-    ref.signing.timestamp = enc.sign_timestamp
+    ref.signing.timestamp = signing.own + 1
     values = (2, 3, 217, 4, 4, 3)
     assert enc.fields(mavlink.MAVLink_heartbeat_message, *values) == mavlink.MAVLink_heartbeat_message(
         *values).pack(ref)
-    checker = new_parser(key)
+    checker = new_parser(SigningState(key))
     frame = enc.fields(mavlink.MAVLink_heartbeat_message, *values)
     frame += enc.message(mavlink.MAVLink_statustext_message(6, b"signed"))
     assert [m.get_type() for m in checker.parse_buffer(frame)] == ["HEARTBEAT", "STATUSTEXT"]
     unsigned = FrameEncoder(4).fields(mavlink.MAVLink_heartbeat_message, *values)
-    assert [m.get_type() for m in new_parser(key).parse_buffer(unsigned)] == ["BAD_DATA"]
-    wrong = FrameEncoder(4, signing_key=bytes(32)).fields(mavlink.MAVLink_heartbeat_message, *values)
-    assert [m.get_type() for m in new_parser(key).parse_buffer(wrong)] == ["BAD_DATA"]
+    assert [m.get_type() for m in new_parser(SigningState(key)).parse_buffer(unsigned)] == ["BAD_DATA"]
+    wrong = FrameEncoder(4, signing=SigningState(bytes(32))).fields(mavlink.MAVLink_heartbeat_message, *values)
+    assert [m.get_type() for m in new_parser(SigningState(key)).parse_buffer(wrong)] == ["BAD_DATA"]
