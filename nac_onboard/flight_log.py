@@ -8,7 +8,9 @@ receive time as an 8-byte big-endian count of microseconds since the Unix epoch.
 
 from __future__ import annotations
 
+import errno
 import json
+import logging
 import math
 import os
 import threading
@@ -17,6 +19,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from nac_onboard.mavlink.frames import TLOG_STAMP
+
+log = logging.getLogger(__name__)
 
 # One encoder for every record: json.dumps with options builds a new encoder per call, a third of its cost.
 _STRICT = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
@@ -34,30 +38,81 @@ def _finite(value):
     return value
 
 
+#: A full disk, a quota, a file-size limit: the log stops taking records, the program goes on (routing, peers,
+#: the state feed and probes do not depend on the log), and the log resumes when it can, saying what was lost.
+_FULL = frozenset({errno.ENOSPC, errno.EFBIG, errno.EDQUOT})
+RETRY_S = 5.0
+
+
+@dataclass
+class Gap:
+    """What a log could not write, from when, and why."""
+
+    since_s: float
+    error: str
+    records: int = 0
+    bytes: int = 0
+
+
 class _AppendFile:
     def __init__(self, path: str | Path):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
         self._lock = threading.Lock()
+        self.gap: Gap | None = None  # while records are being lost
+        self._retry_at = 0.0
 
     def _write(self, data: bytes) -> None:
         with self._lock:
             if self._fd < 0:
                 raise ValueError(f"{self.path} is closed")
-            view = memoryview(data)
-            while view:  # a regular file takes it whole; the loop covers a signal cutting a write short
-                view = view[os.write(self._fd, view):]
+            if self.gap is not None:
+                if time.monotonic() < self._retry_at:
+                    self.gap.records += 1
+                    self.gap.bytes += len(data)
+                    return
+                data = self._resume_prefix() + data
+            try:
+                view = memoryview(data)
+                while view:  # a regular file takes it whole; the loop covers a signal cutting a write short
+                    view = view[os.write(self._fd, view):]
+            except OSError as err:
+                if err.errno not in _FULL:
+                    raise
+                self._lost(len(data), err)
+                return
+            if self.gap is not None:
+                log.warning("%s: writing again after losing %d records (%d bytes)", self.path, self.gap.records,
+                            self.gap.bytes)
+                self.gap = None
+
+    def _lost(self, nbytes: int, err: OSError) -> None:
+        if self.gap is None:
+            self.gap = Gap(time.time(), f"{errno.errorcode.get(err.errno, err.errno)}: {err.strerror}")
+            log.warning("%s: cannot write (%s); records are dropped and counted until it can", self.path,
+                        self.gap.error)
+        self.gap.records += 1
+        self.gap.bytes += nbytes
+        self._retry_at = time.monotonic() + RETRY_S
+
+    def _resume_prefix(self) -> bytes:
+        """What goes before the first record after a gap (the gap record, for a JSON Lines log)."""
+        return b""
 
     def sync(self) -> None:
         with self._lock:
             if self._fd >= 0:
-                os.fsync(self._fd)
+                try:
+                    os.fsync(self._fd)
+                except OSError as err:
+                    if err.errno not in _FULL:
+                        raise
 
     def close(self) -> None:
+        self.sync()
         with self._lock:
             if self._fd >= 0:
-                os.fsync(self._fd)
                 os.close(self._fd)
                 self._fd = -1
 
@@ -69,7 +124,27 @@ class _AppendFile:
 
 
 class JsonlLog(_AppendFile):
-    """One record per line, each with t_s and kind; thread-safe."""
+    """One record per line, each with t_s and kind; thread-safe. After a full disk, the first record written is
+    `log_gap` (records and bytes lost, from when, until when, why), on a line of its own even if the failed write
+    left half a line behind."""
+
+    def _resume_prefix(self) -> bytes:
+        g = self.gap
+        record = {"t_s": time.time(), "kind": "log_gap", "since_s": g.since_s, "records_lost": g.records,
+                  "bytes_lost": g.bytes, "error": g.error}
+        return (("\n" if self._ends_mid_line() else "") + _STRICT.encode(record) + "\n").encode()
+
+    def _ends_mid_line(self) -> bool:
+        """Whether the failed write left part of a record behind (it is then a damaged line of its own)."""
+        try:
+            with open(self.path, "rb") as f:
+                f.seek(0, os.SEEK_END)
+                if f.tell() == 0:
+                    return False
+                f.seek(-1, os.SEEK_END)
+                return f.read(1) != b"\n"
+        except OSError:
+            return True
 
     def write(self, kind: str, t_s: float | None = None, **fields) -> dict:
         record = {"t_s": time.time() if t_s is None else t_s, "kind": kind, **fields}

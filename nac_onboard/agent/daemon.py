@@ -402,6 +402,8 @@ def run_agent(config: AgentConfig, run_id: str | None = None, ready_line=None) -
     run_dir = run_directory(config, run_id)
     agent = Agent(config, run_dir)
     previous = {}
+    # Past a file-size limit a write fails with EFBIG, and the log handles that; SIGXFSZ would end the agent first.
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
 
     def on_signal(signum, _frame):
         agent.stop(signal.Signals(signum).name)

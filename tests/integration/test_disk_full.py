@@ -1,0 +1,71 @@
+"""A full disk under the agent: logging stops, everything else goes on, and the log resumes with a record of what
+was lost (it once exited on ENOSPC, and systemd restarted it into the same failure)."""
+
+import os
+import subprocess
+import time
+
+import pytest
+
+from nac_onboard.agent.state_feed import fetch_state
+from nac_onboard.flight_log import RETRY_S, read_jsonl
+from tests.conftest import free_port
+from tests.integration.agents import agent_toml, kind, wait_for_record
+from tests.integration.test_agent import companion_uri
+
+needs_root = pytest.mark.skipif(os.geteuid() != 0, reason="mounting a small tmpfs needs root (CI runs as root)")
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=512k", "tmpfs", str(disk)], check=True, timeout=10)
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], timeout=10)
+
+
+def fill(disk) -> None:
+    """Take every free byte of the disk."""
+    fd = os.open(disk / "filler", os.O_WRONLY | os.O_CREAT)
+    try:
+        while True:
+            os.write(fd, b"\0" * 4096)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def wait_until(condition, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, f"{what} within {timeout_s:g} s"
+        time.sleep(0.05)
+
+
+@needs_root
+def test_the_agent_keeps_working_on_a_full_disk_and_logs_the_gap_afterwards(start_sitl, start_agent, small_disk):
+    sim = start_sitl(speedup=5.0)
+    feed = f"127.0.0.1:{free_port()}"
+    agent = start_agent(agent_toml("uav1", "master", 1, companion_uri(sim, 0), small_disk / "runs", free_port(), [],
+                                   state_feed={"listen": feed}))
+    log_path = small_disk / "runs" / "test" / "uav1" / "agent.jsonl"
+    wait_for_record(log_path, kind("link_up"))
+    fill(small_disk)
+    wait_until(lambda: "cannot write" in agent.stderr_text(), 20.0, "the agent reports the full disk once")
+    before = fetch_state(feed)["t_s"]
+    wait_until(lambda: fetch_state(feed)["t_s"] > before + 1.0, 10.0, "the state feed still answers, up to date")
+    assert agent.alive() and fetch_state(feed)["self"]["link_up"]
+    assert agent.stderr_text().count("cannot write") <= 3, "reported once per file, not per record"
+
+    (small_disk / "filler").unlink()
+    gap = wait_for_record(log_path, kind("log_gap"), timeout_s=RETRY_S + 10.0)
+    assert gap["records_lost"] > 0 and gap["bytes_lost"] > 0 and gap["error"].startswith("ENOSPC")
+    assert gap["since_s"] < gap["t_s"]
+    assert agent.stop() == 0
+    read = read_jsonl(log_path)
+    assert len(read.problems) <= 1, read.problems  # at most the one record the disk cut in half
+    assert read.records[-1]["kind"] == "agent_stopped"
