@@ -26,20 +26,9 @@ from nac_onboard.mavlink.client import VehicleClient
 from sitl.launcher import SitlProcess, allocate_base_port, free_port
 from sitl.server import SitlConfig
 
-import _smoke  # noqa: E402 (benchmarks/_smoke.py, beside this script)
+import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
 
-CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 SMOKE = {"seconds": 2.0, "settle": 1.0}  # --smoke: the same measurement over a short window
-
-
-def cpu_s(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
-    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
-
-
-def memory_mb(pid: int) -> dict:
-    status = dict(line.split(":", 1) for line in Path(f"/proc/{pid}/status").read_text().splitlines())
-    return {key: int(status[key].split()[0]) / 1024 for key in ("VmRSS", "VmHWM")}
 
 
 def run(seconds: float, stream_hz: float, telemetry_hz: float, settle_s: float = 3.0) -> dict:
@@ -85,12 +74,12 @@ port = {free_port()}
             gcs.command_ok(MavCmd.COMPONENT_ARM_DISARM, 1)
             gcs.command_ok(MavCmd.MISSION_START, 0, 0)
             time.sleep(settle_s)  # let the stream-rate request take effect before the window opens
-            cpu0, t0 = cpu_s(agent.pid), time.monotonic()
+            cpu0, t0 = _common.cpu_s(agent.pid), time.monotonic()
             end = t0 + seconds
             while time.monotonic() < end:
                 gcs.poll(min(0.5, end - time.monotonic()))
-            cpu1, t1 = cpu_s(agent.pid), time.monotonic()
-            memory = memory_mb(agent.pid)
+            cpu1, t1 = _common.cpu_s(agent.pid), time.monotonic()
+            memory = _common.memory_mb(agent.pid)
             gcs.close()
             agent.stop()
         log = [json.loads(line) for line in (Path(tmp) / "bench" / "bench" / "agent.jsonl").read_text().splitlines()]
@@ -108,7 +97,7 @@ def main() -> None:
     parser.add_argument("--stream-hz", type=float, default=50.0)
     parser.add_argument("--telemetry-hz", type=float, default=10.0)
     parser.add_argument("--settle", type=float, default=3.0, help="seconds from arming to the window")
-    args = _smoke.parse_args(parser, SMOKE)
+    args = _common.parse_args(parser, SMOKE)
     result = run(args.seconds, args.stream_hz, args.telemetry_hz, args.settle)
     print(f"agent over {args.seconds:g} s, streams at {args.stream_hz:g} Hz, log at {args.telemetry_hz:g} Hz:")
     print(f"  CPU {result['cpu_pct_of_one_core']:.2f} % of one core (target < 5 %)")

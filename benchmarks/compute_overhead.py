@@ -22,7 +22,7 @@ from pathlib import Path
 
 from nac_onboard.compute.options import core_binding
 
-import _smoke  # noqa: E402 (benchmarks/_smoke.py, beside this script)
+import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = {"iterations": 200, "repeats": 1, "workers": [2]}  # --smoke: one pair with 2 workers
@@ -97,7 +97,7 @@ def main() -> None:
     parser.add_argument("--workers", type=int, nargs="+", default=[2, 4])
     parser.add_argument("--bind", default="", help="mpiexec -bind-to value (default: core_binding(ranks))")
     parser.add_argument("--bare-loop", action="store_true")
-    args = _smoke.parse_args(parser, SMOKE)
+    args = _common.parse_args(parser, SMOKE)
     global BIND
     BIND = args.bind
     if args.bare_loop:

@@ -24,7 +24,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
 from ground.logs.autopilot_logs import read_tlog  # noqa: E402
 
-import _smoke  # noqa: E402 (benchmarks/_smoke.py, beside this script)
+import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
 
 SMOKE = {"messages": 5000}  # --smoke: a small file, the same reads
 
@@ -73,7 +73,7 @@ def mavutil_positions(path: Path) -> tuple[int, int]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--messages", type=int, default=1_000_000)
-    args = _smoke.parse_args(parser, SMOKE)
+    args = _common.parse_args(parser, SMOKE)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "bench.tlog"
         expected = write_tlog(path, args.messages)

@@ -21,7 +21,7 @@ from nac_onboard.mavlink.client import M, VehicleClient
 from sitl.launcher import SitlProcess, allocate_base_port
 from sitl.server import SitlConfig
 
-import _smoke  # noqa: E402 (benchmarks/_smoke.py, beside this script)
+import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
 
 HOME = Home(47.397742, 8.545594, 488.0)
 SMOKE = {"repeats": 1, "sizes": [10], "losses": [0.0, 10.0]}  # --smoke: one loopback cell and one lossy cell
@@ -98,7 +98,7 @@ def main() -> int:
     parser.add_argument("--sizes", type=int, nargs="+", default=[10, 100, 500])
     parser.add_argument("--losses", type=float, nargs="+", default=[0.0, 10.0, 30.0])
     parser.add_argument("--base-port", type=int, default=None, help="ground link's UDP port (default: a free one)")
-    args = _smoke.parse_args(parser, SMOKE)
+    args = _common.parse_args(parser, SMOKE)
     base = args.base_port or allocate_base_port(1)
     config = SitlConfig(vehicles=1, gcs_base_port=base, companion_base_port=base + 1, tcp_base_port=0)
     print("| items | loss | NAC client (s) | MAVSDK mission_raw (s) |")

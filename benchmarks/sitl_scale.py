@@ -21,7 +21,7 @@ import time
 from sitl.launcher import SitlProcess, allocate_base_port
 from sitl.server import SitlConfig
 
-import _smoke  # noqa: E402 (benchmarks/_smoke.py, beside this script)
+import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
 
 SYSTEM_TIME_ID = 2
 SMOKE = {"vehicles": [1, 5], "seconds": 2.0, "warmup": 1.0}  # --smoke: the same measurement, a few seconds in all
@@ -91,7 +91,7 @@ def main() -> int:
     parser.add_argument("--vehicles", type=int, nargs="+", default=[1, 10, 50, 100])
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--warmup", type=float, default=2.0, help="seconds before the window opens")
-    args = _smoke.parse_args(parser, SMOKE)
+    args = _common.parse_args(parser, SMOKE)
     os.sched_setaffinity(0, {1 % os.cpu_count()})
     print("| vehicles | real-time factor | frames/s read by the client | Mbit/s |")
     print("| ---: | ---: | ---: | ---: |")

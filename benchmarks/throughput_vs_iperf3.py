@@ -13,7 +13,7 @@ import sys
 
 from nac_onboard.link import iperf3
 
-import _smoke  # noqa: E402 (benchmarks/_smoke.py, beside this script)
+import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
 
 SMOKE = {"runs": 2, "gib": 4 / 1024}  # --smoke: two pairs of 4 MiB runs
 
@@ -22,7 +22,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--runs", type=int, default=21)
     parser.add_argument("--gib", type=float, default=1.0, help="bytes per run, GiB")
-    args = _smoke.parse_args(parser, SMOKE)
+    args = _common.parse_args(parser, SMOKE)
     if not iperf3.available():
         print("iperf3 is not installed: nothing to compare against, skipped")
         return 0

@@ -47,6 +47,7 @@ log = logging.getLogger(__name__)
 EXPIRE_CHECK_S = 0.1
 REJECT_LOG_PERIOD_S = 10.0
 SUPERVISE_S = 1.0
+MIN_WAKE_S = 0.002  # at most 500 turns of the loop a second: routed frames wait 2 ms at most for it
 
 
 def run_directory(config: AgentConfig, run_id: str | None = None) -> Path:
@@ -168,8 +169,13 @@ class Agent:
         supervise = _Timer(SUPERVISE_S)
         sync = _Timer(c.log.fsync_s) if c.log.fsync_s > 0 else None
         watchdog = _Timer(self.notifier.watchdog_period_s) if self.notifier.watchdog_period_s else None
+        woke_s = 0.0
         while not self.stop_event.is_set():
             now = time.monotonic()
+            if now - woke_s < MIN_WAKE_S:  # under a flood, take datagrams in batches: each wake costs its own work
+                time.sleep(woke_s + MIN_WAKE_S - now)
+                now = time.monotonic()
+            woke_s = now
             due = [t.due_s for t in (telemetry, publish, expire, sync, watchdog, supervise) if t is not None]
             readers = [s for s in (self.peer_sock, self.feed_sock) if s is not None] + self.endpoints
             readers += self.autopilot.readers()
@@ -178,7 +184,9 @@ class Agent:
             except (OSError, ValueError):
                 ready = readers  # a link closed under us: let each reader find out below
             now = time.monotonic()
-            self._read_autopilot(now)
+            autopilot = self.autopilot.readers()
+            if not ready or any(r in autopilot for r in ready):  # on a timeout too: a closed link shows there
+                self._read_autopilot(now)
             if self.endpoints and any(r in self.endpoints for r in ready):
                 self._read_endpoints()
             if self.peer_sock in ready:

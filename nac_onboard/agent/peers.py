@@ -12,7 +12,6 @@ its size. A datagram that fails any check raises PeerMessageError with a short r
 
 from __future__ import annotations
 
-import hashlib
 import hmac
 import json
 import math
@@ -73,7 +72,7 @@ class PeerState:
 
 
 def _mac(key: FleetKey, body: bytes) -> bytes:
-    return hmac.new(key.secret, key.key_id.encode() + b"\n" + body, hashlib.sha256).hexdigest().encode()
+    return hmac.digest(key.secret, key.key_id.encode() + b"\n" + body, "sha256").hex().encode()  # C's fast path
 
 
 def encode_peer_state(state: PeerState, key: FleetKey | None = None) -> bytes:
