@@ -112,6 +112,3 @@ def test_fuzzed_mission_files_are_read_or_refused_never_a_traceback(text):
         except MissionFileError as err:
             assert str(err).startswith("fuzz: ")
 
-
-def teardown_module(module):
-    print(f"\nmission readers fuzzed with {FUZZ_EXAMPLES} generated files each (hypothesis)")

@@ -115,6 +115,3 @@ def test_fuzzed_datagrams_are_refused_or_valid_never_an_exception(datagram):
             continue
         assert -90 <= (state.lat_deg or 0) <= 90 and 0 <= state.probe_port <= 65535
 
-
-def teardown_module(module):
-    print(f"\npeer decoder fuzzed with {FUZZ_EXAMPLES} generated datagrams (hypothesis)")
