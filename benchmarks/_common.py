@@ -5,7 +5,11 @@ from __future__ import annotations
 
 import argparse
 import os
+import secrets
 from pathlib import Path
+
+from nac_onboard.tomlfile import write_toml
+from sitl.launcher import free_port
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
@@ -28,3 +32,23 @@ def memory_mb(pid: int) -> dict:
     """VmRSS (now) and VmHWM (peak), MB."""
     status = dict(line.split(":", 1) for line in Path(f"/proc/{pid}/status").read_text().splitlines())
     return {key: int(status[key].split()[0]) / 1024 for key in ("VmRSS", "VmHWM")}
+
+
+def agent_config(folder: Path, vehicle_id: str, role: str, autopilot_uri: str, **sections) -> Path:
+    """An agent config on free loopback ports, logging into folder (run id "bench"), with a fleet key beside it;
+    keyword arguments add keys to sections, e.g. routing={"endpoints": [...]}."""
+    (folder / "fleet.key").write_text(secrets.token_hex(32) + "\n")
+    config = {
+        "vehicle": {"id": vehicle_id, "role": role, "sysid": 1},
+        "autopilot": {"uri": autopilot_uri},
+        "log": {"dir": str(folder), "run_id": "bench"},
+        "peers": {"listen": f"127.0.0.1:{free_port()}", "send_to": [f"127.0.0.1:{free_port()}"],
+                  "key_file": "fleet.key"},
+        "state_feed": {"listen": f"127.0.0.1:{free_port()}"},
+        "throughput": {"bind": "127.0.0.1", "port": free_port()},
+    }
+    for name, values in sections.items():
+        config.setdefault(name, {}).update(values)
+    path = folder / "agent.toml"
+    write_toml(path, config)
+    return path

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import secrets
 import socket
 import tempfile
 import time
@@ -32,31 +31,9 @@ BATCH_S = 0.01
 
 
 def agent_config(tmp: Path, peer_port: int, routing_port: int) -> Path:
-    (tmp / "fleet.key").write_text(secrets.token_hex(32) + "\n")
-    path = tmp / "agent.toml"
-    path.write_text(f"""
-[vehicle]
-id = "flooded"
-role = "master"
-sysid = 1
-[autopilot]
-uri = "udpin:127.0.0.1:{free_port()}"
-[log]
-dir = "{tmp}"
-run_id = "bench"
-[routing]
-endpoints = ["udpin:127.0.0.1:{routing_port}"]
-[peers]
-listen = "127.0.0.1:{peer_port}"
-send_to = ["127.0.0.1:{free_port()}"]
-key_file = "fleet.key"
-[state_feed]
-listen = "127.0.0.1:{free_port()}"
-[throughput]
-bind = "127.0.0.1"
-port = {free_port()}
-""")
-    return path
+    return _common.agent_config(tmp, "flooded", "master", f"udpin:127.0.0.1:{free_port()}",
+                                routing={"endpoints": [f"udpin:127.0.0.1:{routing_port}"]},
+                                peers={"listen": f"127.0.0.1:{peer_port}"})
 
 
 def flood(peer: tuple, routing: tuple, rate: float, seconds: float, pid: int) -> tuple[int, list[float]]:

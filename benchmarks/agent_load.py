@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import secrets
 import tempfile
 import time
 from pathlib import Path
@@ -23,7 +22,7 @@ from missions.builder import waypoint_mission
 from missions.model import MavCmd
 from nac_onboard.child_process import AgentProcess
 from nac_onboard.mavlink.client import VehicleClient
-from sitl.launcher import SitlProcess, allocate_base_port, free_port
+from sitl.launcher import SitlProcess, allocate_base_port
 from sitl.server import SitlConfig
 
 import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
@@ -37,31 +36,9 @@ def run(seconds: float, stream_hz: float, telemetry_hz: float, settle_s: float =
     config = SitlConfig(vehicles=1, speedup=1.0, gcs_base_port=base, companion_base_port=base + 1, tcp_base_port=0)
     with tempfile.TemporaryDirectory() as tmp, SitlProcess(config) as sitl:
         os.sched_setaffinity(sitl.pid, {cores[0]})
-        agent_toml = Path(tmp) / "agent.toml"
-        (Path(tmp) / "fleet.key").write_text(secrets.token_hex(32) + "\n")
-        agent_toml.write_text(f"""
-[vehicle]
-id = "bench"
-role = "worker"
-sysid = 1
-[autopilot]
-uri = "udpin:127.0.0.1:{base + 1}"
-stream_hz = {stream_hz}
-[log]
-dir = "{tmp}"
-run_id = "bench"
-telemetry_hz = {telemetry_hz}
-tlog = true
-[peers]
-listen = "127.0.0.1:{free_port()}"
-send_to = ["127.0.0.1:{free_port()}"]
-key_file = "fleet.key"
-[state_feed]
-listen = "127.0.0.1:{free_port()}"
-[throughput]
-bind = "127.0.0.1"
-port = {free_port()}
-""")
+        agent_toml = _common.agent_config(
+            Path(tmp), "bench", "worker", f"udpin:127.0.0.1:{base + 1}", autopilot={"stream_hz": stream_hz},
+            log={"telemetry_hz": telemetry_hz, "tlog": True})
         with AgentProcess(agent_toml) as agent:
             os.sched_setaffinity(agent.pid, {cores[-1]})
             gcs = VehicleClient(f"udpin:127.0.0.1:{base}", sysid=1)
