@@ -25,6 +25,7 @@ from nac_onboard.agent.autopilot_link import AutopilotLink
 from nac_onboard.agent.config import AgentConfig
 from nac_onboard.agent.peers import (
     MAX_DATAGRAM_BYTES,
+    SIGNED_MAGIC,
     PeerMessageError,
     PeerState,
     PeerTable,
@@ -325,14 +326,20 @@ class Agent:
                 pass  # no route yet (Wi-Fi not associated): the next period tries again
 
     def _read_peers(self, now: float) -> None:
+        key, allow_unsigned = self.config.fleet_key, self.config.peers.allow_unsigned
+        recvfrom = self.peer_sock.recvfrom
         while True:
             try:
                 # one byte more than allowed, so a longer datagram shows as too big instead of cut short
-                data, (host, _) = self.peer_sock.recvfrom(MAX_DATAGRAM_BYTES + 1)
+                data, (host, _) = recvfrom(MAX_DATAGRAM_BYTES + 1)
             except (BlockingIOError, InterruptedError):
                 return
+            if key is not None and not allow_unsigned and not data.startswith(SIGNED_MAGIC) \
+                    and len(data) <= MAX_DATAGRAM_BYTES:
+                self._peer_rejected("unsigned", host, now)  # the cheapest refusal first: a flood is mostly these
+                continue
             try:
-                peer = decode_peer_state(data, host, self.config.fleet_key, self.config.peers.allow_unsigned)
+                peer = decode_peer_state(data, host, key, allow_unsigned)
                 with self._state_lock:
                     event = self.peers.update(peer, now, time.time())
             except PeerMessageError as err:

@@ -27,7 +27,7 @@ class RawEndpoint:
         self.allow = set(allow)
         self.peer: tuple[str, int] | None = None  # UDP: the one sender we answer
         self.dropped_frames = 0  # from senders not allowed, or sent to a read-only endpoint
-        self.last_dropped_sender: str = ""
+        self.last_dropped_from: tuple[str, int] | None = None
         self.sock: socket.socket | None = None
         self.conn = None
         scheme, _, rest = uri.partition(":")
@@ -53,6 +53,11 @@ class RawEndpoint:
             raise LinkError(f"cannot open routing endpoint {uri}: {err.strerror or err}") from None
         if self.sock is not None:
             self.sock.setblocking(False)
+
+    @property
+    def last_dropped_sender(self) -> str:
+        """HOST:PORT of the last sender refused ("" if none), for the log."""
+        return f"{self.last_dropped_from[0]}:{self.last_dropped_from[1]}" if self.last_dropped_from else ""
 
     def fileno(self) -> int:
         if self.sock is not None:
@@ -80,7 +85,7 @@ class RawEndpoint:
                 self.peer = sender  # udpin: the first allowed peer that speaks is the one we answer
             if sender != self.peer and sender not in self.allow:
                 self.dropped_frames += 1
-                self.last_dropped_sender = f"{sender[0]}:{sender[1]}"
+                self.last_dropped_from = sender
                 continue
             frames.extend(split_frames(data)[0])
         return frames
