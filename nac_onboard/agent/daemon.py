@@ -178,14 +178,13 @@ class Agent:
                 now = time.monotonic()
             woke_s = now
             due = [t.due_s for t in (telemetry, publish, expire, sync, watchdog, supervise) if t is not None]
-            readers = [s for s in (self.peer_sock, self.feed_sock) if s is not None] + self.endpoints
-            readers += self.autopilot.readers()
+            autopilot = self.autopilot.readers()
+            readers = [s for s in (self.peer_sock, self.feed_sock) if s is not None] + self.endpoints + autopilot
             try:
                 ready, _, _ = select.select(readers, [], [], min(max(min(due) - now, 0.0), 0.5))
             except (OSError, ValueError):
                 ready = readers  # a link closed under us: let each reader find out below
             now = time.monotonic()
-            autopilot = self.autopilot.readers()
             if not ready or any(r in autopilot for r in ready):  # on a timeout too: a closed link shows there
                 self._read_autopilot(now)
             if self.endpoints and any(r in self.endpoints for r in ready):

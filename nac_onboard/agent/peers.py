@@ -147,7 +147,7 @@ def _check(body: dict, host: str) -> PeerState:
     if vel is not None:
         if not isinstance(vel, list) or len(vel) != 3:
             raise PeerMessageError("schema", "vel_ned_mps: expected [north, east, down]")
-        vel = tuple(_number({"v": v}, "v", -MAX_SPEED_MPS, MAX_SPEED_MPS) for v in vel)
+        vel = tuple(_number({"vel_ned_mps": v}, "vel_ned_mps", -MAX_SPEED_MPS, MAX_SPEED_MPS) for v in vel)
     return PeerState(
         id=peer_id, role=role, t_s=_number(body, "t_s", 0.0, 1e11),
         sysid=_number(body, "sysid", 0, 255, integer=True) if "sysid" in body else 0,

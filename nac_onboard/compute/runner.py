@@ -76,18 +76,6 @@ class Inbox:
         self.buffers = [np.empty(floats) for _ in self.sources]
         self.requests = [self._post(k) for k in range(len(self.sources))]
         self.status = mpi.Status()
-        self.lost: set[int] = set()  # sources whose process is gone (MPI reported the failure)
-
-    def _drop_failed(self) -> None:
-        """After MPI reported an error on a receive: find the failed sources and stop listening to them."""
-        for k, request in enumerate(self.requests):
-            if request == self.mpi.REQUEST_NULL:
-                continue
-            try:
-                request.Test()
-            except self.mpi.Exception:
-                self.lost.add(self.sources[k])
-                self.requests[k] = self.mpi.REQUEST_NULL
 
     def _post(self, k: int):
         return self.comm.Irecv([self.buffers[k], self.mpi.DOUBLE], source=self.sources[k], tag=self.tag)
@@ -98,14 +86,7 @@ class Inbox:
         testany, undefined, status = self.mpi.Request.Testany, self.mpi.UNDEFINED, self.status
         poller = None  # made on the first miss: a message already there costs no clock reads
         while True:
-            try:
-                index, done = testany(requests, status)
-            except self.mpi.Exception:  # a worker's process died: the job goes on without it
-                self._drop_failed()
-                requests = self.requests if source is None else [self.requests[self.sources.index(source)]]
-                continue
-            if source is not None and source in self.lost:
-                return None, None
+            index, done = testany(requests, status)
             if done and index != undefined:
                 k = index if source is None else self.sources.index(source)
                 message = self.buffers[k][:status.Get_count(self.mpi.DOUBLE)].copy()
@@ -118,12 +99,12 @@ class Inbox:
             poller.pause()
 
     def close(self, wait: bool = True) -> None:
-        """Cancel the posted receives; wait for the cancellations unless a rank is gone (that can hang)."""
-        live = [r for r in self.requests if r != self.mpi.REQUEST_NULL]
-        for request in live:
+        """Cancel the posted receives; wait for the cancellations unless told not to (a rank that does not answer
+        can make that wait forever)."""
+        for request in self.requests:
             request.Cancel()
-        if wait and not self.lost:
-            self.mpi.Request.Waitall(live)
+        if wait:
+            self.mpi.Request.Waitall(self.requests)
 
 
 # ---- workers ---------------------------------------------------------------------------------------------------
@@ -182,7 +163,6 @@ class Master:
         self.inbox: Inbox | None = None  # posted once the shards are known
         self.pending: tuple | None = None  # the last iteration, not yet tallied and written
         self.tally = Tally({r: 0 for r in self.workers})
-        self._announced_lost: set[int] = set()
         self.unresponsive: set[int] = set()
         self._missed: dict[int, int] = {}
         self._next_ping_s: dict[int, float] = {}
@@ -195,9 +175,7 @@ class Master:
         for k, rank in enumerate(self.workers):
             d = distances.get(rank) if distances else None
             links.distance_m[k] = d
-            if rank in self.lost:
-                links.absent[k] = "lost"  # MPI reported its process gone: never sent to again
-            elif rank in self.unresponsive:
+            if rank in self.unresponsive:
                 links.absent[k] = "unresponsive"  # not waited for; pinged until it answers again
             elif self.emulation is not None:
                 if d is None:
@@ -229,17 +207,9 @@ class Master:
             message = np.empty(WORK_HEADER + payload.size)
             message[WORK_HEADER:] = payload
         message[:WORK_HEADER] = (kind, iteration, rate, extra_rows)
-        try:
-            self.comm.Send([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
-        except self.mpi.Exception as err:
-            self._lose(rank, f"send failed: {err}")
-            return
+        self.comm.Send([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
         links.bytes_down[k] += message.nbytes
         links.down_s[k] += down_s
-
-    @property
-    def lost(self) -> set[int]:
-        return self.inbox.lost if self.inbox is not None else set()
 
     def _note_answers(self, iteration: int, waited: set[int], answered: set[int]) -> None:
         """A worker that misses UNRESPONSIVE_AFTER iterations in a row (a dead or stopped process, which MPI may
@@ -248,7 +218,7 @@ class Master:
             self._missed[rank] = 0
         for rank in waited - answered:
             self._missed[rank] = self._missed.get(rank, 0) + 1
-            if self._missed[rank] >= UNRESPONSIVE_AFTER and rank not in self.unresponsive | self.lost:
+            if self._missed[rank] >= UNRESPONSIVE_AFTER and rank not in self.unresponsive:
                 self.unresponsive.add(rank)
                 self._next_ping_s[rank] = 0.0
                 self.log.write("worker_unresponsive", rank=rank, vehicle=self.options.vehicle_of(rank),
@@ -257,7 +227,7 @@ class Master:
     def _ping_unresponsive(self) -> None:
         """A small non-blocking message to each unresponsive worker every PING_S: its answer brings it back."""
         now = time.monotonic()
-        for rank in sorted(self.unresponsive - self.lost):
+        for rank in sorted(self.unresponsive):
             pending = self._pings.get(rank)
             if now < self._next_ping_s.get(rank, 0.0) or (pending is not None and not pending[0].Test()):
                 continue
@@ -270,12 +240,6 @@ class Master:
         self.unresponsive.discard(rank)
         self._missed[rank] = 0
         self.log.write("worker_back", rank=rank, vehicle=self.options.vehicle_of(rank))
-
-    def _lose(self, rank: int, why: str) -> None:
-        if rank not in self.lost:
-            self.inbox.lost.add(rank)
-            self.log.write("worker_lost", rank=rank, vehicle=self.options.vehicle_of(rank), why=why)
-            self._announced_lost.add(rank)
 
     def send_all(self, ranks: list[int], iteration: int, payload: np.ndarray, links: IterationLinks) -> None:
         message = np.empty(WORK_HEADER + payload.size)
@@ -308,11 +272,8 @@ class Master:
             links.bytes_up[k] += buf.nbytes
             results[rank] = buf
         for rank in waiting:
-            links.absent[rank - 1] = "lost" if rank in self.lost else "timeout"
+            links.absent[rank - 1] = "timeout"
         self._note_answers(iteration, waited, set(results))
-        for rank in self.lost - self._announced_lost:
-            self.log.write("worker_lost", rank=rank, vehicle=self.options.vehicle_of(rank), why="MPI reported it")
-        self._announced_lost |= self.lost
         return results
 
     def run(self) -> int:
@@ -356,23 +317,18 @@ class Master:
         self.checkpoint(iteration)
         stop = np.array([KIND_STOP, iteration, 0.0, 0.0])
         for rank in self.workers:
-            if rank in self.lost:
-                continue
-            try:
-                if rank in self.unresponsive:  # it may never take it: do not wait for that
-                    self._pings[rank] = (self.comm.Isend([stop, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK), stop)
-                else:
-                    self.comm.Send([stop, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
-            except self.mpi.Exception as err:
-                self._lose(rank, f"stop failed: {err}")
-        self.inbox.close(wait=not (self.lost or self.unresponsive))
+            if rank in self.unresponsive:  # it may never take it: do not wait for that
+                self._pings[rank] = (self.comm.Isend([stop, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK), stop)
+            else:
+                self.comm.Send([stop, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
+        self.inbox.close(wait=not self.unresponsive)
         t = self.tally
         d = np.array(t.durations) if t.durations else np.array([np.nan])
         self.log.write("run_summary", task=task.name, iterations=iteration, complete_iterations=t.complete,
                        ended_by=ended_by, elapsed_s=time.monotonic() - t_run, mean_duration_s=float(np.mean(d)),
                        p95_duration_s=float(np.percentile(d, 95)),
                        absent_iterations={str(r): n for r, n in t.absences.items()},
-                       stale_results=self.stale_results, lost_workers=sorted(self.lost | self.unresponsive),
+                       stale_results=self.stale_results, lost_workers=sorted(self.unresponsive),
                        **task.final())
         return 0
 
@@ -427,12 +383,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         os.makedirs(options.out, exist_ok=True)
-        comm.Set_errhandler(MPI.ERRORS_RETURN)  # a dead worker is an error to handle, not the job's end
         if comm.Get_rank() == 0:
             with JsonlLog(os.path.join(options.out, "compute.jsonl")) as log:
                 master = Master(comm, MPI, options, log)
                 code = master.run()
-            if master.lost or master.unresponsive:  # MPI_Finalize would wait on a rank that does not answer:
+            if master.unresponsive:  # MPI_Finalize would wait on a rank that does not answer:
                 # everything is on disk, so the master ends here
                 sys.stdout.flush()
                 sys.stderr.flush()

@@ -100,7 +100,7 @@ def load_scenario(name_or_path: str) -> Scenario:
     path = find_scenario(name_or_path).resolve()
     data = read_toml(path, "scenario", ScenarioError)
     where = str(path)
-    duration_s = _get(data, "duration_s", float, where)
+    duration_s = get_value(data, "duration_s", "float", where, ScenarioError)
     if duration_s <= 0:
         raise ScenarioError(f"{where}: duration_s must be > 0, got {duration_s}")
     vehicles = tuple(_vehicle(v, path, f"{where}: vehicle {k + 1}") for k, v in enumerate(data.get("vehicle", [])))
@@ -111,7 +111,8 @@ def load_scenario(name_or_path: str) -> Scenario:
     ids = [v.id for v in vehicles]
     if len(set(ids)) != len(ids):
         raise ScenarioError(f"{where}: vehicle ids must be unique, got {ids}")
-    channel = _get(data.get("channel", {}), "preset", str, f"{where}: [channel]", "paper-sim")
+    channel = get_value(data.get("channel", {}), "preset", "str", f"{where}: [channel]", ScenarioError,
+                        "paper-sim")
     relative = path.parent / channel
     channel = str(relative) if relative.suffix == ".toml" else channel
     try:
@@ -120,7 +121,8 @@ def load_scenario(name_or_path: str) -> Scenario:
         raise ScenarioError(f"{where}: [channel] {err}") from None
     speedup = data.get("max_speedup", 1.0)
     scenario = Scenario(
-        name=_get(data, "name", str, where, path.stem), path=path, description=data.get("description", ""),
+        name=get_value(data, "name", "str", where, ScenarioError, path.stem), path=path,
+        description=data.get("description", ""),
         duration_s=duration_s, vehicles=vehicles, channel=channel,
         compute=_compute(data["compute"], f"{where}: [compute]") if "compute" in data else None,
         throughput=_probes(data["throughput"], f"{where}: [throughput]") if "throughput" in data else None,
@@ -138,12 +140,12 @@ def load_scenario(name_or_path: str) -> Scenario:
 
 
 def _vehicle(table: dict, scenario_path: Path, where: str) -> VehiclePlan:
-    vehicle_id = _get(table, "id", str, where)
-    role = _get(table, "role", str, where)
+    vehicle_id = get_value(table, "id", "str", where, ScenarioError)
+    role = get_value(table, "role", "str", where, ScenarioError)
     if role not in ("master", "worker"):
         raise ScenarioError(f"{where}: role must be \"master\" or \"worker\", got {role!r}")
     if "mission" in table:
-        mission_path = scenario_path.parent / _get(table, "mission", str, where)
+        mission_path = scenario_path.parent / get_value(table, "mission", "str", where, ScenarioError)
         try:
             mission = load_mission(mission_path)
         except MissionFileError as err:
@@ -175,7 +177,7 @@ def _probes(table: dict, where: str) -> ProbePlan:
 
 def _fault(table: dict, ids: list[str], where: str) -> Fault:
     kinds = [k.value for k in FaultKind]
-    kind = _get(table, "kind", str, where)
+    kind = get_value(table, "kind", "str", where, ScenarioError)
     if kind not in kinds:
         raise ScenarioError(f"{where}: kind must be one of {', '.join(kinds)}, got {kind!r}")
     fault = to_dataclass(Fault, {k: v for k, v in table.items() if k != "kind"}, where, ScenarioError, table="fault",
@@ -183,7 +185,3 @@ def _fault(table: dict, ids: list[str], where: str) -> Fault:
     if fault.vehicle not in ids:
         raise ScenarioError(f"{where}: no vehicle {fault.vehicle!r} in this scenario ({', '.join(ids)})")
     return fault
-
-
-def _get(table: dict, key: str, kind: type, where: str, default=None):
-    return get_value(table, key, kind.__name__, where, ScenarioError, *(() if default is None else (default,)))
