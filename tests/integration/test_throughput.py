@@ -69,14 +69,15 @@ def netns():
 def test_loopback_rate_agrees_with_iperf3_within_10_percent(netns):
     # Plain loopback measures the CPU, not a path: both tools are CPU-bound there and a shared 2-core machine
     # swings their rates by +-30 % from run to run (benchmarks/throughput_vs_iperf3.py records that comparison).
-    # So the loopback of a private namespace, capped at 2 Gbit/s by tbf, is the path both must agree on.
+    # So the loopback of a private namespace, capped by tbf well below what a slow CI core moves (it fell short of
+    # a 2 Gbit/s cap there), is the path both must agree on.
     ns = f"nac-{secrets.token_hex(3)}-lo"
     netns([ns], [["ip", "-n", ns, "link", "set", "lo", "up"],
-                 ["ip", "netns", "exec", ns, "tc", "qdisc", "add", "dev", "lo", "root", "tbf", "rate", "2gbit",
-                  "burst", "512kb", "latency", "20ms"]])
+                 ["ip", "netns", "exec", ns, "tc", "qdisc", "add", "dev", "lo", "root", "tbf", "rate", "400mbit",
+                  "burst", "256kb", "latency", "20ms"]])
     result = compare("127.0.0.1", runs=3, duration_s=1, netns_client=ns, netns_server=ns)
-    assert all(1.8e9 < bps < 2.1e9 for bps in result.iperf3_bps), "iperf3 sees the 2 Gbit/s cap"
-    assert abs(result.ratio - 1) < 0.10, result.describe(1e9, "Gbit/s")
+    assert all(360e6 < bps < 420e6 for bps in result.iperf3_bps), "iperf3 sees the 400 Mbit/s cap"
+    assert abs(result.ratio - 1) < 0.10, result.describe(1e6, "Mbit/s")
 
 
 @needs_iperf3
