@@ -115,8 +115,9 @@ class AgentProcess(ReadyProcess):
     """`nac-onboard agent --config FILE` as a child process (the experiment runner and the tests)."""
 
     def __init__(self, config_path, extra_args: list[str] | None = None, env: dict | None = None,
-                 ready_timeout_s: float = 20.0):
-        command = [sys.executable, "-m", "nac_onboard.cli", "agent", "--config", str(config_path),
+                 ready_timeout_s: float = 20.0, prefix: list[str] | None = None):
+        # prefix: what runs it elsewhere (`ip netns exec NS`: it execs, so the agent gets the signals itself)
+        command = [*(prefix or []), sys.executable, "-m", "nac_onboard.cli", "agent", "--config", str(config_path),
                    *(extra_args or [])]
         super().__init__(command, "nac-onboard agent", f"agent ({config_path})", ready_timeout_s,
                          signal.SIGTERM, env)

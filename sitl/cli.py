@@ -69,6 +69,10 @@ def build_parser() -> argparse.ArgumentParser:
     exp.add_argument("--out", type=Path, help="run directory (default runs/SCENARIO-YYYYmmddTHHMMSS)")
     exp.add_argument("--base-port", type=int, default=14550, help="first UDP port; each vehicle uses 10")
     exp.add_argument("--no-analysis", action="store_true", help="leave the run directory unanalysed")
+    exp.add_argument("--network", choices=["kernel", "sleep"],
+                     help="kernel: each companion in its own network namespace, links shaped by tc/nftables from "
+                          "the live positions (needs root); sleep: transfers sleep bits / capacity, the research's "
+                          "method (default: kernel where it can run)")
     exp.add_argument("-v", "--verbose", action="store_true")
     return parser
 
@@ -140,7 +144,8 @@ def experiment(args: argparse.Namespace, out=sys.stdout) -> int:
                          f"(up to {scenario.max_speedup:g}x: {' '.join(scenario.notes) or 'fidelity'})")
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    result = run_scenario(scenario, args.out, speedup, args.base_port, out, stop, analyze=not args.no_analysis)
+    result = run_scenario(scenario, args.out, speedup, args.base_port, out, stop, analyze=not args.no_analysis,
+                          network=args.network)
     return result.outcome.exit_code
 
 

@@ -14,6 +14,8 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from missions.geo import Home
 from nac_onboard.address import is_loopback
 from nac_onboard.errors import OperationFailed
@@ -21,6 +23,7 @@ from nac_onboard.mavlink.signing import SigningState
 from sitl.mavlink.codec import new_parser, parse_datagram
 from sitl.mavlink.telemetry import Streams, TelemetrySource
 from sitl.mavlink.vehicle_protocol import VehicleProtocol
+from sitl.network.netns import socket_in_netns
 from sitl.vehicle.world import COMPANION, GROUND, World
 
 log = logging.getLogger(__name__)
@@ -51,6 +54,9 @@ class SitlConfig:
     dt_s: float = 0.01
     signing_key: bytes | None = None  # MAVLink 2 signing: sign everything sent, refuse unsigned input
     signing_state_file: str | None = None  # where the signing timestamps outlive a restart (beside the key file)
+    # One network namespace per vehicle (a simulated companion computer): its companion link is a UDP socket on
+    # that namespace's loopback, as a serial or UDP link between a Pixhawk and a Jetson is off the Wi-Fi.
+    companion_netns: tuple[str, ...] = ()
 
 
 class Connection:
@@ -151,7 +157,10 @@ class Sitl:
 
     # ---- sockets ------------------------------------------------------------------------------------
     def _udp(self, vehicle: int, kind: str, host: str, port: int) -> None:
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        if kind == COMPANION and self.config.companion_netns:
+            sock = socket_in_netns(self.config.companion_netns[vehicle], socket.AF_INET, socket.SOCK_DGRAM)
+        else:
+            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.setblocking(False)
         # Connected to its client: the kernel then delivers only that client's datagrams, so nobody else on the
         # network can command the vehicle through this link (ArduPilot SITL's --out links answer anyone).
@@ -300,6 +309,11 @@ class Sitl:
     @property
     def homes(self) -> list[Home]:
         return self.world.homes
+
+    def positions_ecef_m(self) -> tuple[float, np.ndarray]:
+        """(simulated time, every vehicle's true earth-centred position (N, 3)), read at one step."""
+        with self._lock:
+            return self.world.t_s, self.world.positions_ecef_m()
 
     def truth(self, vehicle: int) -> dict:
         """True state of one vehicle (for tests and tools): ENU about its home, geodetic, mode, armed."""

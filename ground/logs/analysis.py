@@ -5,6 +5,10 @@ record. A telemetry position is dated by the autopilot's clock, not by when the 
 agent logs the latest position at its own pace, so the time a sample was *taken* is bounded above by the earliest
 log time of it or any later sample (a running minimum from the end, per boot of the autopilot). This keeps
 positions of fast (or sped-up) vehicles aligned without assuming the autopilot clock's rate.
+
+Rates and durations are in simulated seconds where the records give them (a sped-up SITL run: a probe's bits per
+wall second divided by its `speedup`, an iteration's `duration_sim_s`), so a run reads the same at any speed-up.
+On a kernel network each probe is set beside the rate the shaper applied to its pair at its start.
 """
 
 from __future__ import annotations
@@ -114,8 +118,31 @@ def _received(record: dict) -> dict:
     return (record.get("end") or {}).get("sum_received") or {}
 
 
+def applied_rates(run: RunLog) -> dict[tuple[str, str], tuple[np.ndarray, np.ndarray]]:
+    """Per unordered pair: (simulated times, applied rates in bit/s) of the shaper's updates."""
+    series: dict = {}
+    for r in run.link_rates:
+        for a, b, rate in zip(r.get("a", []), r.get("b", []), r.get("rate_bps", []), strict=False):
+            series.setdefault(tuple(sorted((a, b))), []).append((r["t_sim_s"], rate))
+    return {pair: (np.array([t for t, _ in v], float), np.array([x for _, x in v], float))
+            for pair, v in series.items()}
+
+
+def _applied_mbps(rates: dict, client, server, t_sim_s, span_sim_s) -> float | None:
+    """The rate the shaper held for the pair while the probe's bytes arrived (its mean over the receiver's span;
+    at its start for a failed probe): a moving pair's rate changes within one probe."""
+    found = rates.get(tuple(sorted((str(client), str(server)))))
+    if found is None or t_sim_s is None:
+        return None
+    times, values = found
+    at = t_sim_s + np.linspace(0.0, span_sim_s or 0.0, 21)
+    k = np.searchsorted(times, at, side="right") - 1
+    return float(values[k[k >= 0]].mean()) / 1e6 if (k >= 0).any() else None
+
+
 def throughput(run: RunLog, t0_s: float) -> pd.DataFrame:
     rows = []
+    rates = applied_rates(run)
     for r in run.probes:
         if r.get("error_kind") == "server":
             continue  # the server refused or broke: that says nothing about the link
@@ -123,19 +150,26 @@ def throughput(run: RunLog, t0_s: float) -> pd.DataFrame:
         start = (r.get("start") or {}).get("timestamp", {}).get("timesecs")
         t_s = float(start) if start is not None else r["t_s"]
         failed = "error" in r
+        speedup = r.get("speedup") or 1.0
         rows.append({"t_s": t_s, "t_rel_s": t_s - t0_s, "client": r.get("client"), "server": r.get("server"),
                      "distance_m": r.get("distance_m"), "distance_end_m": r.get("distance_end_m"),
-                     "throughput_mbps": 0.0 if failed else got.get("bits_per_second", 0.0) / 1e6,
+                     "throughput_mbps": 0.0 if failed else got.get("bits_per_second", 0.0) / speedup / 1e6,
+                     "applied_mbps": _applied_mbps(rates, r.get("client"), r.get("server"), r.get("t_sim_s"),
+                                                   0.0 if failed else (got.get("seconds") or 0.0) * speedup),
                      "bytes": 0 if failed else got.get("bytes", 0), "seconds": got.get("seconds"),
                      "retransmits": sent.get("retransmits"), "error": r.get("error", "")})
-    columns = ["t_s", "t_rel_s", "client", "server", "distance_m", "distance_end_m", "throughput_mbps", "bytes",
-               "seconds", "retransmits", "error"]
+    columns = ["t_s", "t_rel_s", "client", "server", "distance_m", "distance_end_m", "throughput_mbps",
+               "applied_mbps", "bytes", "seconds", "retransmits", "error"]
     return pd.DataFrame(rows, columns=columns).sort_values("t_s", kind="stable").reset_index(drop=True)
 
 
 def throughput_by_distance(table: pd.DataFrame, bin_m: float = DEFAULT_BIN_M) -> pd.DataFrame:
-    """Mean, standard deviation and count of throughput per distance bin (failed probes count as 0)."""
+    """Mean, standard deviation and count of throughput per distance bin (failed probes count as 0); on a kernel
+    network also the median rate the shaper applied and the median of measured / applied."""
     columns = ["distance_from_m", "distance_to_m", "mean_mbps", "std_mbps", "count"]
+    applied = "applied_mbps" in table and table["applied_mbps"].notna().any()
+    if applied:
+        columns += ["applied_median_mbps", "measured_to_applied_median"]
     known = table.dropna(subset=["distance_m"])
     if known.empty:
         return pd.DataFrame(columns=columns)
@@ -145,6 +179,12 @@ def throughput_by_distance(table: pd.DataFrame, bin_m: float = DEFAULT_BIN_M) ->
                         "mean_mbps": grouped.mean().to_numpy(), "std_mbps": grouped.std(ddof=1).fillna(0.0).to_numpy(),
                         "count": grouped.count().to_numpy()})
     out["distance_to_m"] = out["distance_from_m"] + bin_m
+    if applied:
+        ok = known[known["applied_mbps"].astype(float) > 0].copy()
+        ok["ratio"] = ok["throughput_mbps"] / ok["applied_mbps"].astype(float)
+        by_bin = ok.groupby(np.floor(ok["distance_m"].astype(float) / bin_m) * bin_m)
+        out["applied_median_mbps"] = out["distance_from_m"].map(by_bin["applied_mbps"].median())
+        out["measured_to_applied_median"] = out["distance_from_m"].map(by_bin["ratio"].median())
     return out[columns]
 
 
@@ -156,12 +196,14 @@ def iterations(run: RunLog, t0_s: float) -> tuple[pd.DataFrame, pd.DataFrame]:
         present = w.get("present", [])
         absent = [f"{w['vehicle'][k]}:{w['absent'][k]}" for k in range(len(ranks)) if not present[k]]
         rows.append({"iteration": r["iteration"], "t_s": r["start_s"], "t_rel_s": r["start_s"] - t0_s,
-                     "duration_s": r["duration_s"], "complete": bool(r.get("complete", True)),
+                     "start_sim_s": r.get("start_sim_s", np.nan),
+                     "duration_s": r.get("duration_sim_s", r["duration_s"]), "complete": bool(r.get("complete", True)),
                      "workers_present": int(sum(present)), "absent": " ".join(absent), "cost": r.get("cost")})
         for k, rank in enumerate(ranks):
             worker_rows.append({"iteration": r["iteration"], "t_rel_s": r["start_s"] - t0_s, "rank": rank,
                                 **{key: w[key][k] for key in w if key != "rank"}})
-    it_columns = ["iteration", "t_s", "t_rel_s", "duration_s", "complete", "workers_present", "absent", "cost"]
+    it_columns = ["iteration", "t_s", "t_rel_s", "start_sim_s", "duration_s", "complete", "workers_present",
+                  "absent", "cost"]
     return pd.DataFrame(rows, columns=it_columns), pd.DataFrame(worker_rows)
 
 
@@ -187,7 +229,8 @@ def summarize(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, probes: pd.
               dist: pd.DataFrame, threshold_mbps: float) -> dict:
     summary: dict = {"run": run.name, "vehicles": len(run.vehicles), "master": None}
     if not its.empty:
-        span_s = float(its["t_s"].iloc[-1] + its["duration_s"].iloc[-1] - its["t_s"].iloc[0])
+        start = its["start_sim_s"] if its["start_sim_s"].notna().all() else its["t_s"]  # simulated, if given
+        span_s = float(start.iloc[-1] + its["duration_s"].iloc[-1] - start.iloc[0])
         summary.update(iterations=len(its), complete_iterations=int(its["complete"].sum()),
                        mean_iteration_s=float(its["duration_s"].mean()),
                        p95_iteration_s=float(its["duration_s"].quantile(0.95)),
@@ -212,6 +255,13 @@ def summarize(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, probes: pd.
                        std_throughput_per_link_mbps={str(k): float(v) for k, v in probes.groupby("server")[
                            "throughput_mbps"].std(ddof=1).fillna(0.0).items()},
                        threshold_mbps=threshold_mbps, range_above_threshold_m=range_m(bins, threshold_mbps))
+    if "measured_to_applied_median" in bins:
+        summary["measured_to_applied_by_bin"] = {
+            f"{b.distance_from_m:g}-{b.distance_to_m:g} m": round(float(b.measured_to_applied_median), 3)
+            for b in bins.itertuples() if pd.notna(b.measured_to_applied_median)}
+    network = (run.experiment or {}).get("network")
+    if network:
+        summary["network"] = network.get("mode")
     if not dist.empty:
         summary["max_distance_m"] = {w: float(d["distance_m"].max()) for w, d in dist.groupby("worker")}
     return summary

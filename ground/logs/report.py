@@ -71,12 +71,20 @@ def _notes(tables: list[RunTables], experiment: dict | None) -> list[str]:
     if experiment:
         lines += ["## Experiment", "", f"- scenario: `{experiment.get('scenario')}`",
                   f"- speed-up: {experiment.get('speedup', 1)}x ({experiment.get('speedup_note', '')})",
+                  f"- network: {_network_line(experiment.get('network'))}",
                   f"- ended: {experiment.get('outcome', '?')}", ""]
     for t in tables:
         if t.missing or t.problems:
             lines += [f"## What this run lacks{f' ({t.name})' if len(tables) > 1 else ''}", ""]
             lines += [f"- {m}" for m in t.missing] + [f"- {p}" for p in t.problems] + [""]
     return lines
+
+
+def _network_line(network: dict | None) -> str:
+    if not network:
+        return "sleep (transfers slept bits / capacity; written before the network was recorded)"
+    sharing = "; the master's airtime shared" if network.get("mode") == "kernel" and network.get("sharing") else ""
+    return f"{network.get('mode')} ({network.get('why', '')}{sharing})"
 
 
 def analyze_run(run_dir: str | Path, out: str | Path | None = None, master: str | None = None,

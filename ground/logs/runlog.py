@@ -4,6 +4,7 @@
     RUN_DIR/<vehicle>/throughput.jsonl   iperf3-shaped probe results (the master's agent)
     RUN_DIR/<vehicle>/*.tlog|*.bin|*.ulg autopilot logs: positions when the agent logged none
     RUN_DIR/**/compute.jsonl             per-iteration records (nac-onboard compute)
+    RUN_DIR/network.jsonl                the link shaper's rates over time (a SITL kernel network)
 
 Nothing here raises for damaged or missing data: each problem becomes a sentence in `problems` (a truncated
 last line, corrupt tlog bytes) or `missing` (a vehicle without positions, a record kind nobody wrote).
@@ -34,6 +35,7 @@ class RunLog:
     probes: list[dict] = field(default_factory=list)
     iterations: list[dict] = field(default_factory=list)
     compute_runs: list[dict] = field(default_factory=list)  # run_started records
+    link_rates: list[dict] = field(default_factory=list)  # the shaper's link_rates records (SITL, kernel network)
     experiment: dict | None = None  # the runner's experiment.json, when there is one
     problems: list[str] = field(default_factory=list)
     missing: list[str] = field(default_factory=list)
@@ -67,6 +69,11 @@ def read_run(path: str | Path) -> RunLog:
         run.experiment = {}
         for record in read.records:  # the runner's start record, then its end record (outcome)
             run.experiment.update(record)
+    network = path / "network.jsonl"
+    if network.exists():
+        read = read_jsonl(network)
+        _warn(run, read.problems)
+        run.link_rates = read.of_kind("link_rates")
     for vehicle_dir in sorted(p for p in path.iterdir() if p.is_dir()):
         _read_vehicle(run, vehicle_dir)
     for compute_log in sorted(path.rglob("compute.jsonl")):

@@ -36,6 +36,7 @@ from nac_onboard.agent.probes import ProbeScheduler
 from nac_onboard.agent.state_feed import REQUEST as FEED_REQUEST
 from nac_onboard.agent.state_feed import encode_answer
 from nac_onboard.agent.systemd_notify import SystemdNotifier
+from nac_onboard.clock import from_env
 from nac_onboard.flight_log import JsonlLog, TlogWriter
 from nac_onboard.link.emulation import SleepEmulation
 from nac_onboard.link.throughput import ThroughputServer
@@ -128,9 +129,10 @@ class Agent:
             except OSError as err:
                 raise OSError(f"throughput.port: cannot listen on {t.bind}:{t.port}: {err.strerror}") from None
         if t.probe:
-            emulation = SleepEmulation(c.emulated_channel) if c.emulated_channel else None
+            clock = from_env()
+            emulation = SleepEmulation(c.emulated_channel, clock) if c.emulated_channel else None
             self.scheduler = ProbeScheduler(t, c.vehicle.id, self._probe_targets, self.positions,
-                                            self.throughput_log, self.stop_event, emulation).start()
+                                            self.throughput_log, self.stop_event, emulation, clock).start()
         self.log.write("agent_ready", peers_listen=c.peers.listen, state_feed=c.state_feed.listen,
                        throughput_port=self.throughput_server.port if self.throughput_server else None,
                        probing=t.probe, probe_duty_cycle=t.duty_cycle if t.probe else None)

@@ -6,6 +6,9 @@ so the compute traffic sharing the Wi-Fi is not starved. Each record is the iper
 A probe that fails is logged too, with iperf3's `error` key: a broken link is a measurement, not a gap.
 With `emulate_channel` (SITL), each probe is paced at the channel model's capacity for the pair's distance at
 its start, and a pair beyond the model's range fails as a real one would: loopback then looks like the radio.
+Periods and durations are in the run's time (nac_onboard.clock): at a speed-up X a probe lasts duration_s / X on
+the wall clock and its bytes move X times faster, so the record keeps what the wire saw (iperf3's fields) and
+adds `speedup` and `t_sim_s`: the rate in bits per simulated second is bits_per_second / speedup.
 """
 
 from __future__ import annotations
@@ -16,9 +19,10 @@ import time
 
 from nac_onboard.agent.config import ThroughputSection
 from nac_onboard.agent.state_feed import distance_between, position_of
+from nac_onboard.clock import Clock
 from nac_onboard.flight_log import JsonlLog
 from nac_onboard.link.emulation import SleepEmulation
-from nac_onboard.link.throughput import ProbeError, probe
+from nac_onboard.link.throughput import MIN_INTERVAL_S, ProbeError, probe
 
 log = logging.getLogger(__name__)
 _POSITION_KEYS = ("lat_deg", "lon_deg", "alt_m")
@@ -26,12 +30,13 @@ _POSITION_KEYS = ("lat_deg", "lon_deg", "alt_m")
 
 class ProbeScheduler:
     def __init__(self, settings: ThroughputSection, self_id: str, targets, positions, out: JsonlLog,
-                 stop: threading.Event, emulation: SleepEmulation | None = None):
+                 stop: threading.Event, emulation: SleepEmulation | None = None, clock: Clock | None = None):
         self.settings, self.self_id = settings, self_id
         self.targets, self.positions = targets, positions  # callables: [(id, host, port)], state-feed answer
         self.out, self.stop_event = out, stop
         self.rounds = 0
         self.emulation = emulation  # SITL: pace each probe at the channel model's rate for the pair's distance
+        self.clock = clock or Clock()
         self._thread = threading.Thread(target=self._run, name="throughput-probes", daemon=True)
 
     def start(self) -> ProbeScheduler:
@@ -44,7 +49,7 @@ class ProbeScheduler:
     def _run(self) -> None:
         next_round = time.monotonic()
         while not self.stop_event.wait(max(next_round - time.monotonic(), 0.0)):
-            next_round += self.settings.period_s
+            next_round += self.clock.wall_s(self.settings.period_s)
             for peer_id, host, port in self.targets():
                 if self.stop_event.is_set():
                     return
@@ -55,19 +60,22 @@ class ProbeScheduler:
     def probe_once(self, peer_id: str, host: str, port: int) -> dict:
         s = self.settings
         before = self.positions()
-        fields: dict = {"client": self.self_id, "server": peer_id, "host": host, "port": port}
+        fields: dict = {"client": self.self_id, "server": peer_id, "host": host, "port": port,
+                        "t_sim_s": self.clock.now_s(), "speedup": self.clock.speedup}
         distance_m = distance_between(before, self.self_id, peer_id)
         if self.emulation is not None and distance_m is None:
             # no distance, no emulated link: nothing was measured, so it is not a failed probe either
             return self.out.write("probe_skipped", **fields, reason="no position for one of the pair yet")
         rate_bps = s.rate_bps or None
+        wall = self.clock.wall_s
         try:
             if self.emulation is not None:
                 rate_bps = self._emulated_rate_bps(distance_m, rate_bps)
                 fields["emulated_channel"] = self.emulation.channel.name
                 fields["emulated_rate_bps"] = rate_bps
-            result = probe(host, port, duration_s=None if s.bytes else s.duration_s, nbytes=s.bytes or None,
-                           interval_s=s.interval_s, rate_bps=rate_bps)
+            result = probe(host, port, duration_s=None if s.bytes else wall(s.duration_s), nbytes=s.bytes or None,
+                           interval_s=max(wall(s.interval_s), MIN_INTERVAL_S),
+                           rate_bps=rate_bps * self.clock.speedup if rate_bps else None)
         except ProbeError as err:
             result = {"error": str(err), "error_kind": err.kind}
         after = self.positions()
@@ -81,7 +89,7 @@ class ProbeScheduler:
         channel = self.emulation.channel
         if not link.in_range:
             # a real probe would wait out its connect timeout; the path is idle for the probe's slot either way
-            self.stop_event.wait(self.settings.duration_s)
+            self.stop_event.wait(self.clock.wall_s(self.settings.duration_s))
             raise ProbeError(f"out of range: {channel.name} gives {link.capacity_bps / 1e6:.3f} Mbit/s at "
                              f"{distance_m:.1f} m (minimum {channel.min_rate_bps / 1e6:g})")
         return min(link.capacity_bps, cap_bps) if cap_bps else link.capacity_bps

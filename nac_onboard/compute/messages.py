@@ -1,7 +1,15 @@
 """What the master and the workers send each other: flat float64 arrays with a fixed header, so one posted receive
-per peer can take any message. The header fields have names here; nothing reads them by bare position."""
+per peer can take any message. The header fields have names here; nothing reads them by bare position.
+
+With --pad-bits every message ends in that many bits of zeros, which the receiving Inbox strips: over a shaped
+kernel network (SITL), the channel model's per-transfer overhead then travels as real bytes through the links,
+where the sleep emulation would have waited for it."""
 
 from __future__ import annotations
+
+import math
+
+import numpy as np
 
 TAG_WORK, TAG_RESULT = 1, 2
 BITS_PER_FLOAT = 64
@@ -15,3 +23,16 @@ WORK_HEADER = 4
 RESULT_ITERATION, RESULT_COMPUTE_S, RESULT_UP_S, RESULT_ROWS, RESULT_SSE = 0, 1, 2, 3, 4
 RESULT_HEADER = 5
 WARMUP_ANSWER = (-1.0, 0.0, 0.0, 0.0, 0.0)
+
+
+def pad_floats(pad_bits: float) -> int:
+    return math.ceil(pad_bits / BITS_PER_FLOAT) if pad_bits > 0 else 0
+
+
+def message(head, payload_floats: int, pad: int) -> np.ndarray:
+    """A message buffer: the header filled, room for the payload after it, zeros for the pad at the end."""
+    out = np.empty(len(head) + payload_floats + pad)
+    out[:len(head)] = head
+    if pad:
+        out[-pad:] = 0.0
+    return out

@@ -5,8 +5,9 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
+from nac_onboard.clock import Clock, from_env
 from nac_onboard.compute.positions import (
     FeedDistances,
     FixedDistances,
@@ -26,6 +27,8 @@ class ComputeOptions:
     iterations: int | None
     duration_s: float | None
     out: str
+    end_at_s: float | None = None  # on the run's clock
+    start_file: str | None = None
     seed: int = 0
     m: int = 100
     n: int = 10000
@@ -46,6 +49,8 @@ class ComputeOptions:
     allocation: str = "equal"
     save_results: bool = False
     checkpoint_s: float = 10.0  # results.npz rewritten (atomically) this often while the job runs; 0 = at the end
+    pad_bits: float = 0.0  # zeros appended to every message: the channel's overhead as real bytes (kernel network)
+    clock: Clock = field(default_factory=Clock)  # $NAC_SIM_CLOCK in SITL: times below are simulated seconds
 
     @property
     def task_class(self) -> type[Task]:
@@ -69,6 +74,11 @@ def build_parser() -> argparse.ArgumentParser:
     stop.add_argument("--iterations", type=int, help="iterations to run (default: " + ", ".join(
         f"{cls.default_iterations} for {name}" for name, cls in tasks.items()) + ")")
     stop.add_argument("--duration-s", type=float, help="run this long instead of a fixed number of iterations")
+    stop.add_argument("--end-at-s", type=float,
+                      help="run until this time on the run's clock (unix time; simulated seconds in SITL)")
+    p.add_argument("--start-file", help="after setting up, wait until this file exists before the first iteration "
+                                        "(an orchestrator's go: the vehicles are in the air); a JSON object in it "
+                                        "may give end_at_s, as --end-at-s does")
     p.add_argument("--out", default="compute-out", help="directory for compute.jsonl (and results.npz)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--m", type=int, default=100, help="matmul: rows of A")
@@ -94,6 +104,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--save-results", action="store_true", help="matmul: keep every B and A@B in results.npz")
     p.add_argument("--checkpoint-s", type=float, default=10.0,
                    help="rewrite results.npz this often while running (0: only at the end)")
+    p.add_argument("--pad-bits", type=float, default=0.0,
+                   help="append this many bits of zeros to every message (a transfer's overhead, as real bytes)")
     return p
 
 
@@ -111,21 +123,24 @@ def options_from_argv(argv: list[str] | None) -> ComputeOptions:
     args = build_parser().parse_args(argv)
     task = all_tasks()[args.task]
     iterations = args.iterations
-    if iterations is None and args.duration_s is None:
+    if iterations is None and args.duration_s is None and args.end_at_s is None:
         iterations = task.default_iterations
     if args.checkpoint_s < 0:
         raise BadInput("--checkpoint-s must be >= 0")
+    if not 0 <= args.pad_bits <= 1e9:
+        raise BadInput("--pad-bits must be between 0 and 1e9")
     if args.timeout_s <= 0 or args.idle_timeout_s <= 0:
         raise BadInput("--timeout-s and --idle-timeout-s must be > 0")
     distances = tuple(float(d) for d in args.distances.split(",")) if args.distances else ()
     vehicles = tuple(v.strip() for v in args.vehicles.split(",")) if args.vehicles else ()
     options = ComputeOptions(
-        task=args.task, iterations=iterations, duration_s=args.duration_s, out=args.out, seed=args.seed, m=args.m,
+        task=args.task, iterations=iterations, duration_s=args.duration_s, end_at_s=args.end_at_s,
+        start_file=args.start_file, out=args.out, seed=args.seed, m=args.m,
         n=args.n, l=args.l, a_path=args.a_path, data=args.data, learning_rate=args.learning_rate,
         emulate=args.emulate, channel=load_channel(args.channel), positions=args.positions, distances=distances,
         positions_script=args.positions_script, feed=args.feed, vehicles=vehicles, timeout_s=args.timeout_s,
         idle_timeout_s=args.idle_timeout_s, on_missing=args.on_missing, allocation=args.allocation,
-        save_results=args.save_results, checkpoint_s=args.checkpoint_s)
+        save_results=args.save_results, checkpoint_s=args.checkpoint_s, pad_bits=args.pad_bits, clock=from_env())
     if options.emulate == "sleep" and options.positions == "none":
         raise BadInput("--emulate sleep needs positions: --positions fixed|script|feed")
     task.check(options)

@@ -16,6 +16,8 @@ Records (JSON Lines, --out DIR/compute.jsonl): run_started, one `iteration` reco
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import sys
 import time
@@ -39,7 +41,9 @@ from nac_onboard.compute.messages import (
     TAG_WORK,
     WARMUP_ANSWER,
     WORK_HEADER,
+    pad_floats,
 )
+from nac_onboard.compute.messages import message as message_buffer
 from nac_onboard.compute.options import ComputeOptions, build_source, parse_args
 from nac_onboard.compute.task import Task
 from nac_onboard.errors import NacError
@@ -70,10 +74,10 @@ class Inbox:
     deadline: on ranks that share a core, MPICH's own Probe and Iprobe loops starve the other rank (measured: 125
     iterations/s instead of thousands), while testing posted receives does not."""
 
-    def __init__(self, comm, mpi, sources: list[int], tag: int, floats: int):
-        self.comm, self.mpi, self.tag = comm, mpi, tag
+    def __init__(self, comm, mpi, sources: list[int], tag: int, floats: int, pad: int = 0):
+        self.comm, self.mpi, self.tag, self.pad = comm, mpi, tag, pad
         self.sources = list(sources)
-        self.buffers = [np.empty(floats) for _ in self.sources]
+        self.buffers = [np.empty(floats + pad) for _ in self.sources]
         self.requests = [self._post(k) for k in range(len(self.sources))]
         self.status = mpi.Status()
 
@@ -89,7 +93,7 @@ class Inbox:
             index, done = testany(requests, status)
             if done and index != undefined:
                 k = index if source is None else self.sources.index(source)
-                message = self.buffers[k][:status.Get_count(self.mpi.DOUBLE)].copy()
+                message = self.buffers[k][:status.Get_count(self.mpi.DOUBLE) - self.pad].copy()
                 self.requests[k] = self._post(k)
                 return self.sources[k], message
             if poller is None:
@@ -113,11 +117,13 @@ def run_worker(comm, mpi, options: ComputeOptions) -> None:
     bounds = comm.bcast(None, root=0)
     task = options.task_class(options)
     task.take_block(*bounds[rank - 1])
-    inbox = Inbox(comm, mpi, [0], TAG_WORK, WORK_HEADER + task.largest_input(bounds))
-    emulation = SleepEmulation(options.channel)
+    pad = pad_floats(options.pad_bits)
+    inbox = Inbox(comm, mpi, [0], TAG_WORK, WORK_HEADER + task.largest_input(bounds), pad)
+    emulation = SleepEmulation(options.channel, options.clock)
+    warmup_answer = message_buffer(WARMUP_ANSWER, 0, pad)
     answers = {}  # reused answer buffers by result size: no allocation per iteration
     while True:
-        _, message = inbox.receive(time.monotonic() + options.idle_timeout_s)
+        _, message = inbox.receive(time.monotonic() + options.clock.wall_s(options.idle_timeout_s))
         if message is None:
             sys.stderr.write(f"worker {rank}: nothing from the master for {options.idle_timeout_s:g} s; aborting\n")
             comm.Abort(3)
@@ -126,7 +132,7 @@ def run_worker(comm, mpi, options: ComputeOptions) -> None:
             inbox.close()
             return
         if kind == KIND_WARMUP:
-            comm.Send([np.array(WARMUP_ANSWER), mpi.DOUBLE], dest=0, tag=TAG_RESULT)
+            comm.Send([warmup_answer, mpi.DOUBLE], dest=0, tag=TAG_RESULT)
             continue
         t0 = time.perf_counter()
         result, rows, sse = task.work(kind == KIND_EXTRA, message[WORK_HEADER:], int(extra_rows))
@@ -134,9 +140,9 @@ def run_worker(comm, mpi, options: ComputeOptions) -> None:
         up_s = emulation.delay(result.size * BITS_PER_FLOAT, rate_bps)
         answer = answers.get(result.size)
         if answer is None:
-            answer = answers[result.size] = np.empty(RESULT_HEADER + result.size)
+            answer = answers[result.size] = message_buffer((), RESULT_HEADER + result.size, pad)
         answer[:RESULT_HEADER] = (iteration, compute_s, up_s, rows, sse)
-        answer[RESULT_HEADER:] = result
+        answer[RESULT_HEADER:RESULT_HEADER + result.size] = result
         comm.Send([answer, mpi.DOUBLE], dest=0, tag=TAG_RESULT)
 
 
@@ -156,7 +162,9 @@ class Master:
         self.workers = list(range(1, comm.Get_size()))
         self.vehicles = [options.vehicle_of(rank) for rank in self.workers]
         self.source = build_source(options)
-        self.emulation = SleepEmulation(options.channel) if options.emulate == "sleep" else None
+        self.clock = options.clock
+        self.pad = pad_floats(options.pad_bits)
+        self.emulation = SleepEmulation(options.channel, self.clock) if options.emulate == "sleep" else None
         self.task: Task = options.task_class(options)
         self.bounds: list[tuple[int, int]] = []
         self.stale_results = 0
@@ -168,6 +176,7 @@ class Master:
         self._next_ping_s: dict[int, float] = {}
         self._pings: dict[int, tuple] = {}  # rank -> (request, buffer) of the ping in flight
         self._next_checkpoint_s = 0.0
+        self.end_at_s = options.end_at_s
 
     def link(self, distances: dict) -> IterationLinks:
         """Per worker: distance, emulated rate and whether it is in range this iteration."""
@@ -204,8 +213,8 @@ class Master:
         # the research's emulation: the transfer takes I/C before it happens
         down_s = self.emulation.delay(payload.size * BITS_PER_FLOAT, rate) if self.emulation else 0.0
         if message is None:
-            message = np.empty(WORK_HEADER + payload.size)
-            message[WORK_HEADER:] = payload
+            message = message_buffer((), WORK_HEADER + payload.size, self.pad)
+            message[WORK_HEADER:WORK_HEADER + payload.size] = payload
         message[:WORK_HEADER] = (kind, iteration, rate, extra_rows)
         self.comm.Send([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
         links.bytes_down[k] += message.nbytes
@@ -231,10 +240,9 @@ class Master:
             pending = self._pings.get(rank)
             if now < self._next_ping_s.get(rank, 0.0) or (pending is not None and not pending[0].Test()):
                 continue
-            message = np.zeros(WORK_HEADER)
-            message[0] = KIND_WARMUP
+            message = message_buffer((KIND_WARMUP, 0.0, 0.0, 0.0), 0, self.pad)
             self._pings[rank] = (self.comm.Isend([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK), message)
-            self._next_ping_s[rank] = now + PING_S
+            self._next_ping_s[rank] = now + self.clock.wall_s(PING_S)
 
     def _back(self, rank: int) -> None:
         self.unresponsive.discard(rank)
@@ -242,14 +250,18 @@ class Master:
         self.log.write("worker_back", rank=rank, vehicle=self.options.vehicle_of(rank))
 
     def send_all(self, ranks: list[int], iteration: int, payload: np.ndarray, links: IterationLinks) -> None:
-        message = np.empty(WORK_HEADER + payload.size)
-        message[WORK_HEADER:] = payload
+        message = message_buffer((), WORK_HEADER + payload.size, self.pad)
+        message[WORK_HEADER:WORK_HEADER + payload.size] = payload
         for rank in ranks:
             self.send(rank, KIND_WORK, iteration, payload, links, message=message)
 
     def send_extra(self, rank: int, iteration: int, payload: np.ndarray, extra_rows: int,
                    links: IterationLinks) -> None:
         self.send(rank, KIND_EXTRA, iteration, payload, links, extra_rows=extra_rows)
+
+    def deadline(self, t_start: float, timeouts: int = 1) -> float:
+        """The monotonic time at which `timeouts` x --timeout-s (simulated seconds) have passed since t_start."""
+        return t_start + self.clock.wall_s(timeouts * self.options.timeout_s)
 
     def receive_from(self, rank: int, deadline: float) -> np.ndarray | None:
         return self.inbox.receive(deadline, source=rank)[1]
@@ -281,24 +293,29 @@ class Master:
         self.bounds = self.allocation(task.rows())
         self.comm.bcast(self.bounds, root=0)
         self.inbox = Inbox(self.comm, self.mpi, self.workers, TAG_RESULT,
-                           RESULT_HEADER + task.largest_result(self.bounds))
+                           RESULT_HEADER + task.largest_result(self.bounds), self.pad)
         warmup_s = self.warm_up(task.input_floats())
         emulating = self.emulation is not None
         self.log.write("run_started", warmup_s=warmup_s, task=task.name, workers=len(self.workers),
-                       shards=self.bounds, emulate=o.emulate, channel=o.channel.name if emulating else None,
+                       shards=self.bounds, emulate=o.emulate, pad_bits=o.pad_bits, speedup=self.clock.speedup,
+                       channel=o.channel.name if emulating else None,
                        channel_validity=o.channel.validity() if emulating else None,
                        iterations=o.iterations, duration_s=o.duration_s, timeout_s=o.timeout_s,
                        on_missing=o.on_missing, allocation=o.allocation, pid=os.getpid())
-        t_run = time.monotonic()
+        self.wait_for_start()
+        t_run, t_run_sim = time.monotonic(), self.clock.now_s()
         iteration, ended_by, idle_s = 0, "iterations", 0.0
         while True:
             if o.iterations is not None and iteration >= o.iterations:
                 break
-            if o.duration_s is not None and time.monotonic() - t_run >= o.duration_s:
+            if o.duration_s is not None and self.clock.now_s() - t_run_sim >= o.duration_s:
                 ended_by = "duration"
                 break
-            t_start, start_unix = time.monotonic(), time.time()
-            links = self.link(self.source.distances_m(iteration, t_start - t_run) if self.source else {})
+            if self.end_at_s is not None and self.clock.now_s() >= self.end_at_s:
+                ended_by = "end_at"
+                break
+            t_start, start_unix, start_sim = time.monotonic(), time.time(), self.clock.now_s()
+            links = self.link(self.source.distances_m(iteration, start_sim - t_run_sim) if self.source else {})
             present = [r for r in self.workers if links.present(r)]
             if self.unresponsive:
                 self._ping_unresponsive()
@@ -308,14 +325,15 @@ class Master:
                 idle_s = min(max(2 * idle_s, IDLE_FIRST_S), IDLE_MAX_S)
                 time.sleep(idle_s)
             record = task.iterate(self, iteration, present, links, t_start)
-            self.pending = (iteration, start_unix, time.monotonic() - t_start, links, record)
+            self.pending = (iteration, start_unix, time.monotonic() - t_start, start_sim, self.clock.now_s(), links,
+                            record)
             iteration += 1
             if o.checkpoint_s and time.monotonic() >= self._next_checkpoint_s:
                 self.checkpoint(iteration)
                 self._next_checkpoint_s = time.monotonic() + o.checkpoint_s
         self.write_pending()
         self.checkpoint(iteration)
-        stop = np.array([KIND_STOP, iteration, 0.0, 0.0])
+        stop = message_buffer((KIND_STOP, iteration, 0.0, 0.0), 0, self.pad)
         for rank in self.workers:
             if rank in self.unresponsive:  # it may never take it: do not wait for that
                 self._pings[rank] = (self.comm.Isend([stop, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK), stop)
@@ -325,12 +343,27 @@ class Master:
         t = self.tally
         d = np.array(t.durations) if t.durations else np.array([np.nan])
         self.log.write("run_summary", task=task.name, iterations=iteration, complete_iterations=t.complete,
-                       ended_by=ended_by, elapsed_s=time.monotonic() - t_run, mean_duration_s=float(np.mean(d)),
+                       ended_by=ended_by, elapsed_s=time.monotonic() - t_run,
+                       elapsed_sim_s=self.clock.now_s() - t_run_sim, mean_duration_s=float(np.mean(d)),
                        p95_duration_s=float(np.percentile(d, 95)),
                        absent_iterations={str(r): n for r, n in t.absences.items()},
                        stale_results=self.stale_results, lost_workers=sorted(self.unresponsive),
                        **task.final())
         return 0
+
+    def wait_for_start(self) -> None:
+        """--start-file: the job is set up (ranks, connections, data) before the go, so its start-up time does not
+        land in the experiment: at a speed-up it would be simulated seconds of flight without computing."""
+        path = self.options.start_file
+        if not path:
+            return
+        deadline = time.monotonic() + self.options.idle_timeout_s
+        while not os.path.exists(path):
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"--start-file {path} did not appear within {self.options.idle_timeout_s:g} s")
+            time.sleep(0.005)
+        self.end_at_s = read_start_file(path) or self.options.end_at_s
+        self.log.write("started", start_file=path, end_at_s=self.end_at_s)
 
     def checkpoint(self, iteration: int) -> None:
         """results.npz as of this iteration, replaced atomically: a crash of the master leaves the last whole one."""
@@ -347,7 +380,7 @@ class Master:
         the workers' computing instead of delaying the next inputs. A crash loses only the iteration in flight."""
         if self.pending is None:
             return
-        iteration, start_unix, duration_s, links, record = self.pending
+        iteration, start_unix, duration_s, start_sim, end_sim, links, record = self.pending
         self.pending = None
         t = self.tally
         t.durations.append(duration_s)
@@ -357,20 +390,35 @@ class Master:
                 t.absences[rank] += 1
         end_s = start_unix + duration_s
         self.log.write("iteration", t_s=end_s, iteration=iteration, start_s=start_unix, end_s=end_s,
-                       duration_s=duration_s, workers=links.record(self.workers, self.vehicles), **record)
+                       duration_s=duration_s, start_sim_s=start_sim, duration_sim_s=end_sim - start_sim,
+                       workers=links.record(self.workers, self.vehicles), **record)
 
     def warm_up(self, floats: int) -> float:
         """One untimed exchange of an input-sized message with every worker: MPI sets up its connections and
         buffers on first use, which would otherwise land in the first iteration's time."""
         t0 = time.monotonic()
-        message = np.zeros(WORK_HEADER + floats)
-        message[0] = KIND_WARMUP
+        message = message_buffer((KIND_WARMUP, 0.0, 0.0, 0.0), floats, self.pad)
+        message[WORK_HEADER:] = 0.0
         for rank in self.workers:
             self.comm.Send([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
         for rank in self.workers:
+            # wall seconds, not simulated: setting up connections costs the machine's time, not the link's
             if self.inbox.receive(t0 + self.options.timeout_s, source=rank)[0] is None:
                 raise TimeoutError(f"worker {rank} did not answer the warm-up within {self.options.timeout_s:g} s")
         return time.monotonic() - t0
+
+
+def read_start_file(path: str) -> float | None:
+    """end_at_s from a start file, if it gives one (an empty file is a plain go)."""
+    try:
+        with open(path) as f:
+            text = f.read().strip()
+        value = json.loads(text).get("end_at_s") if text else None
+    except (OSError, ValueError, AttributeError) as err:
+        raise NacError(f"--start-file {path}: expected nothing or a JSON object with end_at_s ({err})") from None
+    if value is not None and not (isinstance(value, (int, float)) and math.isfinite(value)):
+        raise NacError(f"--start-file {path}: end_at_s must be a number, got {value!r}")
+    return value
 
 
 def main(argv: list[str] | None = None) -> int:

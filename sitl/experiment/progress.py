@@ -90,7 +90,7 @@ def render_progress(t_s: float, states: list[VehicleProgress], run_dir: Path, ma
         if "error" in probe:
             line += f" | {probe.get('server')}: no link"
         else:
-            rate = probe["end"]["sum_received"]["bits_per_second"] / 1e6
+            rate = probe["end"]["sum_received"]["bits_per_second"] / probe.get("speedup", 1.0) / 1e6
             distance = probe.get("distance_m")
             line += f" | {probe.get('server')}: {rate:.1f} Mbit/s" + (f" at {distance:.1f} m" if distance else "")
     return line

@@ -23,10 +23,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from missions.model import MavCmd
+from nac_onboard import clock
 from nac_onboard.child_process import AgentProcess, ChildStartError
 from nac_onboard.compute.options import core_binding, options_from_argv
 from nac_onboard.errors import NacError, OperationFailed
-from nac_onboard.flight_log import read_jsonl
+from nac_onboard.flight_log import JsonlLog, read_jsonl
+from nac_onboard.link.channel import load_channel
 from nac_onboard.mavlink.client import CommandError, LinkError, VehicleClient
 from nac_onboard.mavlink.dialect import M
 from nac_onboard.mavlink.mission_transfer import MissionError
@@ -34,13 +36,21 @@ from nac_onboard.tomlfile import dumps_toml
 from sitl.experiment.faults import Fault, FaultInjector, FaultKind
 from sitl.experiment.progress import VehicleProgress, follow, render_progress
 from sitl.experiment.scenario import Scenario
+from sitl.network.air import AirNetwork
+from sitl.network.netns import NetworkError, NetworkUnavailable, check_kernel_network, remove_leftovers
+from sitl.network.shaper import Shaper
 from sitl.server import Sitl, SitlConfig, SitlError
 
 log = logging.getLogger(__name__)
 CLIENT_ERRORS = (OSError, LinkError, CommandError, MissionError)
 PORTS_PER_VEHICLE = 10  # ground, companion, peers, throughput server, (master) state feed
 TAKEOFF_TIMEOUT_S = 60.0  # simulated
+COMPUTE_SETUP_TIMEOUT_S = 60.0  # wall: ranks started, data loaded, connections warmed up
 FLEET_KEY_FILE = "fleet.key"
+CLOCK_FILE = "clock.json"
+START_FILE = "start"  # the MPI job's go, written once the vehicles are in the air
+CLOCK_PUBLISH_S = 0.2  # wall seconds between publications of the simulator's clock
+NETWORKS = ("kernel", "sleep")
 
 
 class Outcome(enum.Enum):
@@ -50,6 +60,7 @@ class Outcome(enum.Enum):
     AGENT_FAILED = (1, "an agent failed")
     MISSION_FAILED = (1, "a mission could not be started")
     SITL_FAILED = (1, "the simulator stopped")
+    NETWORK_FAILED = (1, "the kernel network failed")
     BAD_INPUT = (2, "the experiment cannot start")
 
     @property
@@ -100,51 +111,112 @@ class Ports:
         return self.of(0, 4)
 
 
-def agent_config(scenario: Scenario, index: int, run_dir: Path, ports: Ports) -> str:
+def agent_config(scenario: Scenario, index: int, run_dir: Path, ports: Ports,
+                 addresses: list[str] | None = None) -> str:
+    """One vehicle's agent config. `addresses`: each vehicle's address on a kernel network (the Wi-Fi, shaped by
+    the runner); without them every agent is on loopback and the probes emulate the channel themselves."""
     vehicle = scenario.vehicles[index]
+    air = addresses or ["127.0.0.1"] * len(scenario.vehicles)
     others = [k for k in range(len(scenario.vehicles)) if k != index]
     master = vehicle.role == "master"
-    throughput = {"server": not master, "bind": "127.0.0.1", "port": ports.throughput(index)}
+    throughput = {"server": not master, "bind": air[index], "port": ports.throughput(index)}
     if master and scenario.throughput:
         p = scenario.throughput
         throughput.update(probe=True, period_s=p.period_s, duration_s=p.duration_s, interval_s=p.interval_s,
-                          emulate_channel=scenario.channel,
-                          targets=[f"{scenario.vehicles[k].id}=127.0.0.1:{ports.throughput(k)}" for k in others
+                          emulate_channel="" if addresses else scenario.channel,
+                          targets=[f"{scenario.vehicles[k].id}={air[k]}:{ports.throughput(k)}" for k in others
                                    if scenario.vehicles[k].role == "worker"])
     return dumps_toml({
         "vehicle": {"id": vehicle.id, "role": vehicle.role, "sysid": index + 1},
         "autopilot": {"uri": f"udpin:127.0.0.1:{ports.companion(index)}", "link_timeout_s": 3.0},
         "log": {"dir": str(run_dir.parent), "run_id": run_dir.name, "telemetry_hz": 10.0, "tlog": True},
-        "peers": {"listen": f"127.0.0.1:{ports.peers(index)}", "key_file": FLEET_KEY_FILE,
-                  "send_to": [f"127.0.0.1:{ports.peers(k)}" for k in others], "rate_hz": 2.0, "timeout_s": 3.0},
+        "peers": {"listen": f"{air[index]}:{ports.peers(index)}", "key_file": FLEET_KEY_FILE,
+                  "send_to": [f"{air[k]}:{ports.peers(k)}" for k in others], "rate_hz": 2.0, "timeout_s": 3.0},
         "state_feed": {"listen": f"127.0.0.1:{ports.feed() if master else ports.of(index, 4)}"},
         "throughput": throughput,
     })
 
 
-def compute_args(scenario: Scenario, run_dir: Path, ports: Ports, wall_limit_s: float) -> list[str]:
-    """The `nac-onboard compute` arguments of the scenario's MPI job."""
+def compute_args(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: float,
+                 kernel: bool = False) -> list[str]:
+    """The `nac-onboard compute` arguments of the scenario's MPI job: on a kernel network the flight path
+    (--emulate none) with the channel's per-transfer overhead as real bytes; otherwise the research's sleeps."""
     c = scenario.compute
     ids = [scenario.master.id, *(w.id for w in scenario.workers)]
-    stop = ["--iterations", str(c.iterations)] if c.iterations else ["--duration-s", f"{wall_limit_s:.3f}"]
-    return ["--task", c.task, *stop, "--out", str(run_dir / "compute"), "--emulate", "sleep",
+    # without a number of iterations the runner's go (START_FILE) says when to end
+    stop = ["--iterations", str(c.iterations)] if c.iterations else ["--end-at-s", f"{end_at_sim_s:.3f}"]
+    if kernel:
+        link = ["--emulate", "none", "--pad-bits", f"{load_channel(scenario.channel).overhead_bits:g}"]
+    else:
+        link = ["--emulate", "sleep"]
+    return ["--task", c.task, *stop, "--start-file", str(run_dir / "compute" / START_FILE), "--out",
+            str(run_dir / "compute"), *link,
             "--channel", scenario.channel, "--positions", "feed", "--feed", f"127.0.0.1:{ports.feed()}",
             "--vehicles", ",".join(ids), "--timeout-s", str(c.timeout_s), "--on-missing", c.on_missing,
             "--allocation", c.allocation, *c.args]
 
 
-def mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, wall_limit_s: float) -> list[str]:
+def mpiexec_path() -> str:
     mpiexec = Path(sys.executable).parent / "mpiexec"
+    return str(mpiexec if mpiexec.exists() else "mpiexec")
+
+
+def mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: float) -> list[str]:
     ranks = 1 + len(scenario.workers)
-    return [str(mpiexec if mpiexec.exists() else "mpiexec"), "-n", str(ranks), "-bind-to", core_binding(ranks),
+    return [mpiexec_path(), "-n", str(ranks), "-bind-to", core_binding(ranks),
             sys.executable, "-m", "mpi4py", "-m", "nac_onboard.compute",
-            *compute_args(scenario, run_dir, ports, wall_limit_s)]
+            *compute_args(scenario, run_dir, ports, end_at_sim_s)]
+
+
+def kernel_mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: float, air: AirNetwork,
+                       clock_path: Path) -> list[str]:
+    """mpiexec as on the fleet: started on the master's companion, one rank per vehicle's namespace through a
+    launcher called like ssh, over TCP only (shared memory would bypass the shaped links)."""
+    ids = [v.id for v in scenario.vehicles]
+    order = [ids.index(scenario.master.id), *(ids.index(w.id) for w in scenario.workers)]
+    hosts = [air.stations[k].netns for k in order]
+    binding = core_binding(len(order)).removeprefix("user:")
+    if len(os.sched_getaffinity(0)) < 2:
+        cpus = {}
+    elif binding == "core":
+        cpus = {h: k for k, h in enumerate(hosts)}
+    else:
+        cpus = {h: int(c) for h, c in zip(hosts, binding.split(","), strict=True)}
+    launcher = air.write_launcher(run_dir / "config" / "netns-launcher", cpus)
+    return [*air.exec_prefix(order[0]), mpiexec_path(), "-bootstrap-exec", str(launcher),
+            "-hosts", ",".join(hosts), "-localhost", air.stations[order[0]].address, "-n", str(len(order)),
+            "-ppn", "1", "-genv", "UCX_TLS", "tcp,self", "-genv", "UCX_NET_DEVICES", "air0",
+            "-genv", "MPIR_CVAR_NOLOCAL", "1",
+            "-genv", clock.ENV, str(clock_path), sys.executable, "-m", "mpi4py", "-m", "nac_onboard.compute",
+            *compute_args(scenario, run_dir, ports, end_at_sim_s, kernel=True)]
+
+
+def choose_network(requested: str | None) -> tuple[str, str]:
+    """(network, why): kernel where it can run, else sleep with the reason; a kernel network asked for and
+    impossible raises NetworkUnavailable (exit 2) before anything starts."""
+    if requested == "sleep":
+        return "sleep", "asked for (--network sleep): transfers sleep bits / capacity, the research's method"
+    try:
+        check_kernel_network()
+    except NetworkUnavailable as err:
+        if requested == "kernel":
+            raise
+        return "sleep", f"the kernel network cannot run here: {err}"
+    return "kernel", "namespaces on a bridge, links shaped by tc and nftables from the live positions"
 
 
 class Experiment:
     def __init__(self, scenario: Scenario, run_dir: Path, speedup: float, base_port: int, out=sys.stdout,
-                 stop: threading.Event | None = None, analyze: bool = True):
+                 stop: threading.Event | None = None, analyze: bool = True,
+                 network: tuple[str, str] = ("sleep", "")):
         self.scenario, self.run_dir, self.speedup, self.out = scenario, run_dir, speedup, out
+        self.network, self.network_why = network
+        self.air: AirNetwork | None = None
+        self.shaper: Shaper | None = None
+        self.network_log: JsonlLog | None = None
+        self.clock_path = self.run_dir / CLOCK_FILE
+        self._clock_thread: threading.Thread | None = None
+        self._clock_stop = threading.Event()
         self.ports = Ports(base_port)
         self.stop_event = stop or threading.Event()
         self.analyze = analyze
@@ -165,6 +237,9 @@ class Experiment:
         outcome, detail = Outcome.COMPLETED, "the scenario ran to its end"
         self._write_record("experiment", scenario=self.scenario.name, path=str(self.scenario.path),
                            speedup=self.speedup, speedup_note=self._speedup_note(), duration_s=self.scenario.duration_s,
+                           network={"mode": self.network, "why": self.network_why,
+                                    "sharing": self.scenario.network.sharing,
+                                    "period_s": self.scenario.network.period_s},
                            vehicles=[{"id": v.id, "role": v.role} for v in self.scenario.vehicles])
         try:
             self._preflight()
@@ -187,8 +262,8 @@ class Experiment:
     def _speedup_note(self) -> str:
         if self.speedup == 1.0:
             return "real time"
-        return (f"sped up: simulated time ran {self.speedup:g}x wall-clock time; compute and probes run in wall-clock "
-                "time")
+        return (f"sped up: simulated time ran {self.speedup:g}x wall-clock time, and so did the links, the compute "
+                "job's timeouts and the probes (one clock): results are in simulated seconds")
 
     def _write_record(self, kind: str, **fields) -> None:
         with open(self.run_dir / "experiment.json", "a") as f:
@@ -198,42 +273,80 @@ class Experiment:
         """What would only fail minutes later (the MPI job's data) is checked before anything starts."""
         if self.scenario.compute:
             try:
-                options_from_argv(compute_args(self.scenario, self.run_dir, self.ports, self.scenario.duration_s))
+                options_from_argv(compute_args(self.scenario, self.run_dir, self.ports, self.scenario.duration_s,
+                                           self.network == "kernel"))
             except NacError as err:
                 raise ExperimentError(Outcome.BAD_INPUT, f"the MPI job's options: {err}") from None
 
     def _start(self) -> None:
         s = self.scenario
+        clock.publish(str(self.clock_path), self.speedup, 0.0)
+        if self.network == "kernel":
+            self._start_air()
         config = SitlConfig(vehicles=len(s.vehicles), speedup=self.speedup,
                             vehicle_homes=tuple(v.home for v in s.vehicles),
                             gcs_base_port=self.ports.gcs(0), companion_base_port=self.ports.companion(0),
-                            tcp_base_port=0, port_step=PORTS_PER_VEHICLE)
+                            tcp_base_port=0, port_step=PORTS_PER_VEHICLE,
+                            companion_netns=tuple(st.netns for st in self.air.stations) if self.air else ())
         try:
             self.sim = Sitl(config)
-        except (SitlError, OSError) as err:  # e.g. a base port already taken
+        except (SitlError, NetworkError, OSError) as err:  # e.g. a base port already taken
             raise ExperimentError(Outcome.SITL_FAILED, f"cannot start the simulator: {err}") from None
         self.sim.world.step_observers.extend(self.step_observers)
         self.faults = FaultInjector(self.sim, lambda index: self.agents[index].kill(), self._rank_log)
         self.sim.start()
+        self._clock_thread = threading.Thread(target=self._publish_clock, name="clock", daemon=True)
+        self._clock_thread.start()
+        if self.air is not None:
+            self.network_log = JsonlLog(self.run_dir / "network.jsonl")
+            self.shaper = Shaper(self.air, self.sim.positions_ecef_m, load_channel(s.channel), self.speedup,
+                                 s.network.period_s, self.network_log)
+            try:
+                self.shaper.start()
+            except NetworkError as err:
+                raise ExperimentError(Outcome.NETWORK_FAILED, str(err)) from None
         config_dir = self.run_dir / "config"
         config_dir.mkdir(exist_ok=True)
         key = config_dir / FLEET_KEY_FILE  # a fresh fleet key per run, beside the agents' configs
         key.touch(mode=0o600)
         key.write_text(secrets.token_hex(32) + "\n")
+        addresses = [st.address for st in self.air.stations] if self.air else None
+        env = {**os.environ, clock.ENV: str(self.clock_path)}
         for i, vehicle in enumerate(s.vehicles):
             path = config_dir / f"{vehicle.id}.toml"
-            path.write_text(agent_config(s, i, self.run_dir, self.ports))
-            agent = AgentProcess(path)
+            path.write_text(agent_config(s, i, self.run_dir, self.ports, addresses))
+            agent = AgentProcess(path, env=env, prefix=self.air.exec_prefix(i) if self.air else None)
             try:
                 agent.start()
             except ChildStartError as err:
                 raise ExperimentError(Outcome.AGENT_FAILED, f"{vehicle.id}: {err}") from None
             self.agents.append(agent)
-        print(f"{s.name}: {len(s.vehicles)} vehicles, {self.speedup:g}x, {len(self.agents)} agents up; logs in "
-              f"{self.run_dir}", file=self.out, flush=True)
+        print(f"{s.name}: {len(s.vehicles)} vehicles, {self.speedup:g}x, {len(self.agents)} agents up, "
+              f"{self.network} network; logs in {self.run_dir}", file=self.out, flush=True)
+
+    def _start_air(self) -> None:
+        s = self.scenario
+        for name in remove_leftovers():
+            print(f"removed network namespace {name}, left by a run that no longer exists", file=self.out)
+        ids = [v.id for v in s.vehicles]
+        probe_ports = [self.ports.throughput(i) if v.role == "worker" else None for i, v in enumerate(s.vehicles)]
+        try:
+            self.air = AirNetwork(ids, ids.index(s.master.id), s.network.sharing, probe_ports).create()
+        except NetworkError as err:
+            raise ExperimentError(Outcome.NETWORK_FAILED, str(err)) from None
+
+    def _publish_clock(self) -> None:
+        """The simulator's clock for every process of the run ($NAC_SIM_CLOCK): it may lag its nominal pace."""
+        while not self._clock_stop.wait(CLOCK_PUBLISH_S):
+            try:
+                clock.publish(str(self.clock_path), self.speedup, self.sim.t_s)
+            except OSError as err:
+                log.warning("cannot publish the clock: %s", err)
 
     def _fly(self) -> None:
         s = self.scenario
+        if s.compute:  # set up while the missions go up and the vehicles climb; it computes from the go below
+            self._start_mpi()
         for i, vehicle in enumerate(s.vehicles):
             client = VehicleClient(f"udpin:127.0.0.1:{self.ports.gcs(i)}", sysid=i + 1)
             self.clients.append(client)
@@ -247,6 +360,8 @@ class Experiment:
                     raise ExperimentError(Outcome.MISSION_FAILED, f"{vehicle.id}: mission upload refused")
             except CLIENT_ERRORS as err:
                 raise ExperimentError(Outcome.MISSION_FAILED, f"{vehicle.id}: {err}") from None
+        if s.compute:
+            self._wait_for_compute_setup()
         for i, vehicle in enumerate(s.vehicles):
             if vehicle.mission is None:
                 continue
@@ -263,7 +378,9 @@ class Experiment:
             self.pilots.append(pilot)
         self._wait_for_takeoff()
         if s.compute:
-            self._start_mpi()
+            go = json.dumps({"end_at_s": self.mission_start_sim_s + s.duration_s})
+            (self.run_dir / "compute" / f"{START_FILE}.partial").write_text(go)
+            os.replace(self.run_dir / "compute" / f"{START_FILE}.partial", self.run_dir / "compute" / START_FILE)
         self._watch()
 
     def _sim_elapsed_s(self) -> float:
@@ -280,12 +397,33 @@ class Experiment:
             if self.stop_event.wait(0.05):
                 raise KeyboardInterrupt
 
+    def _wait_for_compute_setup(self, timeout_s: float = COMPUTE_SETUP_TIMEOUT_S) -> None:
+        """The missions start once the MPI job is set up (its run_started record): its start-up costs wall time,
+        which at a speed-up would otherwise be flight without computing, more of it the faster the run."""
+        deadline = time.monotonic() + timeout_s
+        path = self.run_dir / "compute" / "compute.jsonl"
+        while not (path.exists() and read_jsonl(path).of_kind("run_started")):
+            self._check_children()
+            if self.mpi.poll() is not None:
+                raise ExperimentError(Outcome.COMPUTE_FAILED, f"mpiexec exited {self.mpi.returncode} while setting "
+                                                              f"up (see {self.run_dir / 'compute' / 'mpiexec.log'})")
+            if time.monotonic() > deadline:
+                raise ExperimentError(Outcome.COMPUTE_FAILED, f"the MPI job was not set up within {timeout_s:g} s")
+            if self.stop_event.wait(0.02):
+                raise KeyboardInterrupt
+
     def _start_mpi(self) -> None:
-        remaining_wall_s = max(self.scenario.duration_s - self._sim_elapsed_s(), 1.0) / self.speedup
+        end_at_sim_s = self.sim.t_s + TAKEOFF_TIMEOUT_S + self.scenario.duration_s  # the go gives the real end
         (self.run_dir / "compute").mkdir(exist_ok=True)
         self.mpi_log = open(self.run_dir / "compute" / "mpiexec.log", "wb")  # noqa: SIM115 (closed at shutdown)
-        command = mpi_command(self.scenario, self.run_dir, self.ports, remaining_wall_s)
-        self.mpi = subprocess.Popen(command, stdout=self.mpi_log, stderr=subprocess.STDOUT, start_new_session=True)
+        if self.air is not None:
+            command = kernel_mpi_command(self.scenario, self.run_dir, self.ports, end_at_sim_s, self.air,
+                                         self.clock_path)
+        else:
+            command = mpi_command(self.scenario, self.run_dir, self.ports, end_at_sim_s)
+        env = {**os.environ, clock.ENV: str(self.clock_path)}
+        self.mpi = subprocess.Popen(command, stdout=self.mpi_log, stderr=subprocess.STDOUT, start_new_session=True,
+                                    env=env)
         print(f"MPI job started (pid {self.mpi.pid}): {self.scenario.compute.task}, "
               f"{len(self.scenario.workers)} workers", file=self.out, flush=True)
 
@@ -361,8 +499,15 @@ class Experiment:
             agent.stop(5.0)
         for client in self.clients:
             client.close()
+        if self.shaper is not None:
+            self.shaper.stop()
+        self._clock_stop.set()
         if self.sim is not None:
             self.sim.stop()
+        if self.air is not None:  # whatever still runs inside is killed with its namespace
+            self.air.close()
+        if self.network_log is not None:
+            self.network_log.close()
         if self.mpi_log is not None:
             self.mpi_log.close()
 
@@ -415,10 +560,15 @@ def default_run_dir(scenario: Scenario) -> Path:
 
 
 def run_scenario(scenario: Scenario, run_dir: Path | None, speedup: float, base_port: int = 14550,
-                 out=sys.stdout, stop: threading.Event | None = None, analyze: bool = True) -> ExperimentResult:
-    """Run one scenario and print its final summary; the result says how it ended and where the report is."""
+                 out=sys.stdout, stop: threading.Event | None = None, analyze: bool = True,
+                 network: str | None = None) -> ExperimentResult:
+    """Run one scenario and print its final summary; the result says how it ended and where the report is.
+    network: "kernel", "sleep" or None (kernel where it can run)."""
+    chosen = choose_network(network)
+    if chosen[0] != network:
+        print(f"network: {chosen[0]} ({chosen[1]})", file=out, flush=True)
     run_dir = Path(run_dir) if run_dir else default_run_dir(scenario)
-    result = Experiment(scenario, run_dir, speedup, base_port, out, stop, analyze).run()
+    result = Experiment(scenario, run_dir, speedup, base_port, out, stop, analyze, chosen).run()
     print(final_summary(result), file=out, flush=True)
     return result
 

@@ -6,6 +6,7 @@
     [channel]  preset = "wifi-flight"           # or a TOML file (what `nac-ground logs calibrate` writes)
     [compute]  task = "linreg"  iterations = 0  timeout_s = 3.0  args = []   # no [compute]: no MPI job
     [throughput]  period_s = 2.0  duration_s = 0.5  interval_s = 0.1
+    [network]  period_s = 0.1  sharing = true   # the kernel network's shaper and the access point's airtime
     [[vehicle]]  id = "master"  role = "master"  mission = "paper-flight-moving/master.plan"
     [[fault]]  at_s = 60  vehicle = "w1"  kind = "link_down"  duration_s = 5
 
@@ -61,6 +62,12 @@ class ProbePlan:
 
 
 @dataclass(frozen=True)
+class NetworkPlan:
+    period_s: float = 0.1  # simulated seconds between shaper updates
+    sharing: bool = True  # the master is the access point: what passes through it shares one airtime budget
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     path: Path
@@ -71,6 +78,7 @@ class Scenario:
     compute: ComputePlan | None
     throughput: ProbePlan | None
     faults: tuple[Fault, ...] = ()
+    network: NetworkPlan = NetworkPlan()
     max_speedup: float = 1.0
     default_speedup: float = 1.0
     notes: tuple[str, ...] = field(default_factory=tuple)
@@ -127,6 +135,7 @@ def load_scenario(name_or_path: str) -> Scenario:
         compute=_compute(data["compute"], f"{where}: [compute]") if "compute" in data else None,
         throughput=_probes(data["throughput"], f"{where}: [throughput]") if "throughput" in data else None,
         faults=tuple(_fault(f, ids, f"{where}: fault {k + 1}") for k, f in enumerate(data.get("fault", []))),
+        network=_network(data.get("network", {}), f"{where}: [network]"),
         max_speedup=float(speedup), default_speedup=float(data.get("default_speedup", 1.0)),
         notes=tuple(data.get("notes", [])))
     for k, fault in enumerate(scenario.faults):
@@ -172,6 +181,13 @@ def _probes(table: dict, where: str) -> ProbePlan:
     plan = to_dataclass(ProbePlan, table, where, ScenarioError, table="throughput")
     if not 0 < plan.duration_s <= plan.period_s:
         raise ScenarioError(f"{where}: [throughput] needs 0 < duration_s <= period_s")
+    return plan
+
+
+def _network(table: dict, where: str) -> NetworkPlan:
+    plan = to_dataclass(NetworkPlan, table, where, ScenarioError, table="network")
+    if not 0.01 <= plan.period_s <= 10.0:
+        raise ScenarioError(f"{where}: period_s must be within 0.01..10 simulated seconds, got {plan.period_s}")
     return plan
 
 

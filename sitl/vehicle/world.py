@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from missions.geo import Home, enu_to_lla, enu_to_lla_many, lla_to_enu, offset_home
+from missions.geo import Home, enu_to_lla, enu_to_lla_many, lla_to_ecef, lla_to_enu, offset_home
 from sitl.vehicle.flight import CopterMode, Event, Fleet
 from sitl.vehicle.params import ParamTable
 from sitl.vehicle.physics import VehicleState, gps_noise_m, step
@@ -132,6 +132,11 @@ class World:
         enu = lla_to_enu(lat, lon, home.alt_m, home)
         enu[2] = alt if relative else alt - home.alt_m
         return enu
+
+    def positions_ecef_m(self) -> np.ndarray:
+        """Every vehicle's true position, earth-centred (N, 3): what the radio between them sees."""
+        lat, lon, alt = enu_to_lla_many(self.state.pos_m, self._home_lat, self._home_lon, self._home_alt)
+        return lla_to_ecef(lat, lon, alt)
 
     def truth(self, vehicle: int) -> dict:
         """True state of one vehicle (for tests and tools): ENU about its home, geodetic, mode, armed."""

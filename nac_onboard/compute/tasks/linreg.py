@@ -51,7 +51,7 @@ class Linreg(Task):
                 t_start: float) -> dict:
         master.send_all(present, iteration, self.w, links)
         master.write_pending()
-        results = master.collect(iteration, set(present), links, t_start + self.options.timeout_s)
+        results = master.collect(iteration, set(present), links, master.deadline(t_start))
         if not results:
             return {"cost": None, "rows_used": 0, "complete": False}
         parts = [(buf[RESULT_HEADER:], float(buf[RESULT_SSE]), int(buf[RESULT_ROWS])) for buf in results.values()]

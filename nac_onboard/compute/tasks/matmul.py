@@ -69,13 +69,13 @@ class Matmul(Task):
         b = self.b_rng.standard_normal((o.n, o.l))
         master.send_all(present, iteration, b.ravel(), links)
         master.write_pending()
-        results = master.collect(iteration, set(present), links, t_start + o.timeout_s)
+        results = master.collect(iteration, set(present), links, master.deadline(t_start))
         blocks = {r: results[r][RESULT_HEADER:].reshape(-1, o.l) for r in results}
         record = {}
         missing = [r for r in master.workers if r not in blocks]
         if missing and o.on_missing == "reassign" and blocks:
             record["reassigned"] = self.reassign(master, iteration, b, missing, blocks, links,
-                                                 t_start + 2 * o.timeout_s)
+                                                 master.deadline(t_start, 2))
         record["complete"] = all(r in blocks for r in master.workers)
         if record["complete"] and o.save_results:
             self.saved[f"B_{iteration}"] = b

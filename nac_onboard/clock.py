@@ -1,0 +1,101 @@
+"""One clock for a run: simulated seconds, and how long they last on the wall clock.
+
+On a vehicle, simulated time is wall time. In SITL at `--speedup X` the simulator's clock runs X times faster
+than the wall clock, and so must everything timed against it: the experiment runner publishes its clock in a
+small JSON file named by $NAC_SIM_CLOCK (speed-up, a simulated time and the monotonic time it was read), and
+every process of the run (agents, MPI ranks) reads it. A transfer or a timeout of T simulated seconds then waits
+T / X wall seconds, and records carry simulated times next to wall times, so results in simulated seconds do not
+depend on the speed-up. CLOCK_MONOTONIC is the same in every network namespace, so the file means the same
+thing to a process inside a simulated companion.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import dataclass
+
+from nac_onboard.errors import BadInput
+
+ENV = "NAC_SIM_CLOCK"
+REFRESH_S = 0.5  # wall seconds between re-reads of the published clock (the simulator may lag its pace)
+
+
+class ClockError(BadInput):
+    pass
+
+
+@dataclass(frozen=True)
+class ClockSample:
+    speedup: float
+    sim_s: float
+    mono_s: float
+
+
+class Clock:
+    """Wall time: a real vehicle's, and SITL's without a published clock."""
+
+    speedup = 1.0
+    simulated = False
+
+    def now_s(self) -> float:
+        """Seconds on the run's time axis (unix time here)."""
+        return time.time()
+
+    def wall_s(self, sim_duration_s: float) -> float:
+        """How long sim_duration_s of the run's time lasts on the wall clock."""
+        return sim_duration_s / self.speedup
+
+    def sim_s(self, wall_duration_s: float) -> float:
+        return wall_duration_s * self.speedup
+
+
+class SharedClock(Clock):
+    """The simulator's clock, as the runner publishes it."""
+
+    simulated = True
+
+    def __init__(self, path: str):
+        self.path = path
+        self._sample = read_sample(path)
+        self.speedup = self._sample.speedup
+        self._read_at = time.monotonic()
+
+    def now_s(self) -> float:
+        mono = time.monotonic()
+        if mono - self._read_at >= REFRESH_S:
+            self._read_at = mono
+            try:
+                self._sample = read_sample(self.path)
+            except ClockError:
+                pass  # a run ending removes nothing, but keep the last sample rather than fail mid-record
+        s = self._sample
+        return s.sim_s + (mono - s.mono_s) * s.speedup
+
+
+def read_sample(path: str) -> ClockSample:
+    try:
+        with open(path) as f:
+            values = json.load(f)
+        sample = ClockSample(float(values["speedup"]), float(values["sim_s"]), float(values["mono_s"]))
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise ClockError(f"{path} (${ENV}): not a published clock ({err})") from None
+    if not (math.isfinite(sample.speedup) and sample.speedup > 0 and math.isfinite(sample.sim_s)
+            and math.isfinite(sample.mono_s)):
+        raise ClockError(f"{path} (${ENV}): speedup must be > 0 and times finite, got {sample}")
+    return sample
+
+
+def publish(path: str, speedup: float, sim_s: float) -> None:
+    """Write the clock atomically: readers see the old sample or the new one, never half of one."""
+    partial = f"{path}.partial"
+    with open(partial, "w") as f:
+        json.dump({"speedup": speedup, "sim_s": sim_s, "mono_s": time.monotonic()}, f)
+    os.replace(partial, path)
+
+
+def from_env() -> Clock:
+    path = os.environ.get(ENV)
+    return SharedClock(path) if path else Clock()

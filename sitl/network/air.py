@@ -1,0 +1,162 @@
+"""The air: one network namespace per simulated companion computer, each with an address on a bridge that lives
+in a namespace of its own, as each Jetson is its own host on the Wi-Fi.
+
+    <prefix>-air   bridge `air` and one port per station (veth `<tag>p<i>`)
+    <prefix>-<i>   station i: `lo` and `air0` (10.<x>.0.<i+1>/16), joined to its port
+
+Deleting the namespaces removes every veth, the bridge, the qdiscs and the nftables table with them, so close()
+is one loop, and a run killed before it ran leaves only namespaces that the next run removes (netns.PREFIX).
+`tc` and `nft` run as long-lived batch processes fed one line per change, so a shaping update costs a write, not a
+process start.
+"""
+
+from __future__ import annotations
+
+import logging
+import subprocess
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+from sitl.network import netns
+from sitl.network.shaping import Layout
+
+log = logging.getLogger(__name__)
+MAX_STATIONS = 250
+NFT_TABLE = "nacair"
+
+
+class CommandStream:
+    """A long-lived `tc -batch -` or `nft -i` fed lines; what it prints on stderr goes to the log."""
+
+    def __init__(self, command: list[str], what: str):
+        self.what = what
+        self.errors = 0
+        self.proc = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.PIPE, text=True, bufsize=1)
+        self._reader = threading.Thread(target=self._read_errors, name=f"{what}-stderr", daemon=True)
+        self._reader.start()
+
+    def _read_errors(self) -> None:
+        for line in self.proc.stderr:
+            if line.strip() and not line.startswith("Warning"):
+                self.errors += 1
+                log.warning("%s: %s", self.what, line.strip())
+
+    def send(self, text: str) -> None:
+        if self.proc.poll() is not None:
+            raise netns.NetworkError(f"{self.what} stopped (exit code {self.proc.returncode})")
+        try:
+            self.proc.stdin.write(text if text.endswith("\n") else text + "\n")
+            self.proc.stdin.flush()
+        except (OSError, ValueError) as err:  # a broken pipe; a closed one (the network is being removed)
+            raise netns.NetworkError(f"{self.what}: {err}") from None
+
+    def close(self) -> None:
+        try:
+            self.proc.stdin.close()
+        except OSError:
+            pass
+        try:
+            self.proc.wait(5.0)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(5.0)
+
+
+@dataclass(frozen=True)
+class Station:
+    vehicle_id: str
+    netns: str
+    address: str
+    port: str  # its bridge port's name in the air namespace
+
+
+class AirNetwork:
+    def __init__(self, vehicle_ids: list[str], ap: int | None, sharing: bool,
+                 probe_ports: list[int | None] | None = None):
+        if not 1 <= len(vehicle_ids) <= MAX_STATIONS:
+            raise netns.NetworkError(f"a kernel network holds 1-{MAX_STATIONS} vehicles, not {len(vehicle_ids)}")
+        self.prefix = netns.new_prefix()
+        tag = self.prefix.rsplit("-", 1)[1]
+        self.air_ns = f"{self.prefix}-air"
+        self.subnet_octet = 64 + int(tag, 16) % 64  # one /16 per run: nothing else on this host routes to it
+        self.stations = [Station(v, f"{self.prefix}-{i}", f"10.{self.subnet_octet}.{(i + 1) // 256}.{(i + 1) % 256}",
+                                 f"n{tag}p{i}") for i, v in enumerate(vehicle_ids)]
+        self.layout = Layout(tuple(s.address for s in self.stations), tuple(s.port for s in self.stations),
+                             tuple(probe_ports or [None] * len(vehicle_ids)), ap, sharing)
+        self.air_tc: CommandStream | None = None
+        self.ap_tc: CommandStream | None = None
+        self.nft: CommandStream | None = None
+        self.created: list[str] = []
+
+    @property
+    def namespaces(self) -> list[str]:
+        return [self.air_ns, *(s.netns for s in self.stations)]
+
+    def create(self) -> AirNetwork:
+        """Build everything, or remove what was built and raise NetworkError."""
+        try:
+            self._build()
+        except Exception:
+            self.close()
+            raise
+        return self
+
+    def _build(self) -> None:
+        lines = []
+        for name in self.namespaces:
+            lines.append(f"netns add {name}")
+            self.created.append(name)
+        netns.run(["ip", "-batch", "-"], "creating the namespaces", "\n".join(lines) + "\n")
+        links = ["link add air type bridge", "link set air up", "link set lo up"]
+        moves = []
+        for s in self.stations:
+            moves.append(f"link add {s.port} netns {self.air_ns} type veth peer name air0 netns {s.netns}")
+            links += [f"link set {s.port} master air", f"link set {s.port} up"]
+        netns.run(["ip", "-batch", "-"], "creating the veths", "\n".join(moves) + "\n")
+        netns.run(["ip", "-n", self.air_ns, "-batch", "-"], "the bridge", "\n".join(links) + "\n")
+        for s in self.stations:
+            netns.run(["ip", "-n", s.netns, "-batch", "-"], f"{s.vehicle_id}'s interfaces",
+                      f"link set lo up\naddr add {s.address}/16 dev air0\nlink set air0 up\n")
+            # TCP would restart slow start after every idle gap (each iteration's transfer follows one): a cost
+            # in round trips, which do not scale with the speed-up, so results would drift with it
+            netns.run(["ip", "netns", "exec", s.netns, "sysctl", "-q", "-w", "net.ipv4.tcp_slow_start_after_idle=0"],
+                      f"{s.vehicle_id}'s TCP settings")
+        netns.run(["tc", "-n", self.air_ns, "-batch", "-"], "the air's qdiscs",
+                  "\n".join(self.layout.air_setup()) + "\n")
+        if self.layout.shared():
+            netns.run(["tc", "-n", self.stations[self.layout.ap].netns, "-batch", "-"], "the access point's qdisc",
+                      "\n".join(self.layout.ap_setup()) + "\n")
+        netns.run(["ip", "netns", "exec", self.air_ns, "nft", "-f", "-"], "the loss table",
+                  self.layout.nft_setup(NFT_TABLE))
+        self.air_tc = CommandStream(["tc", "-n", self.air_ns, "-force", "-batch", "-"], "tc (air)")
+        if self.layout.shared():
+            self.ap_tc = CommandStream(["tc", "-n", self.stations[self.layout.ap].netns, "-force", "-batch", "-"],
+                                       "tc (access point)")
+        self.nft = CommandStream(["ip", "netns", "exec", self.air_ns, "nft", "-i"], "nft (air)")
+
+    def exec_prefix(self, index: int) -> list[str]:
+        """The command prefix that runs a program on station `index`."""
+        return ["ip", "netns", "exec", self.stations[index].netns]
+
+    def write_launcher(self, path: Path, cpus: dict[str, int] | None = None) -> Path:
+        """The program hydra's mpiexec calls like ssh (`LAUNCHER [-x] HOST COMMAND...`) to start its proxy on a
+        station: it enters that station's namespace, pinned to a core when `cpus` gives one per namespace."""
+        cases = "".join(f"  {name}) cpu={cpu} ;;\n" for name, cpu in (cpus or {}).items())
+        path.write_text("#!/bin/sh\n# written by nac-sitl experiment: hydra's bootstrap into a companion's namespace\n"
+                        "[ \"$1\" = \"-x\" ] && shift\nhost=$1; shift\ncpu=\ncase \"$host\" in\n" + cases +
+                        "esac\nif [ -n \"$cpu\" ] && command -v taskset >/dev/null; then\n"
+                        "  exec ip netns exec \"$host\" taskset -c \"$cpu\" sh -c \"$*\"\nfi\n"
+                        "exec ip netns exec \"$host\" sh -c \"$*\"\n")
+        path.chmod(0o755)
+        return path
+
+    def close(self) -> None:
+        for stream in (self.air_tc, self.ap_tc, self.nft):
+            if stream is not None:
+                stream.close()
+        self.air_tc = self.ap_tc = self.nft = None
+        for name in reversed(self.created):
+            netns.delete_namespace(name)
+        self.created = []

@@ -1,0 +1,98 @@
+"""The link shaper: every `period_s` of simulated time it reads the vehicles' true positions, asks the channel
+model for each pair's rate and loss (sitl.network.shaping) and applies them to the kernel network, changing HTB
+classes in place (their queues are kept) and refilling the nftables loss chain. Each update is a record in
+network.jsonl (simulated and wall time, per pair: distance, rate in bits per simulated second, loss), which the
+analysis compares with what the probes measured. A shaper that falls behind says so and keeps the last rates.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from nac_onboard.flight_log import JsonlLog
+from nac_onboard.link.channel import ChannelModel
+from sitl.network.air import NFT_TABLE, AirNetwork
+from sitl.network.netns import NetworkError
+from sitl.network.shaping import AirState, air_state
+
+log = logging.getLogger(__name__)
+LATE_LOG_EVERY_S = 5.0  # wall seconds between "falling behind" records
+
+
+class Shaper:
+    def __init__(self, air: AirNetwork, positions: Callable[[], tuple[float, np.ndarray]], channel: ChannelModel,
+                 speedup: float, period_s: float, out: JsonlLog):
+        self.air, self.positions, self.channel = air, positions, channel
+        self.speedup, self.period_s, self.out = speedup, period_s, out
+        self.updates = self.late = 0
+        self.apply_s: list[float] = []  # wall seconds from reading positions to the last line written
+        self.last: AirState | None = None
+        self.error: str | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="link-shaper", daemon=True)
+        self._last_nft = ""
+        self._last_late_log = -1e9
+
+    def start(self) -> Shaper:
+        self.update()  # the first rates are in place before anything is sent
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(5.0)
+
+    def _run(self) -> None:
+        period_wall_s = self.period_s / self.speedup
+        next_at = time.monotonic() + period_wall_s
+        while not self._stop.wait(max(next_at - time.monotonic(), 0.0)):
+            try:
+                self.update()
+            except NetworkError as err:  # tc or nft died: the links keep their last rates
+                self.error = str(err)
+                self.out.write("shaper_failed", error=str(err))
+                log.error("link shaper stopped: %s", err)
+                return
+            next_at += period_wall_s
+            behind_s = time.monotonic() - next_at
+            if behind_s > 0:
+                self.late += 1
+                if time.monotonic() - self._last_late_log >= LATE_LOG_EVERY_S:
+                    self._last_late_log = time.monotonic()
+                    self.out.write("shaper_late", behind_s=round(behind_s, 4), late_updates=self.late,
+                                   note="rates are updated less often than every period; the last ones hold")
+                next_at = time.monotonic()  # skip the missed ticks rather than burst through them
+
+    def update(self) -> AirState:
+        t0 = time.monotonic()
+        t_sim_s, ecef = self.positions()
+        layout = self.air.layout
+        state = air_state(ecef, self.channel, layout.ap, layout.sharing)
+        self.air.air_tc.send("\n".join(layout.air_update(state, self.speedup)))
+        if self.air.ap_tc is not None:
+            self.air.ap_tc.send("\n".join(layout.ap_update(state, self.speedup)))
+        nft = layout.nft_update(NFT_TABLE, state)
+        if nft != self._last_nft:
+            self.air.nft.send(nft)
+            self._last_nft = nft
+        self.apply_s.append(time.monotonic() - t0)
+        self.updates += 1
+        self.last = state
+        self._record(t_sim_s, state)
+        return state
+
+    def _record(self, t_sim_s: float, state: AirState) -> None:
+        ids = [s.vehicle_id for s in self.air.stations]
+        n = len(ids)
+        pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+        self.out.write("link_rates", t_sim_s=round(t_sim_s, 3), speedup=self.speedup,
+                       a=[ids[i] for i, _ in pairs], b=[ids[j] for _, j in pairs],
+                       distance_m=[round(float(state.distance_m[i, j]), 3) for i, j in pairs],
+                       rate_bps=[round(float(state.rate_bps[i, j])) for i, j in pairs],
+                       loss=[float(state.loss[i, j]) for i, j in pairs],
+                       budget_bps=None if state.budget_bps is None else round(state.budget_bps))

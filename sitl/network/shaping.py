@@ -1,0 +1,197 @@
+"""What the air between the vehicles does this instant, and the tc/nft text that makes a kernel network do it
+(pure: positions in, numbers and command lines out; sitl.network.shaper applies them).
+
+Layout (sitl.network.air builds it): every companion namespace has one interface, `air0`, on a bridge in an
+`air` namespace. Traffic from station i to station j leaves the bridge through j's port, where an HTB class per
+source (i -> j) holds the pair's rate; nftables in the bridge drops the pair's loss. With a shared medium the
+access point (the master, as in the research's testbed) spends one airtime budget on everything it receives (a
+parent class over its port's pair classes) and on everything it sends (the same on its own `air0`): concurrent
+transfers through it split the budget, each guaranteed an equal part and borrowing what the others leave.
+Probe traffic from the access point to a station's throughput port has its own class at the pair's rate,
+outside the budget: a probe then measures the link, not what the MPI job leaves of it (the research measured
+throughput in flights of its own).
+
+Rates are the channel model's at the pair's distance, times the speed-up on the wire (time dilation: a transfer
+of B bits at rate C lasts B / C simulated seconds at any speed-up). Out of range: every packet is dropped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from nac_onboard.link.channel import ChannelModel
+
+DEFAULT_CLASS, BUDGET_CLASS = 0x1, 0x2
+PAIR_BASE, PROBE_BASE = 0x100, 0x800
+UNSHAPED = "10gbit"
+MIN_WIRE_BPS = 8_000.0  # HTB needs a rate; out of range the pair's packets are dropped anyway
+QUANTUM_BYTES = 6000
+
+
+@dataclass(frozen=True)
+class AirState:
+    """Every ordered pair at one instant; rates in bits per simulated second (0 = out of range)."""
+
+    distance_m: np.ndarray  # (N, N)
+    rate_bps: np.ndarray  # (N, N)
+    loss: np.ndarray  # (N, N), 0..1
+    budget_bps: float | None  # the access point's airtime budget (shared medium only)
+
+
+def air_state(ecef_m: np.ndarray, channel: ChannelModel, ap: int | None, sharing: bool) -> AirState:
+    ecef_m = np.asarray(ecef_m, dtype=float)
+    distance = np.linalg.norm(ecef_m[:, None, :] - ecef_m[None, :, :], axis=-1)
+    n = len(ecef_m)
+    capacity = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1, n):
+            capacity[i, j] = capacity[j, i] = channel.capacity_bps(float(distance[i, j]))
+    in_range = np.array([[channel.usable(c) for c in row] for row in capacity]) & ~np.eye(n, dtype=bool)
+    rate = np.where(in_range, capacity, 0.0)
+    loss = np.where(in_range | np.eye(n, dtype=bool), 0.0, 1.0)
+    budget = None
+    if sharing and ap is not None and n > 1:
+        budget = float(max(np.delete(rate[ap], ap).max(), 0.0))
+    return AirState(distance, rate, loss, budget)
+
+
+def _bits(rate_bps: float, speedup: float) -> str:
+    return f"{max(rate_bps * speedup, MIN_WIRE_BPS):.0f}bit"
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Names and addresses of one kernel network, and which station is the access point."""
+
+    addresses: tuple[str, ...]  # station i's address on the air
+    ports: tuple[str, ...]  # station i's port (interface name) in the air namespace
+    probe_ports: tuple[int | None, ...]  # station i's throughput server port, if it has one
+    ap: int | None
+    sharing: bool
+
+    @property
+    def n(self) -> int:
+        return len(self.addresses)
+
+    def shared(self) -> bool:
+        return self.sharing and self.ap is not None
+
+    def _probed(self, j: int) -> bool:
+        return self.ap is not None and j != self.ap and self.probe_ports[j] is not None
+
+    # ---- the air namespace: one HTB per bridge port ------------------------------------------------------
+    def air_setup(self) -> list[str]:
+        lines = []
+        for j, port in enumerate(self.ports):
+            lines += [f"qdisc add dev {port} root handle 1: htb default {DEFAULT_CLASS:x}",
+                      f"class add dev {port} parent 1: classid 1:{DEFAULT_CLASS:x} htb rate {UNSHAPED} "
+                      f"quantum {QUANTUM_BYTES}"]
+            if self.shared() and j == self.ap:
+                lines.append(f"class add dev {port} parent 1: classid 1:{BUDGET_CLASS:x} htb rate {UNSHAPED} "
+                             f"quantum {QUANTUM_BYTES}")
+            for i in range(self.n):
+                if i == j:
+                    continue
+                lines.append(f"class add dev {port} parent {self._pair_parent(j)} classid 1:{PAIR_BASE + i:x} "
+                             f"htb rate {UNSHAPED} quantum {QUANTUM_BYTES}")
+                lines.append(f"filter add dev {port} parent 1: protocol ip prio 2 u32 match ip src "
+                             f"{self.addresses[i]}/32 flowid 1:{PAIR_BASE + i:x}")
+            for i, match in self._probe_flows(j):
+                lines.append(f"class add dev {port} parent 1: classid 1:{PROBE_BASE + i:x} htb rate {UNSHAPED} "
+                             f"quantum {QUANTUM_BYTES}")
+                lines.append(f"filter add dev {port} parent 1: protocol ip prio 1 u32 {match} "
+                             f"flowid 1:{PROBE_BASE + i:x}")
+        return lines
+
+    def _probe_flows(self, j: int) -> list[tuple[int, str]]:
+        """(source, u32 match) of the probe traffic leaving through port j: the access point's probes to j, or
+        at the access point's port every station's answers to them (no flow queueing in these kernels, so the
+        acknowledgements would otherwise wait behind the MPI job's transfers in the pair's queue)."""
+        if self.ap is None:
+            return []
+        if j != self.ap:
+            return [(self.ap, f"match ip src {self.addresses[self.ap]}/32 match ip dport {self.probe_ports[j]} "
+                              "0xffff")] if self._probed(j) else []
+        return [(i, f"match ip src {self.addresses[i]}/32 match ip sport {self.probe_ports[i]} 0xffff")
+                for i in range(self.n) if self._probed(i)]
+
+    def _pair_parent(self, j: int) -> str:
+        return f"1:{BUDGET_CLASS:x}" if self.shared() and j == self.ap else "1:"
+
+    def air_update(self, state: AirState, speedup: float) -> list[str]:
+        lines = []
+        for j, port in enumerate(self.ports):
+            if self.shared() and j == self.ap:
+                lines.append(self._change(port, "1:", BUDGET_CLASS, state.budget_bps, state.budget_bps, speedup))
+            for i in range(self.n):
+                if i == j:
+                    continue
+                rate = ceil = float(state.rate_bps[i, j])
+                if self.shared() and j == self.ap:
+                    rate = min(state.budget_bps / (self.n - 1), ceil)  # an equal share guaranteed
+                lines.append(self._change(port, self._pair_parent(j), PAIR_BASE + i, rate, ceil, speedup))
+            for i, _ in self._probe_flows(j):
+                pair = float(state.rate_bps[i, j])
+                lines.append(self._change(port, "1:", PROBE_BASE + i, pair, pair, speedup))
+        return lines
+
+    # ---- the access point's own interface: what it sends shares the budget too ----------------------------
+    def ap_setup(self, device: str = "air0") -> list[str]:
+        if not self.shared():
+            return []
+        lines = [f"qdisc add dev {device} root handle 1: htb default {DEFAULT_CLASS:x}",
+                 f"class add dev {device} parent 1: classid 1:{DEFAULT_CLASS:x} htb rate {UNSHAPED} "
+                 f"quantum {QUANTUM_BYTES}",
+                 f"class add dev {device} parent 1: classid 1:{BUDGET_CLASS:x} htb rate {UNSHAPED} "
+                 f"quantum {QUANTUM_BYTES}"]
+        for j in range(self.n):
+            if j == self.ap:
+                continue
+            if self._probed(j):  # probes pass unshaped here: their own class at j's port holds the pair's rate
+                lines.append(f"filter add dev {device} parent 1: protocol ip prio 1 u32 match ip dst "
+                             f"{self.addresses[j]}/32 match ip dport {self.probe_ports[j]} 0xffff "
+                             f"flowid 1:{DEFAULT_CLASS:x}")
+            lines.append(f"class add dev {device} parent 1:{BUDGET_CLASS:x} classid 1:{PAIR_BASE + j:x} htb "
+                         f"rate {UNSHAPED} quantum {QUANTUM_BYTES}")
+            lines.append(f"filter add dev {device} parent 1: protocol ip prio 2 u32 match ip dst "
+                         f"{self.addresses[j]}/32 flowid 1:{PAIR_BASE + j:x}")
+        return lines
+
+    def ap_update(self, state: AirState, speedup: float, device: str = "air0") -> list[str]:
+        if not self.shared():
+            return []
+        lines = [self._change(device, "1:", BUDGET_CLASS, state.budget_bps, state.budget_bps, speedup)]
+        for j in range(self.n):
+            if j != self.ap:
+                ceil = float(state.rate_bps[self.ap, j])
+                rate = min(state.budget_bps / (self.n - 1), ceil)
+                lines.append(self._change(device, f"1:{BUDGET_CLASS:x}", PAIR_BASE + j, rate, ceil, speedup))
+        return lines
+
+    @staticmethod
+    def _change(device: str, parent: str, classid: int, rate_bps: float, ceil_bps: float, speedup: float) -> str:
+        return (f"class change dev {device} parent {parent} classid 1:{classid:x} htb rate "
+                f"{_bits(rate_bps, speedup)} ceil {_bits(max(ceil_bps, rate_bps), speedup)} quantum {QUANTUM_BYTES}")
+
+    # ---- loss: nftables in the bridge ------------------------------------------------------------------
+    @staticmethod
+    def nft_setup(table: str) -> str:
+        return f"table bridge {table} {{ chain loss {{ type filter hook forward priority 0; policy accept; }}; }}\n"
+
+    def nft_update(self, table: str, state: AirState) -> str:
+        """One line, one transaction: the chain emptied and refilled with a rule per lossy pair."""
+        commands = [f"flush chain bridge {table} loss"]
+        for i in range(self.n):
+            for j in range(self.n):
+                loss = float(state.loss[i, j])
+                if i == j or loss <= 0:
+                    continue
+                match = f"ip saddr {self.addresses[i]} ip daddr {self.addresses[j]}"
+                if loss >= 1:
+                    commands.append(f"add rule bridge {table} loss {match} drop")
+                else:
+                    commands.append(f"add rule bridge {table} loss {match} numgen random mod 10000 < "
+                                    f"{round(loss * 10000)} drop")
+        return "; ".join(commands) + "\n"
