@@ -130,14 +130,18 @@ def applied_rates(run: RunLog) -> dict[tuple[str, str], tuple[np.ndarray, np.nda
 
 def _applied_mbps(rates: dict, client, server, t_sim_s, span_sim_s) -> float | None:
     """The rate the shaper held for the pair while the probe's bytes arrived (its mean over the receiver's span;
-    at its start for a failed probe): a moving pair's rate changes within one probe."""
+    at its start for a failed probe): a moving pair's rate changes within one probe. None when the pair left or
+    entered range during the probe: the link broke mid-probe, and no one rate describes it."""
     found = rates.get(tuple(sorted((str(client), str(server)))))
     if found is None or t_sim_s is None:
         return None
     times, values = found
     at = t_sim_s + np.linspace(0.0, span_sim_s or 0.0, 21)
     k = np.searchsorted(times, at, side="right") - 1
-    return float(values[k[k >= 0]].mean()) / 1e6 if (k >= 0).any() else None
+    held = values[k[k >= 0]]
+    if held.size == 0 or ((held > 0).any() and (held == 0).any()):
+        return None
+    return float(held.mean()) / 1e6
 
 
 def throughput(run: RunLog, t0_s: float) -> pd.DataFrame:
@@ -180,7 +184,7 @@ def throughput_by_distance(table: pd.DataFrame, bin_m: float = DEFAULT_BIN_M) ->
                         "count": grouped.count().to_numpy()})
     out["distance_to_m"] = out["distance_from_m"] + bin_m
     if applied:
-        ok = known[known["applied_mbps"].astype(float) > 0].copy()
+        ok = known[(known["error"] == "") & (known["applied_mbps"].astype(float) > 0)].copy()  # measured ones
         ok["ratio"] = ok["throughput_mbps"] / ok["applied_mbps"].astype(float)
         by_bin = ok.groupby(np.floor(ok["distance_m"].astype(float) / bin_m) * bin_m)
         out["applied_median_mbps"] = out["distance_from_m"].map(by_bin["applied_mbps"].median())

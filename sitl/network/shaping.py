@@ -26,7 +26,7 @@ from nac_onboard.link.channel import ChannelModel
 DEFAULT_CLASS, BUDGET_CLASS = 0x1, 0x2
 PAIR_BASE, PROBE_BASE = 0x100, 0x800
 UNSHAPED = "10gbit"
-MIN_WIRE_BPS = 8_000.0  # HTB needs a rate; out of range the pair's packets are dropped anyway
+OUT_OF_RANGE_BPS = 1e6  # an out-of-range pair's class rate, when the channel names no minimum: see air_state
 QUANTUM_BYTES = 6000
 
 
@@ -38,6 +38,10 @@ class AirState:
     rate_bps: np.ndarray  # (N, N)
     loss: np.ndarray  # (N, N), 0..1
     budget_bps: float | None  # the access point's airtime budget (shared medium only)
+    floor_bps: float = OUT_OF_RANGE_BPS  # the lowest rate a class is given (out of range: loss does the work)
+
+    def class_bps(self, i: int, j: int) -> float:
+        return max(float(self.rate_bps[i, j]), self.floor_bps)
 
 
 def air_state(ecef_m: np.ndarray, channel: ChannelModel, ap: int | None, sharing: bool) -> AirState:
@@ -51,14 +55,18 @@ def air_state(ecef_m: np.ndarray, channel: ChannelModel, ap: int | None, sharing
     in_range = np.array([[channel.usable(c) for c in row] for row in capacity]) & ~np.eye(n, dtype=bool)
     rate = np.where(in_range, capacity, 0.0)
     loss = np.where(in_range | np.eye(n, dtype=bool), 0.0, 1.0)
+    # Out of range, every packet is dropped; the class keeps the channel's minimum rate, because HTB charges a
+    # class for what it sends at its rate: at a few kbit/s one queued packet costs seconds of debt, and the link
+    # would stay silent that long after coming back into range.
+    floor = channel.min_rate_bps or OUT_OF_RANGE_BPS
     budget = None
     if sharing and ap is not None and n > 1:
-        budget = float(max(np.delete(rate[ap], ap).max(), 0.0))
-    return AirState(distance, rate, loss, budget)
+        budget = float(max(np.delete(rate[ap], ap).max(), floor))
+    return AirState(distance, rate, loss, budget, floor)
 
 
 def _bits(rate_bps: float, speedup: float) -> str:
-    return f"{max(rate_bps * speedup, MIN_WIRE_BPS):.0f}bit"
+    return f"{rate_bps * speedup:.0f}bit"
 
 
 @dataclass(frozen=True)
@@ -128,12 +136,12 @@ class Layout:
             for i in range(self.n):
                 if i == j:
                     continue
-                rate = ceil = float(state.rate_bps[i, j])
+                rate = ceil = state.class_bps(i, j)
                 if self.shared() and j == self.ap:
                     rate = min(state.budget_bps / (self.n - 1), ceil)  # an equal share guaranteed
                 lines.append(self._change(port, self._pair_parent(j), PAIR_BASE + i, rate, ceil, speedup))
             for i, _ in self._probe_flows(j):
-                pair = float(state.rate_bps[i, j])
+                pair = state.class_bps(i, j)
                 lines.append(self._change(port, "1:", PROBE_BASE + i, pair, pair, speedup))
         return lines
 
@@ -165,7 +173,7 @@ class Layout:
         lines = [self._change(device, "1:", BUDGET_CLASS, state.budget_bps, state.budget_bps, speedup)]
         for j in range(self.n):
             if j != self.ap:
-                ceil = float(state.rate_bps[self.ap, j])
+                ceil = state.class_bps(self.ap, j)
                 rate = min(state.budget_bps / (self.n - 1), ceil)
                 lines.append(self._change(device, f"1:{BUDGET_CLASS:x}", PAIR_BASE + j, rate, ceil, speedup))
         return lines
