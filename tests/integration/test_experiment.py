@@ -95,7 +95,7 @@ def test_a_short_scenario_runs_end_to_end_and_leaves_a_report(short_run):
         assert agent.problems == [] and agent.records[-1]["kind"] == "agent_stopped"
         assert [r["seq"] for r in agent.of_kind("mission_item_reached")][:1] == [1], "took off on its mission"
     compute = read_jsonl(run / "compute" / "compute.jsonl")
-    assert compute.of_kind("run_summary")[0]["ended_by"] == "duration"
+    assert compute.of_kind("run_summary")[0]["ended_by"] == "end_at", "at the scenario's end (the runner's go)"
     assert len(compute.of_kind("iteration")) > 20
     s = result.summary
     assert s["iterations"] > 20 and s["probes"] > 10 and s["final_cost"] < s["first_cost"]
@@ -183,6 +183,7 @@ def test_ctrl_c_stops_everything_within_10_s_and_writes_a_partial_report(tmp_pat
     scenario = write_scenario(tmp_path / "scenario", duration_s=600.0)
     run = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "sitl.cli", "experiment", str(scenario), "--speedup", "4",
+                             "--network", "sleep",
                              "--out", str(run), "--base-port", str(allocate_base_port(3, slots=5))],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
     lines: list[str] = []

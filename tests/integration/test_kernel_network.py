@@ -1,0 +1,241 @@
+"""The kernel network of SITL experiments (issue 14): companions as network namespaces on a shaped bridge, the
+link shaper, one clock, and what is left behind (nothing). Real namespaces, tc, nftables, iperf3 and MPI."""
+
+import dataclasses
+import io
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nac_onboard.flight_log import JsonlLog, read_jsonl
+from nac_onboard.link.channel import PRESETS
+from sitl.experiment.runner import Outcome, run_scenario
+from sitl.experiment.scenario import load_scenario
+from sitl.network import netns
+from sitl.network.air import AirNetwork
+from sitl.network.shaper import Shaper
+from tests.conftest import SHARED_DATA, allocate_base_port
+
+ENV = dict(os.environ, NAC_DATA_DIR=str(SHARED_DATA))
+SCENARIOS = Path(__file__).resolve().parents[2] / "sitl" / "scenarios"
+
+
+def _kernel_network_missing() -> str:
+    try:
+        netns.check_kernel_network()
+    except netns.NetworkUnavailable as err:
+        return str(err)
+    return ""
+
+
+needs_kernel = pytest.mark.skipif(bool(_kernel_network_missing()), reason=_kernel_network_missing() or "-")
+needs_iperf3 = pytest.mark.skipif(shutil.which("iperf3") is None, reason="iperf3 is not installed")
+
+
+def host_state() -> dict:
+    """What a run could leave on this host: namespaces, root-namespace links, qdiscs and nft tables."""
+    def out(command):
+        return subprocess.run(command, capture_output=True, text=True).stdout
+
+    return {"namespaces": sorted(n for n in netns.namespaces() if n.startswith(netns.PREFIX)),
+            "links": sorted(re.findall(r"^\d+: ([^:@]+)", out(["ip", "-o", "link"]), re.M)),
+            "qdiscs": sorted(out(["tc", "qdisc", "show"]).splitlines()),
+            "nft": sorted(out(["nft", "list", "tables"]).splitlines())}
+
+
+def shortened(name: str, folder: Path, duration_s: float) -> Path:
+    """A shipped scenario with a shorter duration, its missions read from where they are shipped."""
+    text = (SCENARIOS / f"{name}.toml").read_text()
+    text = re.sub(r"^duration_s = .*$", f"duration_s = {duration_s}", text, count=1, flags=re.M)
+    text = text.replace('mission = "', f'mission = "{SCENARIOS}/')
+    path = folder / f"{name}-short.toml"
+    path.write_text(text)
+    return path
+
+
+# ---- the shared medium -----------------------------------------------------------------------------------
+@needs_kernel
+@needs_iperf3
+@pytest.mark.parametrize("sharing", [True, False])
+def test_two_workers_share_the_access_points_airtime_or_not(tmp_path, sharing):
+    """Both workers 3 m from the master on a channel capped at 20 Mbit/s send to it at once (real iperf3)."""
+    channel = dataclasses.replace(PRESETS["wifi-flight"], name="capped", max_rate_bps=20e6)
+    positions = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 3.0, 0.0]])
+    air = AirNetwork(["m", "w1", "w2"], ap=0, sharing=sharing).create()
+    servers = []
+    try:
+        with JsonlLog(tmp_path / "network.jsonl") as out:
+            shaper = Shaper(air, lambda: (0.0, positions), channel, 1.0, 0.1, out).start()
+            for port in (5301, 5302):
+                servers.append(subprocess.Popen([*air.exec_prefix(0), "iperf3", "--server", "--one-off", "--port",
+                                                 str(port), "--forceflush"], stdout=subprocess.PIPE, text=True))
+                assert "Server listening" in servers[-1].stdout.readline() + servers[-1].stdout.readline()
+            rates = {}
+
+            def send(k: int, port: int) -> None:
+                done = subprocess.run([*air.exec_prefix(k), "iperf3", "--client", air.stations[0].address, "--port",
+                                       str(port), "--time", "3", "--json"], capture_output=True, text=True, timeout=30)
+                rates[k] = json.loads(done.stdout)["end"]["sum_received"]["bits_per_second"] / 1e6
+
+            senders = [threading.Thread(target=send, args=(k, port)) for k, port in ((1, 5301), (2, 5302))]
+            for t in senders:
+                t.start()
+            for t in senders:
+                t.join(40.0)
+            shaper.stop()
+        assert shaper.last.rate_bps[0, 1] == shaper.last.rate_bps[0, 2] == 20e6
+    finally:
+        for server in servers:
+            server.kill()
+            server.wait()
+        air.close()
+    expected = 10.0 if sharing else 20.0
+    assert all(abs(rates[k] - expected) <= 2.0 for k in (1, 2)), rates
+    assert not any(n.startswith(air.prefix) for n in netns.namespaces())
+
+
+def test_a_dead_runs_namespaces_are_found_and_removed():
+    if _kernel_network_missing():
+        pytest.skip(_kernel_network_missing())
+    gone = subprocess.Popen(["true"])
+    gone.wait()  # its pid is free now: a run that was killed
+    name = f"{netns.PREFIX}{gone.pid}-dead-air"
+    netns.run(["ip", "netns", "add", name], "a leftover")
+    try:
+        assert name in netns.namespaces()
+        assert name in netns.remove_leftovers()
+        assert name not in netns.namespaces()
+    finally:
+        netns.delete_namespace(name)
+
+
+# ---- whole experiments --------------------------------------------------------------------------------------
+def _measured_matches_applied(summary: dict) -> None:
+    by_bin = summary["measured_to_applied_by_bin"]
+    assert by_bin and all(abs(ratio - 1.0) <= 0.15 for ratio in by_bin.values()), by_bin
+
+
+@needs_kernel
+@pytest.mark.slow
+def test_the_moving_flight_on_a_kernel_network(tmp_path, monkeypatch):
+    """paper-flight-moving end to end at 4x: probes measure the shaped links, w1 flies out of range (its MPI
+    transfers stall in the network, not in a model check), training goes on without it, and it comes back."""
+    monkeypatch.setenv("NAC_DATA_DIR", str(SHARED_DATA))
+    before = host_state()
+    result = run_scenario(load_scenario("paper-flight-moving"), tmp_path / "run", 4.0,
+                          allocate_base_port(3, slots=5), out=io.StringIO(), network="kernel")
+    assert result.outcome is Outcome.COMPLETED, result.detail
+    run = result.run_dir
+    assert "- network: kernel (" in (run / "report.md").read_text()
+    _measured_matches_applied(result.summary)
+    probes = read_jsonl(run / "master" / "throughput.jsonl").of_kind("throughput")
+    assert probes and not any("emulated_rate_bps" in p for p in probes), "probes measured traffic, not the model"
+    compute = read_jsonl(run / "compute" / "compute.jsonl")
+    assert compute.of_kind("run_started")[0]["emulate"] == "none"
+    iterations = compute.of_kind("iteration")
+    w1_absent = [r for r in iterations if not r["workers"]["present"][0]]
+    assert w1_absent and {r["workers"]["absent"][0] for r in w1_absent} <= {"timeout", "unresponsive"}
+    last_absent = w1_absent[-1]["iteration"]
+    assert any(r["iteration"] > last_absent and r["workers"]["present"][0] for r in iterations), "w1 came back"
+    assert compute.of_kind("worker_back"), "w1 answered again"
+    during = [r["cost"] for r in iterations if r["workers"]["absent"][0] and r["cost"] is not None]
+    assert during[-1] < during[0], "training went on without w1"
+    assert host_state() == before, "the network was removed"
+
+
+@needs_kernel
+@pytest.mark.slow
+def test_results_in_simulated_time_do_not_depend_on_the_speedup(tmp_path, monkeypatch):
+    """paper-flight-static shortened, at 1x and at 4x on a kernel network: iterations per simulated minute and
+    throughput per distance bin agree within 10 %, and the probes measured the rates the shaper applied."""
+    monkeypatch.setenv("NAC_DATA_DIR", str(SHARED_DATA))
+    scenario = load_scenario(str(shortened("paper-flight-static", tmp_path, 30.0)))
+    summaries = {}
+    for speedup in (1.0, 4.0):
+        result = run_scenario(scenario, tmp_path / f"run-{speedup:g}x", speedup, allocate_base_port(3, slots=5),
+                              out=io.StringIO(), network="kernel")
+        assert result.outcome is Outcome.COMPLETED, result.detail
+        _measured_matches_applied(result.summary)
+        summaries[speedup] = result.summary
+    slow, fast = summaries[1.0], summaries[4.0]
+    assert fast["iterations_per_min"] == pytest.approx(slow["iterations_per_min"], rel=0.10), (slow, fast)
+    bins = [pd_bins(tmp_path / f"run-{x:g}x") for x in (1, 4)]
+    shared = set(bins[0]) & set(bins[1])
+    assert shared and all(bins[1][b] == pytest.approx(bins[0][b], rel=0.10) for b in shared), bins
+
+
+def pd_bins(run: Path) -> dict[float, float]:
+    import pandas as pd
+
+    table = pd.read_csv(run / "analysis" / "throughput_by_distance.csv")
+    return dict(zip(table["distance_from_m"], table["mean_mbps"], strict=True))
+
+
+def test_without_the_privileges_kernel_exits_2_quickly_and_sleep_still_runs(tmp_path):
+    """Root without CAP_NET_ADMIN and CAP_SYS_ADMIN (as in a container that refuses namespaces)."""
+    if os.geteuid() != 0 or shutil.which("setpriv") is None:
+        pytest.skip("needs root to drop capabilities (setpriv)")
+    scenario = shortened("paper-flight-static", tmp_path, 6.0)
+    unprivileged = ["setpriv", "--bounding-set=-net_admin,-sys_admin", "--inh-caps=-net_admin,-sys_admin"]
+    t0 = time.monotonic()
+    refused = subprocess.run([*unprivileged, sys.executable, "-m", "sitl.cli", "experiment", str(scenario),
+                              "--network", "kernel", "--out", str(tmp_path / "refused")],
+                             capture_output=True, text=True, env=ENV, timeout=30)
+    assert refused.returncode == 2 and time.monotonic() - t0 < 5.0, refused.stderr
+    assert "--network kernel cannot build its network here" in refused.stderr, refused.stderr
+    assert "use --network sleep" in refused.stderr and "Traceback" not in refused.stderr
+    assert not (tmp_path / "refused").exists(), "nothing started"
+    assert not [n for n in netns.namespaces() if n.endswith("-trial")], "the trial namespace is gone"
+    ran = subprocess.run([*unprivileged, sys.executable, "-m", "sitl.cli", "experiment", str(scenario), "--speedup",
+                          "4", "--out", str(tmp_path / "slept"), "--base-port", str(allocate_base_port(3, slots=5))],
+                         capture_output=True, text=True, env=ENV, timeout=120)
+    assert ran.returncode == 0, ran.stdout[-2000:] + ran.stderr[-2000:]
+    assert "network: sleep (the kernel network cannot run here" in ran.stdout, "the default says why"
+    assert "- network: sleep (" in (tmp_path / "slept" / "report.md").read_text()
+
+
+@needs_kernel
+def test_ctrl_c_on_a_kernel_network_leaves_nothing_behind(tmp_path):
+    scenario = shortened("paper-flight-static", tmp_path, 600.0)
+    before = host_state()
+    proc = subprocess.Popen([sys.executable, "-m", "sitl.cli", "experiment", str(scenario), "--network", "kernel",
+                             "--speedup", "4", "--out", str(tmp_path / "run"), "--base-port",
+                             str(allocate_base_port(3, slots=5))],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
+    lines: list[str] = []
+    computing = threading.Event()
+
+    def read() -> None:
+        for line in proc.stdout:
+            lines.append(line)
+            if re.search(r"\| it \d+ ", line):
+                computing.set()
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        assert computing.wait(90.0), "".join(lines)
+        ours = [n for n in host_state()["namespaces"] if n not in before["namespaces"]]
+        assert len(ours) == 4, "a namespace per vehicle and the air's"
+        pids = [pid for name in ours for pid in netns.pids_in(name)]
+        assert len(pids) >= 6, "agents and MPI ranks run inside the namespaces"
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(15.0) == 130
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    reader.join(2.0)
+    assert host_state() == before, "namespaces, links, qdiscs and nft tables are gone"
+    left = [pid for pid in pids if Path(f"/proc/{pid}").exists()]
+    assert left == [], f"left running: {left}"
