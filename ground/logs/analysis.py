@@ -285,7 +285,30 @@ def analyze(run: RunLog, master: str | None = None, bin_m: float = DEFAULT_BIN_M
     summary = summarize(run, its, workers, probes, bins, dist, threshold_mbps)
     summary["master"] = master
     missing = list(run.missing)
+    problems = list(run.problems)
+    warning = speedup_warning(run, its, workers, summary)
+    if warning:
+        problems.append(warning)
     if master is None:
         missing.append("master: no vehicle logged role 'master' (give --master ID): no distances")
     return RunTables(run.name, master, t0_s, traj, dist, probes, bins, its, workers, training_cost(its), summary,
-                     list(run.problems), missing)
+                     problems, missing)
+
+
+CPU_SHARE_LIMIT = 0.10
+
+
+def speedup_warning(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, summary: dict) -> str | None:
+    """Sped up, CPU time is X times longer in simulated seconds while transfers are not: when the workers'
+    computing is more than CPU_SHARE_LIMIT of an iteration, results in simulated time depend on the speed-up."""
+    speedup = float((run.compute_runs[-1].get("speedup") if run.compute_runs else None) or 1.0)
+    if its.empty or workers.empty or "compute_s" not in workers or workers["compute_s"].dropna().empty:
+        return None
+    cpu_s = float(workers.groupby("iteration")["compute_s"].max().median()) * speedup
+    share = cpu_s / float(its["duration_s"].median()) if its["duration_s"].median() > 0 else 0.0
+    summary["compute_share_of_iteration"] = round(share, 4)
+    if speedup > 1 and share > CPU_SHARE_LIMIT:
+        return (f"at {speedup:g}x the workers' computing took {100 * share:.0f} % of an iteration in simulated time "
+                f"(more than {100 * CPU_SHARE_LIMIT:.0f} %): iterations per simulated minute depend on the speed-up; "
+                "check at a lower one")
+    return None

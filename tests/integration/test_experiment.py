@@ -111,7 +111,7 @@ def test_analysis_of_the_run_matches_the_simulators_truth(short_run):
     analysis = result.run_dir / "analysis"
     columns = {"distances": "t_s,t_rel_s,worker,distance_m",
                "throughput_by_distance": "distance_from_m,distance_to_m,mean_mbps,std_mbps,count",
-               "iterations": "iteration,t_s,t_rel_s,duration_s,complete,workers_present,absent,cost",
+               "iterations": "iteration,t_s,t_rel_s,start_sim_s,duration_s,complete,workers_present,absent,cost",
                "training_cost": "iteration,t_rel_s,elapsed_s,cost"}
     for name, header in columns.items():
         assert (analysis / f"{name}.csv").read_text().splitlines()[0] == header

@@ -1,0 +1,214 @@
+"""The kernel network of SITL experiments: how exactly it shapes, how fast it follows the vehicles, and what a
+whole run costs on this machine (needs root, ip, tc, nft and iperf3).
+
+1. Shaping accuracy: real iperf3 (3 s) through a shaped pair at 1, 10 and 50 Mbit/s: received / target.
+2. Shaper update latency: a position change, until the kernel's HTB class holds the new rate (read back with
+   `tc class show`): the shaper's write plus tc's apply.
+3. Whole runs: a fleet of 3, 8 and 16 vehicles (master hovering, workers around it, half of them flying in and
+   out), linreg over the kernel network with probes, at 1x and at 4x: wall time, CPU, and the results in
+   simulated time (iterations per simulated minute, mean probe throughput) at 4x relative to 1x.
+   Target: 8 vehicles at 4x within 10 % of the 1x run.
+
+    python benchmarks/network_emulation.py [--rates 1 10 50] [--fleets 3 8 16] [--duration-s 60] [--smoke]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import io
+import json
+import math
+import os
+import re
+import resource
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from missions import save_mission
+from nac_onboard.flight_log import JsonlLog
+from nac_onboard.link.channel import PRESETS, ChannelModel
+from sitl.experiment.runner import Outcome, run_scenario
+from sitl.experiment.scenario import load_scenario
+from sitl.network.air import AirNetwork
+from sitl.network.netns import NetworkUnavailable, check_kernel_network
+from sitl.network.shaper import Shaper
+from sitl.scenarios.generate import at, hover, route
+
+import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
+
+SMOKE = {"rates": [10.0], "fleets": [3], "speedups": [4.0], "duration_s": 8.0, "latency_samples": 5,
+         "iperf_s": 1}
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def capped(rate_mbps: float) -> ChannelModel:
+    return dataclasses.replace(PRESETS["wifi-flight"], name=f"capped-{rate_mbps:g}", max_rate_bps=rate_mbps * 1e6,
+                               min_rate_bps=0.0)
+
+
+def shaping_accuracy(rate_mbps: float, seconds: int) -> dict:
+    near = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    air = AirNetwork(["a", "b"], ap=None, sharing=False).create()
+    try:
+        with JsonlLog(os.devnull) as out:
+            shaper = Shaper(air, lambda: (0.0, near), capped(rate_mbps), 1.0, 0.1, out).start()
+            server = subprocess.Popen([*air.exec_prefix(1), "iperf3", "--server", "--one-off", "--forceflush"],
+                                      stdout=subprocess.PIPE, text=True)
+            server.stdout.readline()
+            server.stdout.readline()
+            done = subprocess.run([*air.exec_prefix(0), "iperf3", "--client", air.stations[1].address, "--time",
+                                   str(seconds), "--json"], capture_output=True, text=True, timeout=60)
+            server.wait(10)
+            shaper.stop()
+    finally:
+        air.close()
+    received = json.loads(done.stdout)["end"]["sum_received"]["bits_per_second"]
+    return {"target_mbps": rate_mbps, "iperf3_mbps": round(received / 1e6, 3),
+            "ratio": round(received / (rate_mbps * 1e6), 3)}
+
+
+def update_latency(samples: int) -> dict:
+    """Each sample moves b so its rate changes, then reads the class until the kernel reports the new rate."""
+    air = AirNetwork(["a", "b"], ap=None, sharing=False).create()
+    position = {"b": 4.0}
+    latencies = []
+    try:
+        with JsonlLog(os.devnull) as out:
+            shaper = Shaper(air, lambda: (0.0, np.array([[0.0, 0.0, 0.0], [position["b"], 0.0, 0.0]])),
+                            PRESETS["wifi-flight"], 1.0, 3600.0, out).start()  # updated by hand below
+            port = air.stations[1].port
+            for k in range(samples):
+                position["b"] = 8.0 + (k % 2) * 4.0
+                t0 = time.monotonic()
+                state = shaper.update()
+                want = state.class_bps(0, 1)
+                while True:
+                    text = subprocess.run(["tc", "-n", air.air_ns, "class", "show", "dev", port, "classid",
+                                           "1:100"], capture_output=True, text=True).stdout
+                    shown = _rate_bps(text)
+                    if shown is not None and abs(shown - want) <= 0.01 * want:  # tc rounds what it shows
+                        break
+                    if time.monotonic() - t0 > 5.0:
+                        raise RuntimeError(f"the class did not take {want} bit/s: {text}")
+                latencies.append(time.monotonic() - t0)
+            shaper.stop()
+    finally:
+        air.close()
+    return {"samples": samples, "median_ms": round(1000 * statistics.median(latencies), 2),
+            "max_ms": round(1000 * max(latencies), 2),
+            "note": "includes one `tc class show` process start per reading"}
+
+
+def _rate_bps(tc_text: str) -> int | None:
+    match = re.search(r" rate (\d+(?:\.\d+)?)([KMG]?)bit", tc_text)
+    if not match:
+        return None
+    scale = {"": 1, "K": 1e3, "M": 1e6, "G": 1e9}[match.group(2)]
+    return int(round(float(match.group(1)) * scale))
+
+
+def fleet_scenario(folder: Path, vehicles: int, duration_s: float) -> Path:
+    """Master at the origin; workers on rings 6-12 m out, every other one flying out to 18 m and back."""
+    folder.mkdir(parents=True, exist_ok=True)
+    save_mission(hover(at(0, 0), 3.0), folder / "v0.plan")
+    blocks = ['name = "fleet"', f"duration_s = {duration_s}", "max_speedup = 8.0", '[channel]',
+              'preset = "wifi-flight"', "[compute]", 'task = "linreg"', "timeout_s = 3.0", "[throughput]",
+              "period_s = 2.0", "duration_s = 0.5", "interval_s = 0.1",
+              '[[vehicle]]', 'id = "v0"', 'role = "master"', 'mission = "v0.plan"']
+    for k in range(1, vehicles):
+        angle = 2 * math.pi * k / (vehicles - 1)
+        radius = 6.0 + 6.0 * (k % 3) / 2
+        east, north = radius * math.cos(angle), radius * math.sin(angle)
+        if k % 2:
+            mission = route(at(east, north), 3.0, [(east * 18 / radius, north * 18 / radius), (east, north)],
+                            speed_mps=1.0)
+        else:
+            mission = hover(at(east, north), 3.0)
+        save_mission(mission, folder / f"v{k}.plan")
+        blocks += ['[[vehicle]]', f'id = "v{k}"', 'role = "worker"', f'mission = "v{k}.plan"']
+    (folder / "fleet.toml").write_text("\n".join(blocks) + "\n")
+    return folder / "fleet.toml"
+
+
+def whole_run(vehicles: int, speedup: float, duration_s: float, folder: Path) -> dict:
+    scenario = load_scenario(str(fleet_scenario(folder / f"fleet-{vehicles}", vehicles, duration_s)))
+    before_self, before_children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(
+        resource.RUSAGE_CHILDREN)
+    t0 = time.monotonic()
+    from sitl.launcher import allocate_base_port
+
+    result = run_scenario(scenario, folder / f"run-{vehicles}-{speedup:g}x", speedup,
+                          allocate_base_port(vehicles, slots=5), out=io.StringIO(), network="kernel")
+    wall_s = time.monotonic() - t0
+    after_self, after_children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(
+        resource.RUSAGE_CHILDREN)
+    cpu = sum(getattr(after, f) - getattr(before, f) for after, before in
+              ((after_self, before_self), (after_children, before_children)) for f in ("ru_utime", "ru_stime"))
+    s = result.summary
+    return {"vehicles": vehicles, "speedup": speedup, "outcome": result.outcome.name.lower(),
+            "wall_s": round(wall_s, 1), "cpu_s": round(cpu, 1), "cpu_cores": round(cpu / wall_s, 2),
+            "iterations": s.get("iterations"), "iterations_per_sim_min": _round(s.get("iterations_per_min")),
+            "mean_throughput_mbps": _round(s.get("mean_throughput_mbps")),
+            "measured_to_applied_by_bin": s.get("measured_to_applied_by_bin"),
+            "ok": result.outcome is Outcome.COMPLETED}
+
+
+def _round(value):
+    return None if value is None else round(float(value), 2)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--rates", type=float, nargs="+", default=[1.0, 10.0, 50.0], help="Mbit/s")
+    parser.add_argument("--fleets", type=int, nargs="+", default=[3, 8, 16])
+    parser.add_argument("--speedups", type=float, nargs="+", default=[1.0, 4.0])
+    parser.add_argument("--duration-s", type=float, default=60.0, help="simulated seconds per whole run")
+    parser.add_argument("--latency-samples", type=int, default=40)
+    parser.add_argument("--iperf-s", type=int, default=3)
+    args = _common.parse_args(parser, SMOKE)
+    try:
+        check_kernel_network()
+    except NetworkUnavailable as err:
+        print(f"network_emulation: {err}", file=sys.stderr)
+        return 2
+    if shutil.which("iperf3") is None:
+        print("network_emulation: iperf3 is not installed", file=sys.stderr)
+        return 2
+    os.environ.setdefault("NAC_DATA_DIR", str(DATA))
+    for rate in args.rates:
+        print(json.dumps({"shaping_accuracy": shaping_accuracy(rate, args.iperf_s)}), flush=True)
+    print(json.dumps({"update_latency": update_latency(args.latency_samples)}), flush=True)
+    folder = Path(tempfile.mkdtemp(prefix="nac-bench-net-"))
+    try:
+        for vehicles in args.fleets:
+            runs = {x: whole_run(vehicles, x, args.duration_s, folder) for x in args.speedups}
+            for run in runs.values():
+                print(json.dumps({"whole_run": run}), flush=True)
+            if 1.0 in runs and len(runs) > 1:
+                base = runs[1.0]
+                for x, run in runs.items():
+                    if x != 1.0 and base["iterations_per_sim_min"] and run["iterations_per_sim_min"]:
+                        print(json.dumps({"versus_1x": {
+                            "vehicles": vehicles, "speedup": x,
+                            "iterations_per_sim_min_ratio": round(run["iterations_per_sim_min"] /
+                                                                  base["iterations_per_sim_min"], 3),
+                            "throughput_ratio": round(run["mean_throughput_mbps"] / base["mean_throughput_mbps"], 3)
+                            if base["mean_throughput_mbps"] and run["mean_throughput_mbps"] else None}}),
+                            flush=True)
+            if not all(r["ok"] for r in runs.values()):
+                return 1
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
