@@ -72,7 +72,9 @@ def _notes(tables: list[RunTables], experiment: dict | None) -> list[str]:
         lines += ["## Experiment", "", f"- scenario: `{experiment.get('scenario')}`",
                   f"- speed-up: {experiment.get('speedup', 1)}x ({experiment.get('speedup_note', '')})",
                   f"- network: {_network_line(experiment.get('network'))}",
-                  f"- ended: {experiment.get('outcome', '?')}", ""]
+                  f"- ended: {experiment.get('outcome', '?')}"
+                  + (f" ({experiment['detail']})" if experiment.get("outcome") not in (None, "completed") else ""),
+                  ""]
     for t in tables:
         if t.missing or t.problems:
             lines += [f"## What this run lacks{f' ({t.name})' if len(tables) > 1 else ''}", ""]

@@ -7,6 +7,7 @@ that names the file, the key and what was expected (a typo must not silently fal
 from __future__ import annotations
 
 import dataclasses
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from nac_onboard.mavlink.signing import load_signing_key
 from nac_onboard.tomlfile import read_toml, to_dataclass
 
 ROLES = ("master", "worker")
+PROBE_TOOLS = ("nac", "iperf3")
 
 
 class ConfigError(BadInput):
@@ -91,6 +93,9 @@ class ThroughputSection:
     # SITL only: a channel preset or TOML; each probe is then paced at the model's capacity for the pair's distance
     # (and fails below its minimum rate), so loopback behaves like the radio. "" = measure the real network.
     emulate_channel: str = ""
+    # "nac": our probe, against `nac-onboard throughput server`; "iperf3": `iperf3 --client --json` against an
+    # `iperf3 --server` on each target (run it there yourself; SITL's runner does), whole seconds per probe
+    tool: str = "nac"
 
     @property
     def duty_cycle(self) -> float:
@@ -167,6 +172,13 @@ def _check(c: AgentConfig) -> None:
         raise ConfigError(f"{src}: peers.key_file is not set: give the fleet key file (docs/security.md), or set "
                           "peers.allow_unsigned = true to accept peer state that anyone on the network can forge")
     t = c.throughput
+    if t.tool not in PROBE_TOOLS:
+        raise ConfigError(f"{src}: throughput.tool must be one of {', '.join(PROBE_TOOLS)}, got {t.tool!r}")
+    if t.tool == "iperf3" and (t.emulate_channel or t.bytes or t.rate_bps):
+        raise ConfigError(f"{src}: throughput.tool = \"iperf3\" measures the path as it is: it cannot be paced "
+                          "(emulate_channel, rate_bps) nor sized (bytes)")
+    if t.probe and t.tool == "iperf3" and shutil.which("iperf3") is None:
+        raise ConfigError(f"{src}: throughput.tool = \"iperf3\" but iperf3 is not installed")
     if t.probe and t.bytes == 0 and t.duration_s > t.period_s:
         raise ConfigError(f"{src}: throughput.duration_s ({t.duration_s}) exceeds throughput.period_s "
                           f"({t.period_s}): the probe would never pause for other traffic")

@@ -14,6 +14,7 @@ adds `speedup` and `t_sim_s`: the rate in bits per simulated second is bits_per_
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 
@@ -21,8 +22,9 @@ from nac_onboard.agent.config import ThroughputSection
 from nac_onboard.agent.state_feed import distance_between, position_of
 from nac_onboard.clock import Clock
 from nac_onboard.flight_log import JsonlLog
+from nac_onboard.link import iperf3
 from nac_onboard.link.emulation import SleepEmulation
-from nac_onboard.link.throughput import MIN_INTERVAL_S, ProbeError, probe
+from nac_onboard.link.throughput import LINK, MIN_INTERVAL_S, ProbeError, probe
 
 log = logging.getLogger(__name__)
 _POSITION_KEYS = ("lat_deg", "lon_deg", "alt_m")
@@ -73,11 +75,18 @@ class ProbeScheduler:
                 rate_bps = self._emulated_rate_bps(distance_m, rate_bps)
                 fields["emulated_channel"] = self.emulation.channel.name
                 fields["emulated_rate_bps"] = rate_bps
-            result = probe(host, port, duration_s=None if s.bytes else wall(s.duration_s), nbytes=s.bytes or None,
-                           interval_s=max(wall(s.interval_s), MIN_INTERVAL_S),
-                           rate_bps=rate_bps * self.clock.speedup if rate_bps else None)
+            if s.tool == "iperf3":
+                seconds = max(1, math.ceil(wall(s.duration_s) - 1e-9))
+                fields["duration_wall_s"] = seconds  # whole seconds: longer than duration_s when sped up
+                result = iperf3.client_result(host, port, seconds, timeout_s=seconds + 10.0)
+            else:
+                result = probe(host, port, duration_s=None if s.bytes else wall(s.duration_s),
+                               nbytes=s.bytes or None, interval_s=max(wall(s.interval_s), MIN_INTERVAL_S),
+                               rate_bps=rate_bps * self.clock.speedup if rate_bps else None)
         except ProbeError as err:
             result = {"error": str(err), "error_kind": err.kind}
+        except iperf3.Iperf3Error as err:
+            result = {"error": str(err), "error_kind": LINK}
         after = self.positions()
         fields["positions"] = {"start": self._pair(before, peer_id), "end": self._pair(after, peer_id)}
         fields["distance_m"] = distance_m

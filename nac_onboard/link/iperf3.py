@@ -57,6 +57,27 @@ def nac_rate_bps(host: str, port: int, duration_s: int | None, nbytes: int | Non
     return json.loads(out.stdout)["end"]["sum_received"]["bits_per_second"]
 
 
+def client_result(host: str, port: int, seconds: int, timeout_s: float) -> dict:
+    """One `iperf3 --client --json` run of whole seconds (iperf3 takes no fractions), as the agent's probes use
+    it with `throughput.tool = "iperf3"`: its JSON, or Iperf3Error with iperf3's own error."""
+    command = ["iperf3", "--client", host, "--port", str(port), "--time", str(seconds), "--json",
+               "--connect-timeout", "3000"]
+    try:
+        out = subprocess.run(command, capture_output=True, text=True, timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        raise Iperf3Error(f"iperf3 to {host}:{port} gave no result within {timeout_s:g} s") from None
+    except OSError as err:
+        raise Iperf3Error(f"cannot run iperf3: {err.strerror or err}") from None
+    try:
+        result = json.loads(out.stdout)
+    except json.JSONDecodeError:
+        raise Iperf3Error(f"iperf3 exited {out.returncode} without JSON: {out.stderr.strip()[-300:]}") from None
+    if not isinstance(result, dict) or "error" in result or "end" not in result:
+        error = result.get("error") if isinstance(result, dict) else None
+        raise Iperf3Error(f"iperf3 to {host}:{port}: {error or 'no end section'}")
+    return result
+
+
 def iperf3_result(host: str, port: int, duration_s: int | None, nbytes: int | None = None,
                   netns: str | None = None) -> dict:
     # The same write size as ours: where the CPU is the bottleneck (loopback) the rate depends on it.

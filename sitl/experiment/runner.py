@@ -29,6 +29,7 @@ from nac_onboard.compute.options import core_binding, options_from_argv
 from nac_onboard.errors import NacError, OperationFailed
 from nac_onboard.flight_log import JsonlLog, read_jsonl
 from nac_onboard.link.channel import load_channel
+from nac_onboard.link.iperf3 import iperf3_server
 from nac_onboard.mavlink.client import CommandError, LinkError, VehicleClient
 from nac_onboard.mavlink.dialect import M
 from nac_onboard.mavlink.mission_transfer import MissionError
@@ -119,10 +120,13 @@ def agent_config(scenario: Scenario, index: int, run_dir: Path, ports: Ports,
     air = addresses or ["127.0.0.1"] * len(scenario.vehicles)
     others = [k for k in range(len(scenario.vehicles)) if k != index]
     master = vehicle.role == "master"
-    throughput = {"server": not master, "bind": air[index], "port": ports.throughput(index)}
+    tool = scenario.throughput.tool if scenario.throughput else "nac"
+    # with iperf3 probes the runner serves iperf3 on the workers' probe ports instead of the agents
+    throughput = {"server": not master and tool == "nac", "bind": air[index], "port": ports.throughput(index)}
     if master and scenario.throughput:
         p = scenario.throughput
         throughput.update(probe=True, period_s=p.period_s, duration_s=p.duration_s, interval_s=p.interval_s,
+                          tool=p.tool,
                           emulate_channel="" if addresses else scenario.channel,
                           targets=[f"{scenario.vehicles[k].id}={air[k]}:{ports.throughput(k)}" for k in others
                                    if scenario.vehicles[k].role == "worker"])
@@ -183,8 +187,10 @@ def kernel_mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, end_at_s
     else:
         cpus = {h: int(c) for h, c in zip(hosts, binding.split(","), strict=True)}
     launcher = air.write_launcher(run_dir / "config" / "netns-launcher", cpus)
+    hostfile = run_dir / "config" / "hostfile"  # the fleet's hosts, one rank each: what a lab writes for its Jetsons
+    hostfile.write_text("".join(f"{host}:1\n" for host in hosts))
     return [*air.exec_prefix(order[0]), mpiexec_path(), "-bootstrap-exec", str(launcher),
-            "-hosts", ",".join(hosts), "-localhost", air.stations[order[0]].address, "-n", str(len(order)),
+            "-f", str(hostfile), "-localhost", air.stations[order[0]].address, "-n", str(len(order)),
             "-ppn", "1", "-genv", "UCX_TLS", "tcp,self", "-genv", "UCX_NET_DEVICES", "air0",
             "-genv", "MPIR_CVAR_NOLOCAL", "1",
             "-genv", clock.ENV, str(clock_path), sys.executable, "-m", "mpi4py", "-m", "nac_onboard.compute",
@@ -217,6 +223,8 @@ class Experiment:
         self.clock_path = self.run_dir / CLOCK_FILE
         self._clock_thread: threading.Thread | None = None
         self._clock_stop = threading.Event()
+        self.iperf3_probes = bool(scenario.throughput and scenario.throughput.tool == "iperf3")
+        self.iperf3_servers: list = []
         self.ports = Ports(base_port)
         self.stop_event = stop or threading.Event()
         self.analyze = analyze
@@ -271,6 +279,9 @@ class Experiment:
 
     def _preflight(self) -> None:
         """What would only fail minutes later (the MPI job's data) is checked before anything starts."""
+        if self.iperf3_probes and self.network != "kernel":
+            raise ExperimentError(Outcome.BAD_INPUT, "[throughput] tool = \"iperf3\" needs the kernel network: on "
+                                                     "loopback iperf3 cannot be paced to the channel model")
         if self.scenario.compute:
             try:
                 options_from_argv(compute_args(self.scenario, self.run_dir, self.ports, self.scenario.duration_s,
@@ -311,6 +322,8 @@ class Experiment:
         key.touch(mode=0o600)
         key.write_text(secrets.token_hex(32) + "\n")
         addresses = [st.address for st in self.air.stations] if self.air else None
+        if self.iperf3_probes:
+            self._start_iperf3_servers()
         env = {**os.environ, clock.ENV: str(self.clock_path)}
         for i, vehicle in enumerate(s.vehicles):
             path = config_dir / f"{vehicle.id}.toml"
@@ -331,9 +344,20 @@ class Experiment:
         ids = [v.id for v in s.vehicles]
         probe_ports = [self.ports.throughput(i) if v.role == "worker" else None for i, v in enumerate(s.vehicles)]
         try:
-            self.air = AirNetwork(ids, ids.index(s.master.id), s.network.sharing, probe_ports).create()
+            self.air = AirNetwork(ids, ids.index(s.master.id), s.network.sharing, probe_ports, self.speedup).create()
         except NetworkError as err:
             raise ExperimentError(Outcome.NETWORK_FAILED, str(err)) from None
+
+    def _start_iperf3_servers(self) -> None:
+        for i, vehicle in enumerate(self.scenario.vehicles):
+            if vehicle.role != "worker":
+                continue
+            server = iperf3_server(self.ports.throughput(i), self.air.stations[i].netns)
+            try:
+                server.start()
+            except ChildStartError as err:
+                raise ExperimentError(Outcome.NETWORK_FAILED, f"{vehicle.id}: {err}") from None
+            self.iperf3_servers.append(server)
 
     def _publish_clock(self) -> None:
         """The simulator's clock for every process of the run ($NAC_SIM_CLOCK): it may lag its nominal pace."""
@@ -497,6 +521,8 @@ class Experiment:
             self._land()
         for agent in self.agents:
             agent.stop(5.0)
+        for server in self.iperf3_servers:
+            server.stop(2.0)
         for client in self.clients:
             client.close()
         if self.shaper is not None:

@@ -59,6 +59,7 @@ class ProbePlan:
     period_s: float = 2.0
     duration_s: float = 0.5
     interval_s: float = 0.1
+    tool: str = "nac"  # or "iperf3": the real iperf3 between the namespaces (kernel network only)
 
 
 @dataclass(frozen=True)
@@ -181,6 +182,8 @@ def _probes(table: dict, where: str) -> ProbePlan:
     plan = to_dataclass(ProbePlan, table, where, ScenarioError, table="throughput")
     if not 0 < plan.duration_s <= plan.period_s:
         raise ScenarioError(f"{where}: [throughput] needs 0 < duration_s <= period_s")
+    if plan.tool not in ("nac", "iperf3"):
+        raise ScenarioError(f"{where}: tool must be \"nac\" or \"iperf3\", got {plan.tool!r}")
     return plan
 
 

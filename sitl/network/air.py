@@ -24,6 +24,7 @@ from sitl.network.shaping import Layout
 log = logging.getLogger(__name__)
 MAX_STATIONS = 250
 NFT_TABLE = "nacair"
+TCP_RTO_MIN_US, TCP_RTO_MAX_MS = 200_000, 120_000  # Linux's defaults
 
 
 class CommandStream:
@@ -74,9 +75,10 @@ class Station:
 
 class AirNetwork:
     def __init__(self, vehicle_ids: list[str], ap: int | None, sharing: bool,
-                 probe_ports: list[int | None] | None = None):
+                 probe_ports: list[int | None] | None = None, speedup: float = 1.0):
         if not 1 <= len(vehicle_ids) <= MAX_STATIONS:
             raise netns.NetworkError(f"a kernel network holds 1-{MAX_STATIONS} vehicles, not {len(vehicle_ids)}")
+        self.speedup = speedup
         self.prefix = netns.new_prefix()
         tag = self.prefix.rsplit("-", 1)[1]
         self.air_ns = f"{self.prefix}-air"
@@ -119,9 +121,7 @@ class AirNetwork:
         for s in self.stations:
             netns.run(["ip", "-n", s.netns, "-batch", "-"], f"{s.vehicle_id}'s interfaces",
                       f"link set lo up\naddr add {s.address}/16 dev air0\nlink set air0 up\n")
-            # TCP would restart slow start after every idle gap (each iteration's transfer follows one): a cost
-            # in round trips, which do not scale with the speed-up, so results would drift with it
-            netns.run(["ip", "netns", "exec", s.netns, "sysctl", "-q", "-w", "net.ipv4.tcp_slow_start_after_idle=0"],
+            netns.run(["ip", "netns", "exec", s.netns, "sysctl", "-q", "-w", *self.tcp_settings()],
                       f"{s.vehicle_id}'s TCP settings")
         netns.run(["tc", "-n", self.air_ns, "-batch", "-"], "the air's qdiscs",
                   "\n".join(self.layout.air_setup()) + "\n")
@@ -135,6 +135,16 @@ class AirNetwork:
             self.ap_tc = CommandStream(["tc", "-n", self.stations[self.layout.ap].netns, "-force", "-batch", "-"],
                                        "tc (access point)")
         self.nft = CommandStream(["ip", "netns", "exec", self.air_ns, "nft", "-i"], "nft (air)")
+
+    def tcp_settings(self) -> list[str]:
+        """TCP's timers on the simulator's clock: its retransmission timeouts (and their back-off after a link
+        comes back into range) divided by the speed-up, as the links' rates are multiplied by it. Slow start
+        is not restarted after idle: each iteration's transfer follows a pause, and restarting would cost
+        round trips whose number does not scale."""
+        rto_min_us = max(round(TCP_RTO_MIN_US / self.speedup), 1000)
+        rto_max_ms = min(max(round(TCP_RTO_MAX_MS / self.speedup), 1000), TCP_RTO_MAX_MS)
+        return ["net.ipv4.tcp_slow_start_after_idle=0", f"net.ipv4.tcp_rto_min_us={rto_min_us}",
+                f"net.ipv4.tcp_rto_max_ms={rto_max_ms}"]
 
     def exec_prefix(self, index: int) -> list[str]:
         """The command prefix that runs a program on station `index`."""

@@ -131,6 +131,23 @@ def test_emulated_probes_follow_the_channel_model_at_the_live_distance(tmp_path)
     assert kinds == ["throughput", "throughput", "probe_skipped"]
 
 
+@needs_iperf3
+def test_probes_can_run_the_real_iperf3_and_log_its_json(tmp_path):
+    """throughput.tool = "iperf3": the agent's probe schedule runs `iperf3 --client --json` (whole seconds) and
+    logs iperf3's own result; a target without a server is a failed probe, logged, not a crash."""
+    port, closed = free_port(), free_port()
+    settings = ThroughputSection(probe=True, duration_s=0.5, interval_s=0.1, tool="iperf3")
+    positions = {"self": {"id": "m", "lat_deg": 47.0, "lon_deg": 8.0, "alt_m": 500.0}, "peers": {}}
+    with iperf3_server(port), JsonlLog(tmp_path / "throughput.jsonl") as out:
+        scheduler = ProbeScheduler(settings, "m", lambda: [], lambda: positions, out, threading.Event())
+        measured = scheduler.probe_once("w", "127.0.0.1", port)
+        failed = scheduler.probe_once("w", "127.0.0.1", closed)
+    assert measured["duration_wall_s"] == 1 and measured["start"]["test_start"]["duration"] == 1
+    assert measured["end"]["sum_received"]["bits_per_second"] > 1e6, "iperf3's own fields, as it wrote them"
+    assert failed["error_kind"] == "link" and str(closed) in failed["error"]
+    assert [r["kind"] for r in read_jsonl(tmp_path / "throughput.jsonl").records] == ["throughput", "throughput"]
+
+
 HEADER_FUZZ_EXAMPLES = 300
 BAD_HEADERS = [b"[1, 2]\n", b"42\n", b"null\n", b"[" * 4000 + b"\n", b'{"protocol": "nac-probe/1"}\n',
                b'{"protocol": "nac-probe/1", "duration_s": 1, "interval_s": [1]}\n',

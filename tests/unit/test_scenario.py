@@ -68,3 +68,19 @@ def test_the_cli_refuses_bad_scenarios_and_speedups_with_exit_2(tmp_path, capsys
     assert "no such scenario file, nor a shipped scenario (paper-flight-moving" in capsys.readouterr().err
     assert cli.main(["experiment", "range-sweep", "--speedup", "5"]) == 2
     assert "--speedup 5 is outside what this scenario allows (up to 4x" in capsys.readouterr().err
+
+
+def test_iperf3_probes_need_the_kernel_network(tmp_path):
+    """On loopback iperf3 cannot be paced to the channel: refused before anything starts, with the reason."""
+    import io
+
+    from sitl.experiment.runner import Experiment, Outcome
+
+    text = (SCENARIO_DIR / "paper-flight-static.toml").read_text().replace('mission = "', f'mission = "{SCENARIO_DIR}/')
+    path = tmp_path / "iperf3.toml"
+    path.write_text(text.replace("interval_s = 0.1", 'interval_s = 0.1\ntool = "iperf3"'))
+    scenario = load_scenario(str(path))
+    assert scenario.throughput.tool == "iperf3"
+    result = Experiment(scenario, tmp_path / "run", 1.0, 14550, out=io.StringIO(), analyze=False,
+                        network=("sleep", "asked for")).run()
+    assert result.outcome is Outcome.BAD_INPUT and "needs the kernel network" in result.detail
