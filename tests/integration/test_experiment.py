@@ -8,7 +8,6 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -25,6 +24,7 @@ from sitl.experiment.runner import Experiment, Outcome
 from sitl.experiment.scenario import load_scenario
 from sitl.scenarios.generate import at, hover, route
 from tests.conftest import SHARED_DATA, allocate_base_port
+from tests.integration.console import Console
 
 ENV = dict(os.environ, NAC_DATA_DIR=str(SHARED_DATA))
 TRUE_EXPONENT = 3.0
@@ -186,23 +186,13 @@ def test_ctrl_c_stops_everything_within_10_s_and_writes_a_partial_report(tmp_pat
                              "--network", "sleep",
                              "--out", str(run), "--base-port", str(allocate_base_port(3, slots=5))],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
-    lines: list[str] = []
-    started = threading.Event()
-
-    def read() -> None:
-        for line in proc.stdout:
-            lines.append(line)
-            if "MPI job started" in line:
-                started.set()
-
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
+    console = Console(proc, "MPI job started")
     try:
-        assert started.wait(60.0), "".join(lines)
+        assert console.seen.wait(60.0), console.text()
         compute_log = run / "compute" / "compute.jsonl"
         deadline = time.monotonic() + 30.0
         while not (compute_log.exists() and '"iteration"' in compute_log.read_text()):
-            assert time.monotonic() < deadline, "".join(lines)
+            assert time.monotonic() < deadline, console.text()
             time.sleep(0.1)
         pids = children_of(proc.pid)
         assert len(pids) >= 4, "agents and mpiexec are running"
@@ -213,10 +203,10 @@ def test_ctrl_c_stops_everything_within_10_s_and_writes_a_partial_report(tmp_pat
     finally:
         if proc.poll() is None:
             proc.kill()
-    reader.join(2.0)
+    console.join()
     alive = [pid for pid in pids if Path(f"/proc/{pid}").exists() and "Z" not in status_of(pid)]
     assert alive == [], f"left running: {alive}"
-    assert "interrupted" in "".join(lines)
+    assert "interrupted" in console.text()
     report = (run / "report.md").read_text()
     assert "ended: interrupted" in report and "iterations done" in report
 

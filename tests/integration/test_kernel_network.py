@@ -25,6 +25,7 @@ from sitl.network import netns
 from sitl.network.air import AirNetwork
 from sitl.network.shaper import Shaper
 from tests.conftest import SHARED_DATA, allocate_base_port
+from tests.integration.console import Console
 
 ENV = dict(os.environ, NAC_DATA_DIR=str(SHARED_DATA))
 SCENARIOS = Path(__file__).resolve().parents[2] / "sitl" / "scenarios"
@@ -212,19 +213,9 @@ def test_ctrl_c_on_a_kernel_network_leaves_nothing_behind(tmp_path):
                              "--speedup", "4", "--out", str(tmp_path / "run"), "--base-port",
                              str(allocate_base_port(3, slots=5))],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
-    lines: list[str] = []
-    computing = threading.Event()
-
-    def read() -> None:
-        for line in proc.stdout:
-            lines.append(line)
-            if re.search(r"\| it \d+ ", line):
-                computing.set()
-
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
+    console = Console(proc, r"\| it \d+ ")  # the progress line once the MPI job computes
     try:
-        assert computing.wait(90.0), "".join(lines)
+        assert console.seen.wait(90.0), console.text()
         ours = [n for n in host_state()["namespaces"] if n not in before["namespaces"]]
         assert len(ours) == 4, "a namespace per vehicle and the air's"
         pids = [pid for name in ours for pid in netns.pids_in(name)]
@@ -235,7 +226,7 @@ def test_ctrl_c_on_a_kernel_network_leaves_nothing_behind(tmp_path):
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    reader.join(2.0)
+    console.join()
     assert host_state() == before, "namespaces, links, qdiscs and nft tables are gone"
     left = [pid for pid in pids if Path(f"/proc/{pid}").exists()]
     assert left == [], f"left running: {left}"
