@@ -143,8 +143,13 @@ class AirNetwork:
         round trips whose number does not scale."""
         rto_min_us = max(round(TCP_RTO_MIN_US / self.speedup), 1000)
         rto_max_ms = min(max(round(TCP_RTO_MAX_MS / self.speedup), 1000), TCP_RTO_MAX_MS)
-        return ["net.ipv4.tcp_slow_start_after_idle=0", f"net.ipv4.tcp_rto_min_us={rto_min_us}",
-                f"net.ipv4.tcp_rto_max_ms={rto_max_ms}"]
+        settings = ["net.ipv4.tcp_slow_start_after_idle=0", f"net.ipv4.tcp_rto_min_us={rto_min_us}",
+                    f"net.ipv4.tcp_rto_max_ms={rto_max_ms}"]
+        present = [item for item in settings if Path("/proc/sys", *item.split("=")[0].split(".")).exists()]
+        if len(present) < len(settings):  # tcp_rto_max_ms came with Linux 6.15, tcp_rto_min_us a little before
+            log.warning("this kernel cannot set %s: TCP's timers stay on the wall clock",
+                        ", ".join(item.split("=")[0] for item in settings if item not in present))
+        return present
 
     def exec_prefix(self, index: int) -> list[str]:
         """The command prefix that runs a program on station `index`."""
