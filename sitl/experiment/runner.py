@@ -25,7 +25,7 @@ from pathlib import Path
 from missions.model import MavCmd
 from nac_onboard import clock
 from nac_onboard.child_process import AgentProcess, ChildStartError
-from nac_onboard.compute.options import core_binding, options_from_argv
+from nac_onboard.compute.options import options_from_argv
 from nac_onboard.errors import NacError, OperationFailed
 from nac_onboard.flight_log import JsonlLog, read_jsonl
 from nac_onboard.link.channel import load_channel
@@ -33,25 +33,31 @@ from nac_onboard.link.iperf3 import iperf3_server
 from nac_onboard.mavlink.client import CommandError, LinkError, VehicleClient
 from nac_onboard.mavlink.dialect import M
 from nac_onboard.mavlink.mission_transfer import MissionError
-from nac_onboard.tomlfile import dumps_toml
+from sitl.experiment.commands import (
+    FLEET_KEY_FILE,
+    PORTS_PER_VEHICLE,
+    START_FILE,
+    Ports,
+    agent_config,
+    choose_network,
+    compute_args,
+    kernel_mpi_command,
+    mpi_command,
+)
 from sitl.experiment.faults import Fault, FaultInjector, FaultKind
 from sitl.experiment.progress import VehicleProgress, follow, render_progress
 from sitl.experiment.scenario import Scenario
 from sitl.network.air import AirNetwork
-from sitl.network.netns import NetworkError, NetworkUnavailable, check_kernel_network, remove_leftovers
+from sitl.network.netns import NetworkError, remove_leftovers
 from sitl.network.shaper import Shaper
 from sitl.server import Sitl, SitlConfig, SitlError
 
 log = logging.getLogger(__name__)
 CLIENT_ERRORS = (OSError, LinkError, CommandError, MissionError)
-PORTS_PER_VEHICLE = 10  # ground, companion, peers, throughput server, (master) state feed
 TAKEOFF_TIMEOUT_S = 60.0  # simulated
 COMPUTE_SETUP_TIMEOUT_S = 60.0  # wall: ranks started, data loaded, connections warmed up
-FLEET_KEY_FILE = "fleet.key"
 CLOCK_FILE = "clock.json"
-START_FILE = "start"  # the MPI job's go, written once the vehicles are in the air
 CLOCK_PUBLISH_S = 0.2  # wall seconds between publications of the simulator's clock
-NETWORKS = ("kernel", "sleep")
 
 
 class Outcome(enum.Enum):
@@ -87,128 +93,6 @@ class ExperimentResult:
     run_dir: Path
     report: Path | None = None
     summary: dict = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class Ports:
-    base: int
-
-    def of(self, index: int, slot: int) -> int:
-        return self.base + PORTS_PER_VEHICLE * index + slot
-
-    def gcs(self, i: int) -> int:
-        return self.of(i, 0)
-
-    def companion(self, i: int) -> int:
-        return self.of(i, 1)
-
-    def peers(self, i: int) -> int:
-        return self.of(i, 2)
-
-    def throughput(self, i: int) -> int:
-        return self.of(i, 3)
-
-    def feed(self) -> int:
-        return self.of(0, 4)
-
-
-def agent_config(scenario: Scenario, index: int, run_dir: Path, ports: Ports,
-                 addresses: list[str] | None = None) -> str:
-    """One vehicle's agent config. `addresses`: each vehicle's address on a kernel network (the Wi-Fi, shaped by
-    the runner); without them every agent is on loopback and the probes emulate the channel themselves."""
-    vehicle = scenario.vehicles[index]
-    air = addresses or ["127.0.0.1"] * len(scenario.vehicles)
-    others = [k for k in range(len(scenario.vehicles)) if k != index]
-    master = vehicle.role == "master"
-    tool = scenario.throughput.tool if scenario.throughput else "nac"
-    # with iperf3 probes the runner serves iperf3 on the workers' probe ports instead of the agents
-    throughput = {"server": not master and tool == "nac", "bind": air[index], "port": ports.throughput(index)}
-    if master and scenario.throughput:
-        p = scenario.throughput
-        throughput.update(probe=True, period_s=p.period_s, duration_s=p.duration_s, interval_s=p.interval_s,
-                          tool=p.tool,
-                          emulate_channel="" if addresses else scenario.channel,
-                          targets=[f"{scenario.vehicles[k].id}={air[k]}:{ports.throughput(k)}" for k in others
-                                   if scenario.vehicles[k].role == "worker"])
-    return dumps_toml({
-        "vehicle": {"id": vehicle.id, "role": vehicle.role, "sysid": index + 1},
-        "autopilot": {"uri": f"udpin:127.0.0.1:{ports.companion(index)}", "link_timeout_s": 3.0},
-        "log": {"dir": str(run_dir.parent), "run_id": run_dir.name, "telemetry_hz": 10.0, "tlog": True},
-        "peers": {"listen": f"{air[index]}:{ports.peers(index)}", "key_file": FLEET_KEY_FILE,
-                  "send_to": [f"{air[k]}:{ports.peers(k)}" for k in others], "rate_hz": 2.0, "timeout_s": 3.0},
-        "state_feed": {"listen": f"127.0.0.1:{ports.feed() if master else ports.of(index, 4)}"},
-        "throughput": throughput,
-    })
-
-
-def compute_args(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: float,
-                 kernel: bool = False) -> list[str]:
-    """The `nac-onboard compute` arguments of the scenario's MPI job: on a kernel network the flight path
-    (--emulate none) with the channel's per-transfer overhead as real bytes; otherwise the research's sleeps."""
-    c = scenario.compute
-    ids = [scenario.master.id, *(w.id for w in scenario.workers)]
-    # without a number of iterations the runner's go (START_FILE) says when to end
-    stop = ["--iterations", str(c.iterations)] if c.iterations else ["--end-at-s", f"{end_at_sim_s:.3f}"]
-    if kernel:
-        link = ["--emulate", "none", "--pad-bits", f"{load_channel(scenario.channel).overhead_bits:g}"]
-    else:
-        link = ["--emulate", "sleep"]
-    return ["--task", c.task, *stop, "--start-file", str(run_dir / "compute" / START_FILE), "--out",
-            str(run_dir / "compute"), *link,
-            "--channel", scenario.channel, "--positions", "feed", "--feed", f"127.0.0.1:{ports.feed()}",
-            "--vehicles", ",".join(ids), "--timeout-s", str(c.timeout_s), "--on-missing", c.on_missing,
-            "--allocation", c.allocation, *c.args]
-
-
-def mpiexec_path() -> str:
-    mpiexec = Path(sys.executable).parent / "mpiexec"
-    return str(mpiexec if mpiexec.exists() else "mpiexec")
-
-
-def mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: float) -> list[str]:
-    ranks = 1 + len(scenario.workers)
-    return [mpiexec_path(), "-n", str(ranks), "-bind-to", core_binding(ranks),
-            sys.executable, "-m", "mpi4py", "-m", "nac_onboard.compute",
-            *compute_args(scenario, run_dir, ports, end_at_sim_s)]
-
-
-def kernel_mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: float, air: AirNetwork,
-                       clock_path: Path) -> list[str]:
-    """mpiexec as on the fleet: started on the master's companion, one rank per vehicle's namespace through a
-    launcher called like ssh, over TCP only (shared memory would bypass the shaped links)."""
-    ids = [v.id for v in scenario.vehicles]
-    order = [ids.index(scenario.master.id), *(ids.index(w.id) for w in scenario.workers)]
-    hosts = [air.stations[k].netns for k in order]
-    binding = core_binding(len(order)).removeprefix("user:")
-    if len(os.sched_getaffinity(0)) < 2:
-        cpus = {}
-    elif binding == "core":
-        cpus = {h: k for k, h in enumerate(hosts)}
-    else:
-        cpus = {h: int(c) for h, c in zip(hosts, binding.split(","), strict=True)}
-    launcher = air.write_launcher(run_dir / "config" / "netns-launcher", cpus)
-    hostfile = run_dir / "config" / "hostfile"  # the fleet's hosts, one rank each: what a lab writes for its Jetsons
-    hostfile.write_text("".join(f"{host}:1\n" for host in hosts))
-    return [*air.exec_prefix(order[0]), mpiexec_path(), "-bootstrap-exec", str(launcher),
-            "-f", str(hostfile), "-localhost", air.stations[order[0]].address, "-n", str(len(order)),
-            "-ppn", "1", "-genv", "UCX_TLS", "tcp,self", "-genv", "UCX_NET_DEVICES", "air0",
-            "-genv", "MPIR_CVAR_NOLOCAL", "1",
-            "-genv", clock.ENV, str(clock_path), sys.executable, "-m", "mpi4py", "-m", "nac_onboard.compute",
-            *compute_args(scenario, run_dir, ports, end_at_sim_s, kernel=True)]
-
-
-def choose_network(requested: str | None) -> tuple[str, str]:
-    """(network, why): kernel where it can run, else sleep with the reason; a kernel network asked for and
-    impossible raises NetworkUnavailable (exit 2) before anything starts."""
-    if requested == "sleep":
-        return "sleep", "asked for (--network sleep): transfers sleep bits / capacity, the research's method"
-    try:
-        check_kernel_network()
-    except NetworkUnavailable as err:
-        if requested == "kernel":
-            raise
-        return "sleep", f"the kernel network cannot run here: {err}"
-    return "kernel", "namespaces on a bridge, links shaped by tc and nftables from the live positions"
 
 
 class Experiment:
