@@ -7,6 +7,10 @@ every process of the run (agents, MPI ranks) reads it. A transfer or a timeout o
 T / X wall seconds, and records carry simulated times next to wall times, so results in simulated seconds do not
 depend on the speed-up. CLOCK_MONOTONIC is the same in every network namespace, so the file means the same
 thing to a process inside a simulated companion.
+
+The published `speedup` is the simulator's measured pace, not the one asked for: a simulator that cannot keep
+up (many vehicles on two cores) runs slower than --speedup, and rates or timeouts scaled by the nominal value
+would then be too fast in simulated time. Readers extrapolate from the last sample and never go back in time.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ import json
 import math
 import os
 import time
+from collections import deque
 from dataclasses import dataclass
 
 from nac_onboard.errors import BadInput
@@ -60,19 +65,28 @@ class SharedClock(Clock):
     def __init__(self, path: str):
         self.path = path
         self._sample = read_sample(path)
-        self.speedup = self._sample.speedup
         self._read_at = time.monotonic()
+        self._last_s = -math.inf
 
-    def now_s(self) -> float:
-        mono = time.monotonic()
+    @property
+    def speedup(self) -> float:
+        self._refresh(time.monotonic())
+        return self._sample.speedup
+
+    def _refresh(self, mono: float) -> None:
         if mono - self._read_at >= REFRESH_S:
             self._read_at = mono
             try:
                 self._sample = read_sample(self.path)
             except ClockError:
-                pass  # a run ending removes nothing, but keep the last sample rather than fail mid-record
+                pass  # keep the last sample rather than fail mid-record
+
+    def now_s(self) -> float:
+        mono = time.monotonic()
+        self._refresh(mono)
         s = self._sample
-        return s.sim_s + (mono - s.mono_s) * s.speedup
+        self._last_s = max(self._last_s, s.sim_s + (mono - s.mono_s) * s.speedup)
+        return self._last_s
 
 
 def read_sample(path: str) -> ClockSample:
@@ -94,6 +108,31 @@ def publish(path: str, speedup: float, sim_s: float) -> None:
     with open(partial, "w") as f:
         json.dump({"speedup": speedup, "sim_s": sim_s, "mono_s": time.monotonic()}, f)
     os.replace(partial, path)
+
+
+class Pace:
+    """The simulator's measured pace (simulated seconds per wall second) over the last `window_s` of samples;
+    the nominal speed-up until there are enough, and never above PACE_LIMIT times it."""
+
+    def __init__(self, nominal: float, window_s: float = 1.0):
+        self.nominal, self.window_s = nominal, window_s
+        self._samples: deque[tuple[float, float]] = deque()
+
+    def add(self, sim_s: float, mono_s: float | None = None) -> float:
+        mono_s = time.monotonic() if mono_s is None else mono_s
+        self._samples.append((mono_s, sim_s))
+        while len(self._samples) > 2 and mono_s - self._samples[1][0] >= self.window_s:
+            self._samples.popleft()
+        return self.value()
+
+    def value(self) -> float:
+        if len(self._samples) < 2 or self._samples[-1][0] - self._samples[0][0] < self.window_s / 2:
+            return self.nominal
+        (m0, s0), (m1, s1) = self._samples[0], self._samples[-1]
+        return min(max((s1 - s0) / (m1 - m0), self.nominal * 0.01), self.nominal * PACE_LIMIT)
+
+
+PACE_LIMIT = 1.25  # a simulator catching up after a stall briefly runs faster than asked
 
 
 def from_env() -> Clock:

@@ -26,9 +26,12 @@ LATE_LOG_EVERY_S = 5.0  # wall seconds between "falling behind" records
 
 class Shaper:
     def __init__(self, air: AirNetwork, positions: Callable[[], tuple[float, np.ndarray]], channel: ChannelModel,
-                 speedup: float, period_s: float, out: JsonlLog):
+                 speedup: float | Callable[[], float], period_s: float, out: JsonlLog):
+        """speedup: the simulator's pace, or what measures it (nac_onboard.clock.Pace.value): rates on the
+        wire are the model's times the pace at each update."""
         self.air, self.positions, self.channel = air, positions, channel
-        self.speedup, self.period_s, self.out = speedup, period_s, out
+        self.pace = speedup if callable(speedup) else (lambda: speedup)
+        self.period_s, self.out = period_s, out
         self.updates = self.late = 0
         self.apply_s: list[float] = []  # wall seconds from reading positions to the last line written
         self.last: AirState | None = None
@@ -48,8 +51,7 @@ class Shaper:
         self._thread.join(5.0)
 
     def _run(self) -> None:
-        period_wall_s = self.period_s / self.speedup
-        next_at = time.monotonic() + period_wall_s
+        next_at = time.monotonic() + self.period_s / self.pace()
         while not self._stop.wait(max(next_at - time.monotonic(), 0.0)):
             try:
                 self.update()
@@ -58,7 +60,7 @@ class Shaper:
                 self.out.write("shaper_failed", error=str(err))
                 log.error("link shaper stopped: %s", err)
                 return
-            next_at += period_wall_s
+            next_at += self.period_s / self.pace()
             behind_s = time.monotonic() - next_at
             if behind_s > 0:
                 self.late += 1
@@ -73,9 +75,10 @@ class Shaper:
         t_sim_s, ecef = self.positions()
         layout = self.air.layout
         state = air_state(ecef, self.channel, layout.ap, layout.sharing)
-        self.air.air_tc.send("\n".join(layout.air_update(state, self.speedup)))
+        pace = self.pace()
+        self.air.air_tc.send("\n".join(layout.air_update(state, pace)))
         if self.air.ap_tc is not None:
-            self.air.ap_tc.send("\n".join(layout.ap_update(state, self.speedup)))
+            self.air.ap_tc.send("\n".join(layout.ap_update(state, pace)))
         nft = layout.nft_update(NFT_TABLE, state)
         if nft != self._last_nft:
             self.air.nft.send(nft)
@@ -83,14 +86,14 @@ class Shaper:
         self.apply_s.append(time.monotonic() - t0)
         self.updates += 1
         self.last = state
-        self._record(t_sim_s, state)
+        self._record(t_sim_s, state, pace)
         return state
 
-    def _record(self, t_sim_s: float, state: AirState) -> None:
+    def _record(self, t_sim_s: float, state: AirState, pace: float) -> None:
         ids = [s.vehicle_id for s in self.air.stations]
         n = len(ids)
         pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
-        self.out.write("link_rates", t_sim_s=round(t_sim_s, 3), speedup=self.speedup,
+        self.out.write("link_rates", t_sim_s=round(t_sim_s, 3), speedup=round(pace, 4),
                        a=[ids[i] for i, _ in pairs], b=[ids[j] for _, j in pairs],
                        distance_m=[round(float(state.distance_m[i, j]), 3) for i, j in pairs],
                        rate_bps=[round(float(state.rate_bps[i, j])) for i, j in pairs],
