@@ -160,7 +160,7 @@ def test_results_in_simulated_time_do_not_depend_on_the_speedup(tmp_path, monkey
     """paper-flight-static shortened, at 1x and at 4x on a kernel network: iterations per simulated minute and
     throughput per distance bin agree within 10 %, and the probes measured the rates the shaper applied."""
     monkeypatch.setenv("NAC_DATA_DIR", str(SHARED_DATA))
-    scenario = load_scenario(str(shortened("paper-flight-static", tmp_path, 24.0)))
+    scenario = load_scenario(str(shortened("paper-flight-static", tmp_path, 30.0)))
     summaries = {}
     for speedup in (1.0, 4.0):
         result = run_scenario(scenario, tmp_path / f"run-{speedup:g}x", speedup, allocate_base_port(3, slots=5),
