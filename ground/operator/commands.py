@@ -141,13 +141,21 @@ def wait_for(client: MavlinkClient, what: str, timeout_s: float, out) -> None:
     raise LinkError(f"vehicle {sysid}: not {what.replace('-', ' ')} after {timeout_s:g} s ({state})")
 
 
+HEARTBEAT_QUIET_S = 1.2  # heartbeats come at 1 Hz: this long without a new vehicle, every vehicle has spoken
+
+
 def status(client: MavlinkClient, listen_s: float, out) -> dict:
-    """Listen for listen_s (or until every link has a vehicle with a position) and print the table."""
+    """Listen for listen_s, or until every link has a vehicle with a position and no new vehicle has appeared for
+    a heartbeat's interval (one link, a telemetry radio, may carry several vehicles); then print the table."""
     deadline = time.monotonic() + listen_s
+    known, last_new = 0, time.monotonic()
     while time.monotonic() < deadline:
         client.poll(min(0.2, max(deadline - time.monotonic(), 0.0)))
         vs = client.vehicles.values()
-        if len({v.link for v in vs}) >= len(client.links) and all(v.lat_deg == v.lat_deg for v in vs):
+        if len(vs) != known:
+            known, last_new = len(vs), time.monotonic()
+        if (len({v.link for v in vs}) >= len(client.links) and all(v.lat_deg == v.lat_deg for v in vs)
+                and time.monotonic() - last_new >= HEARTBEAT_QUIET_S):
             break
     print(render(client.vehicles, time.monotonic()), file=out)
     return client.vehicles
