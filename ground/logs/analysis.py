@@ -186,7 +186,7 @@ def throughput_by_distance(table: pd.DataFrame, bin_m: float = DEFAULT_BIN_M) ->
     if applied:
         ok = known[(known["error"] == "") & (known["applied_mbps"].astype(float) > 0)].copy()  # measured ones
         ok["ratio"] = ok["throughput_mbps"] / ok["applied_mbps"].astype(float)
-        by_bin = ok.groupby(np.floor(ok["distance_m"].astype(float) / bin_m) * bin_m)
+        by_bin = ok.groupby(lower.loc[ok.index])
         out["applied_median_mbps"] = out["distance_from_m"].map(by_bin["applied_mbps"].median())
         out["measured_to_applied_median"] = out["distance_from_m"].map(by_bin["ratio"].median())
     return out[columns]

@@ -62,10 +62,23 @@ def client_result(host: str, port: int, seconds: int, timeout_s: float) -> dict:
     it with `throughput.tool = "iperf3"`: its JSON, or Iperf3Error with iperf3's own error."""
     command = ["iperf3", "--client", host, "--port", str(port), "--time", str(seconds), "--json",
                "--connect-timeout", "3000"]
+    return _client_json(command, f"{host}:{port}", timeout_s)
+
+
+def iperf3_result(host: str, port: int, duration_s: int | None, nbytes: int | None = None,
+                  netns: str | None = None) -> dict:
+    # The same write size as ours: where the CPU is the bottleneck (loopback) the rate depends on it.
+    command = ["iperf3", "--client", host, "--port", str(port), *amount_args(duration_s, nbytes), "--json",
+               "--length", str(BLOCK_BYTES)]
+    return _client_json(_in(netns, command, cpu=1), f"{host}:{port}", 60.0)
+
+
+def _client_json(command: list[str], where: str, timeout_s: float) -> dict:
+    """iperf3's JSON result, or Iperf3Error saying why there is none."""
     try:
         out = subprocess.run(command, capture_output=True, text=True, timeout=timeout_s)
     except subprocess.TimeoutExpired:
-        raise Iperf3Error(f"iperf3 to {host}:{port} gave no result within {timeout_s:g} s") from None
+        raise Iperf3Error(f"iperf3 to {where} gave no result within {timeout_s:g} s") from None
     except OSError as err:
         raise Iperf3Error(f"cannot run iperf3: {err.strerror or err}") from None
     try:
@@ -74,22 +87,7 @@ def client_result(host: str, port: int, seconds: int, timeout_s: float) -> dict:
         raise Iperf3Error(f"iperf3 exited {out.returncode} without JSON: {out.stderr.strip()[-300:]}") from None
     if not isinstance(result, dict) or "error" in result or "end" not in result:
         error = result.get("error") if isinstance(result, dict) else None
-        raise Iperf3Error(f"iperf3 to {host}:{port}: {error or 'no end section'}")
-    return result
-
-
-def iperf3_result(host: str, port: int, duration_s: int | None, nbytes: int | None = None,
-                  netns: str | None = None) -> dict:
-    # The same write size as ours: where the CPU is the bottleneck (loopback) the rate depends on it.
-    command = ["iperf3", "--client", host, "--port", str(port), *amount_args(duration_s, nbytes), "--json",
-               "--length", str(BLOCK_BYTES)]
-    out = subprocess.run(_in(netns, command, cpu=1), capture_output=True, text=True, timeout=60)
-    try:
-        result = json.loads(out.stdout)
-    except json.JSONDecodeError:
-        raise Iperf3Error(f"iperf3 exited {out.returncode} without JSON: {out.stderr.strip()[-500:]}") from None
-    if "error" in result:
-        raise Iperf3Error(result["error"])
+        raise Iperf3Error(f"iperf3 to {where}: {error or 'no end section'}")
     return result
 
 
