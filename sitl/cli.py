@@ -74,7 +74,35 @@ def build_parser() -> argparse.ArgumentParser:
                           "the live positions (needs root); sleep: transfers sleep bits / capacity, the research's "
                           "method (default: kernel where it can run)")
     exp.add_argument("-v", "--verbose", action="store_true")
+    radio = sub.add_parser("radio", help="a channel's throughput against distance: median, 95 % band, MCS, range")
+    radio.add_argument("channel", help="preset (paper-sim, wifi-flight, wifi-open-field) or channel TOML")
+    radio.add_argument("--distances-m", default="1,2,5,8,10,12,15,18,20,22,25,28,30",
+                       help="comma-separated distances (m)")
+    radio.add_argument("--draws", type=int, default=2000, help="independent links drawn per distance")
+    radio.add_argument("-v", "--verbose", action="store_true")
     return parser
+
+
+def radio_table(channel: str, distances_text: str, draws: int, out=sys.stdout) -> None:
+    from nac_onboard.link.channel import load_channel
+    from nac_onboard.link.radio import rate_band
+
+    try:
+        distances = [float(x) for x in distances_text.split(",")]
+    except ValueError:
+        raise BadInput(f"--distances-m: expected comma-separated metres, got {distances_text!r}") from None
+    if not distances or min(distances) <= 0 or not 10 <= draws <= 100_000:
+        raise BadInput("--distances-m must be positive and --draws 10..100000")
+    model = load_channel(channel)
+    band = rate_band(model, distances, draws)
+    print(model.describe(), file=out)
+    print(f"median range {model.range_m():.1f} m; sources: {model.sources or 'not given'}", file=out)
+    print(f"{'distance_m':>10} {'mcs':>4} {'median_mbps':>12} {'p2.5_mbps':>10} {'p97.5_mbps':>11} {'in_range':>9}",
+          file=out)
+    for k, d in enumerate(band["distance_m"]):
+        mcs = "-" if band["mcs"][k] < 0 else str(band["mcs"][k])
+        print(f"{d:>10g} {mcs:>4} {band['median_bps'][k] / 1e6:>12.2f} {band['low_bps'][k] / 1e6:>10.2f} "
+              f"{band['high_bps'][k] / 1e6:>11.2f} {band['in_range_fraction'][k]:>9.0%}", file=out)
 
 
 def config_from_args(args: argparse.Namespace) -> SitlConfig:
@@ -155,6 +183,8 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if args.command == "experiment":
         return run_cli("nac-sitl", lambda: experiment(args))
+    if args.command == "radio":
+        return run_cli("nac-sitl", lambda: radio_table(args.channel, args.distances_m, args.draws) or 0)
     return run_cli("nac-sitl", lambda: run(config_from_args(args)) or 0)
 
 

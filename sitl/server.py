@@ -310,10 +310,11 @@ class Sitl:
     def homes(self) -> list[Home]:
         return self.world.homes
 
-    def positions_ecef_m(self) -> tuple[float, np.ndarray]:
-        """(simulated time, every vehicle's true earth-centred position (N, 3)), read at one step."""
+    def air_positions(self) -> tuple[float, np.ndarray, np.ndarray]:
+        """(simulated time, every vehicle's true earth-centred position (N, 3), its antenna's height above the
+        ground (N,)), read at one step: what the radio between the vehicles sees."""
         with self._lock:
-            return self.world.t_s, self.world.positions_ecef_m()
+            return self.world.t_s, self.world.positions_ecef_m(), self.world.heights_m()
 
     def truth(self, vehicle: int) -> dict:
         """True state of one vehicle (for tests and tools): ENU about its home, geodetic, mode, armed."""

@@ -72,7 +72,7 @@ class ProbeScheduler:
         wall = self.clock.wall_s
         try:
             if self.emulation is not None:
-                rate_bps = self._emulated_rate_bps(distance_m, rate_bps)
+                rate_bps = self._emulated_rate_bps(peer_id, distance_m, rate_bps)
                 fields["emulated_channel"] = self.emulation.channel.name
                 fields["emulated_rate_bps"] = rate_bps
             if s.tool == "iperf3":
@@ -93,8 +93,8 @@ class ProbeScheduler:
         fields["distance_end_m"] = distance_between(after, self.self_id, peer_id)
         return self.out.write("throughput", **fields, **result)
 
-    def _emulated_rate_bps(self, distance_m: float, cap_bps: float | None) -> float:
-        link = self.emulation.link(distance_m)
+    def _emulated_rate_bps(self, peer_id: str, distance_m: float, cap_bps: float | None) -> float:
+        link = self.emulation.link(distance_m, peer_id)
         channel = self.emulation.channel
         if not link.in_range:
             # a real probe would wait out its connect timeout; the path is idle for the probe's slot either way

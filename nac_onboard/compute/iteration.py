@@ -7,11 +7,12 @@ class IterationLinks:
     """One list per field (index = rank - 1): the iteration record keeps this columnar shape, which is also the
     cheapest to encode at thousands of iterations a second."""
 
-    FIELDS = ("distance_m", "rate_bps", "absent", "bytes_down", "bytes_up", "down_s", "up_s", "compute_s")
+    FIELDS = ("distance_m", "rate_bps", "loss", "absent", "bytes_down", "bytes_up", "down_s", "up_s", "compute_s")
 
     def __init__(self, workers: int):
         self.distance_m: list = [None] * workers
         self.rate_bps: list = [None] * workers
+        self.loss: list = [None] * workers  # the emulated link's packet loss (sleep emulation)
         self.absent: list = [None] * workers  # None = present; else why: out_of_range, no_position, timeout
         self.bytes_down = [0] * workers
         self.bytes_up = [0] * workers

@@ -14,10 +14,10 @@ import numpy as np
 TAG_WORK, TAG_RESULT = 1, 2
 BITS_PER_FLOAT = 64
 
-# master -> worker: [kind, iteration, rate_bps, extra_rows | payload...]
+# master -> worker: [kind, iteration, rate_bps, extra_rows, loss | payload...] (rate and loss: the emulated link's)
 KIND_WORK, KIND_EXTRA, KIND_STOP, KIND_WARMUP = 1.0, 2.0, 3.0, 4.0  # extra: re-assigned rows of A, then B
-WORK_KIND, WORK_ITERATION, WORK_RATE_BPS, WORK_EXTRA_ROWS = 0, 1, 2, 3
-WORK_HEADER = 4
+WORK_KIND, WORK_ITERATION, WORK_RATE_BPS, WORK_EXTRA_ROWS, WORK_LOSS = 0, 1, 2, 3, 4
+WORK_HEADER = 5
 
 # worker -> master: [iteration, compute_s, up_s, rows, sse | result...]
 RESULT_ITERATION, RESULT_COMPUTE_S, RESULT_UP_S, RESULT_ROWS, RESULT_SSE = 0, 1, 2, 3, 4

@@ -127,7 +127,7 @@ def run_worker(comm, mpi, options: ComputeOptions) -> None:
         if message is None:
             sys.stderr.write(f"worker {rank}: nothing from the master for {options.idle_timeout_s:g} s; aborting\n")
             comm.Abort(3)
-        kind, iteration, rate_bps, extra_rows = message[:WORK_HEADER].tolist()  # Python floats: cheaper to test
+        kind, iteration, rate_bps, extra_rows, loss = message[:WORK_HEADER].tolist()  # Python floats: cheaper to test
         if kind == KIND_STOP:
             inbox.close()
             return
@@ -137,7 +137,7 @@ def run_worker(comm, mpi, options: ComputeOptions) -> None:
         t0 = time.perf_counter()
         result, rows, sse = task.work(kind == KIND_EXTRA, message[WORK_HEADER:], int(extra_rows))
         compute_s = time.perf_counter() - t0
-        up_s = emulation.delay(result.size * BITS_PER_FLOAT, rate_bps)
+        up_s = emulation.delay(result.size * BITS_PER_FLOAT, rate_bps, loss)
         answer = answers.get(result.size)
         if answer is None:
             answer = answers[result.size] = message_buffer((), RESULT_HEADER + result.size, pad)
@@ -190,8 +190,8 @@ class Master:
                 if d is None:
                     links.absent[k] = "no_position"
                 else:
-                    now = self.emulation.link(d)
-                    links.rate_bps[k] = now.capacity_bps
+                    now = self.emulation.link(d, rank)
+                    links.rate_bps[k], links.loss[k] = now.capacity_bps, now.loss
                     if not now.in_range:
                         links.absent[k] = "out_of_range"
         return links
@@ -209,13 +209,13 @@ class Master:
              extra_rows: int = 0, message: np.ndarray | None = None) -> None:
         """Send one input; `message` is a reusable buffer whose payload part is already filled."""
         k = rank - 1
-        rate = links.rate_bps[k] or 0.0
+        rate, loss = links.rate_bps[k] or 0.0, links.loss[k] or 0.0
         # the research's emulation: the transfer takes I/C before it happens
-        down_s = self.emulation.delay(payload.size * BITS_PER_FLOAT, rate) if self.emulation else 0.0
+        down_s = self.emulation.delay(payload.size * BITS_PER_FLOAT, rate, loss) if self.emulation else 0.0
         if message is None:
             message = message_buffer((), WORK_HEADER + payload.size, self.pad)
             message[WORK_HEADER:WORK_HEADER + payload.size] = payload
-        message[:WORK_HEADER] = (kind, iteration, rate, extra_rows)
+        message[:WORK_HEADER] = (kind, iteration, rate, extra_rows, loss)
         self.comm.Send([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
         links.bytes_down[k] += message.nbytes
         links.down_s[k] += down_s

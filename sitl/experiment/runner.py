@@ -195,7 +195,7 @@ class Experiment:
         self._clock_thread.start()
         if self.air is not None:
             self.network_log = JsonlLog(self.run_dir / "network.jsonl")
-            self.shaper = Shaper(self.air, self.sim.positions_ecef_m, load_channel(s.channel), self.pace.value,
+            self.shaper = Shaper(self.air, self.sim.air_positions, load_channel(s.channel), self.pace.value,
                                  s.network.period_s, self.network_log)
             try:
                 self.shaper.start()

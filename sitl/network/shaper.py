@@ -12,10 +12,9 @@ import threading
 import time
 from collections.abc import Callable
 
-import numpy as np
-
 from nac_onboard.flight_log import JsonlLog
 from nac_onboard.link.channel import ChannelModel
+from nac_onboard.link.radio import AirRadio
 from sitl.network.air import NFT_TABLE, AirNetwork
 from sitl.network.netns import NetworkError
 from sitl.network.shaping import AirState, air_state
@@ -25,11 +24,13 @@ LATE_LOG_EVERY_S = 5.0  # wall seconds between "falling behind" records
 
 
 class Shaper:
-    def __init__(self, air: AirNetwork, positions: Callable[[], tuple[float, np.ndarray]], channel: ChannelModel,
+    def __init__(self, air: AirNetwork, positions: Callable[[], tuple], channel: ChannelModel,
                  speedup: float | Callable[[], float], period_s: float, out: JsonlLog):
-        """speedup: the simulator's pace, or what measures it (nac_onboard.clock.Pace.value): rates on the
+        """positions: () -> (simulated time, earth-centred positions (N, 3)[, heights above ground (N,)]).
+        speedup: the simulator's pace, or what measures it (nac_onboard.clock.Pace.value): rates on the
         wire are the model's times the pace at each update."""
         self.air, self.positions, self.channel = air, positions, channel
+        self.radio = AirRadio(channel, len(air.stations))
         self.pace = speedup if callable(speedup) else (lambda: speedup)
         self.period_s, self.out = period_s, out
         self.updates = self.late = 0
@@ -72,9 +73,9 @@ class Shaper:
 
     def update(self) -> AirState:
         t0 = time.monotonic()
-        t_sim_s, ecef = self.positions()
+        t_sim_s, ecef, *heights = self.positions()
         layout = self.air.layout
-        state = air_state(ecef, self.channel, layout.ap, layout.sharing)
+        state = air_state(self.radio, t_sim_s, ecef, layout.ap, layout.sharing, heights[0] if heights else None)
         pace = self.pace()
         self.air.air_tc.send("\n".join(layout.air_update(state, pace)))
         if self.air.ap_tc is not None:
@@ -97,5 +98,7 @@ class Shaper:
                        a=[ids[i] for i, _ in pairs], b=[ids[j] for _, j in pairs],
                        distance_m=[round(float(state.distance_m[i, j]), 3) for i, j in pairs],
                        rate_bps=[round(float(state.rate_bps[i, j])) for i, j in pairs],
-                       loss=[float(state.loss[i, j]) for i, j in pairs],
+                       loss=[round(float(state.loss[i, j]), 6) for i, j in pairs],
+                       snr_db=[round(float(state.snr_db[i, j]), 2) for i, j in pairs],
+                       mcs=[int(state.mcs[i, j]) for i, j in pairs],
                        budget_bps=None if state.budget_bps is None else round(state.budget_bps))

@@ -11,8 +11,11 @@ Probe traffic from the access point to a station's throughput port has its own c
 outside the budget: a probe then measures the link, not what the MPI job leaves of it (the research measured
 throughput in flights of its own).
 
-Rates are the channel model's at the pair's distance, times the speed-up on the wire (time dilation: a transfer
-of B bits at rate C lasts B / C simulated seconds at any speed-up). Out of range: every packet is dropped.
+Rates and losses are the radio model's (nac_onboard.link.radio: path loss, shadowing, fading, the 802.11n rate
+and the packets its errors cost), times the speed-up on the wire (time dilation: a transfer of B bits at rate C
+lasts B / C simulated seconds at any speed-up). Out of range: every packet is dropped. Sharing is by airtime:
+each station's guaranteed share is its rate over the number of stations (equal airtime), and what borrowing
+adds is bounded by the budget, the fastest station's rate.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nac_onboard.link.channel import ChannelModel
+from nac_onboard.link.radio import AirRadio
 
 DEFAULT_CLASS, BUDGET_CLASS = 0x1, 0x2
 PAIR_BASE, PROBE_BASE = 0x100, 0x800
@@ -39,30 +42,29 @@ class AirState:
     loss: np.ndarray  # (N, N), 0..1
     budget_bps: float | None  # the access point's airtime budget (shared medium only)
     floor_bps: float = OUT_OF_RANGE_BPS  # the lowest rate a class is given (out of range: loss does the work)
+    snr_db: np.ndarray | None = None  # (N, N)
+    mcs: np.ndarray | None = None  # (N, N), -1 with the Shannon rate model
 
     def class_bps(self, i: int, j: int) -> float:
         return max(float(self.rate_bps[i, j]), self.floor_bps)
 
 
-def air_state(ecef_m: np.ndarray, channel: ChannelModel, ap: int | None, sharing: bool) -> AirState:
-    ecef_m = np.asarray(ecef_m, dtype=float)
-    distance = np.linalg.norm(ecef_m[:, None, :] - ecef_m[None, :, :], axis=-1)
-    n = len(ecef_m)
-    capacity = np.zeros((n, n))
-    for i in range(n):
-        for j in range(i + 1, n):
-            capacity[i, j] = capacity[j, i] = channel.capacity_bps(float(distance[i, j]))
-    in_range = np.array([[channel.usable(c) for c in row] for row in capacity]) & ~np.eye(n, dtype=bool)
-    rate = np.where(in_range, capacity, 0.0)
-    loss = np.where(in_range | np.eye(n, dtype=bool), 0.0, 1.0)
+def air_state(radio: AirRadio, t_s: float, ecef_m: np.ndarray, ap: int | None, sharing: bool,
+              heights_m: np.ndarray | None = None) -> AirState:
+    """Step the radio to t_s with the vehicles' positions and say what every pair gets."""
+    distance, sample = radio.step(t_s, ecef_m, heights_m)
+    n = radio.n
+    rate = radio.matrix(sample.goodput_bps)
+    loss = radio.matrix(sample.loss)
     # Out of range, every packet is dropped; the class keeps the channel's minimum rate, because HTB charges a
     # class for what it sends at its rate: at a few kbit/s one queued packet costs seconds of debt, and the link
     # would stay silent that long after coming back into range.
-    floor = channel.min_rate_bps or OUT_OF_RANGE_BPS
+    floor = radio.radio.model.min_rate_bps or OUT_OF_RANGE_BPS
     budget = None
     if sharing and ap is not None and n > 1:
         budget = float(max(np.delete(rate[ap], ap).max(), floor))
-    return AirState(distance, rate, loss, budget, floor)
+    return AirState(radio.matrix(distance), rate, loss, budget, floor, radio.matrix(sample.snr_db),
+                    radio.matrix(sample.mcs, -1))
 
 
 MAX_WIRE_BPS = 40e9  # beyond what a veth carries here: unshaped in effect (paper-sim's ~100 Gbit/s)
@@ -141,7 +143,7 @@ class Layout:
                     continue
                 rate = ceil = state.class_bps(i, j)
                 if self.shared() and j == self.ap:
-                    rate = min(state.budget_bps / (self.n - 1), ceil)  # an equal share guaranteed
+                    rate = ceil / (self.n - 1)  # an equal share of airtime guaranteed
                 lines.append(self._change(port, self._pair_parent(j), PAIR_BASE + i, rate, ceil, speedup))
             for i, _ in self._probe_flows(j):
                 pair = state.class_bps(i, j)
@@ -177,7 +179,7 @@ class Layout:
         for j in range(self.n):
             if j != self.ap:
                 ceil = state.class_bps(self.ap, j)
-                rate = min(state.budget_bps / (self.n - 1), ceil)
+                rate = ceil / (self.n - 1)
                 lines.append(self._change(device, f"1:{BUDGET_CLASS:x}", PAIR_BASE + j, rate, ceil, speedup))
         return lines
 

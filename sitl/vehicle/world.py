@@ -23,6 +23,9 @@ GROUND, COMPANION = "ground", "companion"  # a vehicle's two MAVLink links (TELE
 LINK_DOWN_BITS = {GROUND: 1, COMPANION: 2}  # SIM_LINK_DOWN bitmask
 
 
+GEAR_HEIGHT_M = 0.1  # where a landed vehicle's antenna sits
+
+
 @dataclass(frozen=True)
 class GpsFix:
     """What every vehicle's GPS reports this step: position (ENU about its home, with noise) and geodetic."""
@@ -137,6 +140,10 @@ class World:
         """Every vehicle's true position, earth-centred (N, 3): what the radio between them sees."""
         lat, lon, alt = enu_to_lla_many(self.state.pos_m, self._home_lat, self._home_lon, self._home_alt)
         return lla_to_ecef(lat, lon, alt)
+
+    def heights_m(self) -> np.ndarray:
+        """Height above the ground under each vehicle (flat ground at its home), at least a landing gear's."""
+        return np.maximum(self.state.pos_m[:, 2], GEAR_HEIGHT_M)
 
     def truth(self, vehicle: int) -> dict:
         """True state of one vehicle (for tests and tools): ENU about its home, geodetic, mode, armed."""

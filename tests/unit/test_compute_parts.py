@@ -69,7 +69,7 @@ def test_channel_files_round_trip_and_errors_name_the_file(tmp_path):
     with pytest.raises(ChannelError, match="not a preset"):
         load_channel("moon-link")
     with pytest.raises(ChannelError, match="path_loss must be one of"):
-        ChannelModel("x", "two-ray", 2437.0, 20e6, 0.0, 1e-12)
+        ChannelModel("x", "three-ray", 2437.0, 20e6, 0.0, 1e-12)
 
 
 def test_split_rows_equal_and_proportional():

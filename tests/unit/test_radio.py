@@ -1,0 +1,142 @@
+"""The radio model against hand-computed values and textbook statistics (issue 15, acceptance 1 and 2)."""
+
+from __future__ import annotations
+
+import cmath
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from nac_onboard.link import radio
+from nac_onboard.link.channel import PRESETS, ChannelModel
+from nac_onboard.link.emulation import SleepEmulation
+
+
+def model(**fields) -> ChannelModel:
+    base = dict(name="t", path_loss="log-distance", freq_mhz=2437.0, bandwidth_hz=20e6, tx_power_dbm=15.0,
+                noise_w=1e-13, exponent=3.0, ref_loss_db=50.0)
+    return ChannelModel(**{**base, **fields})
+
+
+def test_two_ray_matches_the_phasor_sum_and_its_far_field_asymptote():
+    # d 20 m between antennas at 3 m and 3 m, 2437 MHz, vertical polarization over ground of permittivity 15
+    lam = 299_792_458.0 / 2437e6
+    d_ref = math.hypot(20.0, 6.0)
+    sin_psi, eps = 6.0 / d_ref, 15.0
+    root = math.sqrt(eps - (1 - sin_psi ** 2))
+    gamma = (eps * sin_psi - root) / (eps * sin_psi + root)
+    field = cmath.exp(-2j * math.pi * 20.0 / lam) / 20.0 + gamma * cmath.exp(-2j * math.pi * d_ref / lam) / d_ref
+    by_hand = -20 * math.log10(lam / (4 * math.pi) * abs(field))
+    assert gamma == pytest.approx(0.06915, abs=1e-4), "just past the Brewster angle: a weak reflection"
+    assert radio.two_ray_db(20.0, 3.0, 3.0, 2437.0) == pytest.approx(by_hand, abs=1e-9)
+    # far beyond the breakpoint 4 h_a h_b / lambda (~300 m), horizontal polarization: 40 log d - 20 log(h_a h_b)
+    assert radio.two_ray_db(20_000.0, 3.0, 3.0, 2437.0, polarization="horizontal") == pytest.approx(
+        40 * math.log10(20_000.0) - 20 * math.log10(9.0), abs=0.3)
+    # heights are live: a vehicle on the ground (0.1 m) hears its peer worse than one hovering at 3 m, far away
+    assert radio.two_ray_db(500.0, 0.1, 3.0, 2437.0) > radio.two_ray_db(500.0, 3.0, 3.0, 2437.0) + 20
+
+
+def test_dual_slope_bends_at_its_breakpoint():
+    assert radio.dual_slope_db(5.0, 40.0, 2.0, 10.0, 4.0) == pytest.approx(40 + 20 * math.log10(5))
+    assert radio.dual_slope_db(10.0, 40.0, 2.0, 10.0, 4.0) == pytest.approx(60.0)
+    assert radio.dual_slope_db(100.0, 40.0, 2.0, 10.0, 4.0) == pytest.approx(100.0)
+    assert model(path_loss="dual-slope", ref_loss_db=40.0, exponent=2.0, breakpoint_m=10.0,
+                 exponent_far=4.0).path_loss_db(100.0) == pytest.approx(100.0)
+
+
+def test_mcs_selection_at_the_thresholds():
+    m = model(rate_model="802.11n", min_rate_bps=1e5)
+    thresholds = radio.HT_SNR_THRESHOLDS_DB
+    assert radio.frame_error_rate(thresholds, thresholds, 1.0) == pytest.approx(np.full(8, 0.1))
+    for k in (0, 2, 3, 4):  # the next threshold 3 dB or more away: just above one, that MCS; 3 dB below, lower
+        assert radio.link_rates(m, thresholds[k] + 0.5).mcs[0] == k
+    for k in range(1, 8):
+        assert radio.link_rates(m, thresholds[k] - 3.0).mcs[0] < k
+    top = radio.link_rates(m, 40.0)
+    assert top.mcs[0] == 7 and top.phy_bps[0] == 65e6 and top.loss[0] < 1e-12
+    wide = radio.link_rates(dataclasses.replace(m, channel_width_mhz=40, short_guard_interval=True), 40.0)
+    assert wide.phy_bps[0] == 150e6
+    assert not radio.link_rates(m, 0.0).in_range[0], "below MCS 0 nothing gets through"
+    edge = radio.link_rates(m, thresholds[0] - 2.0)
+    assert 0 < edge.loss[0] < 1 and edge.per[0] > 0.3, "near MCS 0's threshold frames fail and some packets are lost"
+
+
+def test_median_throughput_against_distance_steps_through_the_mcs_table():
+    wifi = PRESETS["wifi-flight"]
+    distances = np.linspace(1.0, 24.0, 200)
+    mcs = radio.link_rates(wifi, wifi.median_snr_db(distances)).mcs
+    assert set(mcs.tolist()) == set(range(8)) and np.all(np.diff(mcs) <= 0)
+    band = radio.rate_band(wifi, [10.0, 20.0], draws=4000)
+    assert np.all(band["low_bps"] < band["median_bps"]) and np.all(band["median_bps"] < band["high_bps"])
+
+
+def test_gudmundson_shadowing_decorrelates_with_the_distance_moved():
+    sigma, d_corr, step_m = 4.0, 10.0, 2.0
+    r = radio.Radio(model(shadowing_sigma_db=sigma, shadowing_decorrelation_m=d_corr), 1, seed=3)
+    values = []
+    for _ in range(20_000):
+        r.step(0.1, [10.0], moved_m=[step_m])
+        values.append(r.shadow_db[0])
+    s = np.array(values)
+    assert np.corrcoef(s[:-1], s[1:])[0, 1] == pytest.approx(math.exp(-step_m / d_corr), abs=0.02)
+    assert np.corrcoef(s[:-5], s[5:])[0, 1] == pytest.approx(math.exp(-5 * step_m / d_corr), abs=0.03)
+    assert s.std() == pytest.approx(sigma, rel=0.05)
+    before = r.shadow_db.copy()
+    r.step(0.1, [10.0], moved_m=[0.0])
+    assert r.shadow_db == pytest.approx(before), "a static pair keeps its offset"
+
+
+def test_rician_power_has_the_textbook_mean_and_variance():
+    k_db = 6.0
+    r = radio.Radio(model(rician_k_db=k_db), 10_000, seed=5)
+    sample = r.step(0.0, np.full(10_000, 10.0))
+    power = 10 ** ((sample.snr_db - model().median_snr_db(10.0)) / 10)
+    mean, variance = radio.rician_power_moments(10 ** (k_db / 10))
+    assert power.mean() == pytest.approx(mean, rel=0.03)
+    assert power.var() == pytest.approx(variance, rel=0.03)
+
+
+def test_fading_decorrelates_faster_when_the_pair_moves():
+    def lag_one(speed_mps: float) -> float:
+        r = radio.Radio(model(rician_k_db=3.0, hover_speed_mps=0.2), 1, seed=11)
+        snr = [r.step(0.1, [10.0], speed_mps=[speed_mps]).snr_db[0] for _ in range(5000)]
+        return float(np.corrcoef(snr[:-1], snr[1:])[0, 1])
+
+    assert lag_one(0.0) > 0.6 > 0.3 > lag_one(1.34)
+    assert radio.bessel_j0(np.array([0.0, 2.404825557695773, 5.0])) == pytest.approx([1.0, 0.0, -0.1775968], abs=1e-6)
+
+
+def _probe_std_mbps(moving: bool, seconds: int = 400, seed: int = 2) -> tuple[float, float]:
+    """1-second probes of a pair 12 m apart: one vehicle still, the other hovering or circling it at 0.67 m/s."""
+    air = radio.AirRadio(PRESETS["wifi-flight"], 2, seed=seed)
+    rates, distances = [], []
+    for step in range(seconds * 10):
+        t = step / 10
+        angle = 0.67 * t / 12.0 if moving else 0.0
+        positions = np.array([[0.0, 0.0, 3.0], [12.0 * math.cos(angle), 12.0 * math.sin(angle), 3.0]])
+        d, sample = air.step(t, positions)
+        rates.append(sample.goodput_bps[0])
+        distances.append(d[0])
+    probes = np.array(rates).reshape(seconds, 10).mean(axis=1) / 1e6
+    return float(probes.std()), float(np.mean(distances))
+
+
+def test_a_static_link_varies_a_little_and_a_moving_one_more():
+    static_std, static_d = _probe_std_mbps(moving=False)
+    moving_std, moving_d = _probe_std_mbps(moving=True)
+    assert static_d == pytest.approx(moving_d)
+    assert 0 < static_std < moving_std
+    assert moving_std > 1.5 * static_std
+
+
+def test_sleep_emulation_steps_each_pair_and_charges_a_timeout_for_a_lost_packet():
+    emulation = SleepEmulation(PRESETS["wifi-flight"])
+    near = [emulation.link(10.0, "w1").capacity_bps for _ in range(3)]
+    assert len(emulation.pairs) == 1 and all(r > 0 for r in near)
+    emulation.link(10.0, "w2")
+    assert len(emulation.pairs) == 2
+    assert emulation.transfer_s(8_000, 8e6) == pytest.approx(1e-3)
+    assert emulation.transfer_s(8_000, 8e6, loss=1.0) == pytest.approx(1e-3 + 0.2)
+    assert not emulation.link(60.0, "w1").in_range
