@@ -240,7 +240,7 @@ class Master:
             pending = self._pings.get(rank)
             if now < self._next_ping_s.get(rank, 0.0) or (pending is not None and not pending[0].Test()):
                 continue
-            message = message_buffer((KIND_WARMUP, 0.0, 0.0, 0.0), 0, self.pad)
+            message = message_buffer((KIND_WARMUP, 0.0, 0.0, 0.0, 0.0), 0, self.pad)
             self._pings[rank] = (self.comm.Isend([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK), message)
             self._next_ping_s[rank] = now + self.clock.wall_s(PING_S)
 
@@ -333,7 +333,7 @@ class Master:
                 self._next_checkpoint_s = time.monotonic() + o.checkpoint_s
         self.write_pending()
         self.checkpoint(iteration)
-        stop = message_buffer((KIND_STOP, iteration, 0.0, 0.0), 0, self.pad)
+        stop = message_buffer((KIND_STOP, iteration, 0.0, 0.0, 0.0), 0, self.pad)
         for rank in self.workers:
             if rank in self.unresponsive:  # it may never take it: do not wait for that
                 self._pings[rank] = (self.comm.Isend([stop, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK), stop)
@@ -397,7 +397,7 @@ class Master:
         """One untimed exchange of an input-sized message with every worker: MPI sets up its connections and
         buffers on first use, which would otherwise land in the first iteration's time."""
         t0 = time.monotonic()
-        message = message_buffer((KIND_WARMUP, 0.0, 0.0, 0.0), floats, self.pad)
+        message = message_buffer((KIND_WARMUP, 0.0, 0.0, 0.0, 0.0), floats, self.pad)
         message[WORK_HEADER:] = 0.0
         for rank in self.workers:
             self.comm.Send([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)

@@ -24,10 +24,16 @@ ENV = dict(os.environ, NAC_DATA_DIR=str(SHARED_DATA))
 
 
 def wifi(tmp_path: Path, overhead_bits: float = 0.0) -> str:
-    """wifi-flight's link with a chosen per-transfer overhead (the preset's 2 Mbit makes iterations ~0.3 s)."""
+    """wifi-flight's median link (no shadowing, no fading: a rate known in advance) with a chosen per-transfer
+    overhead."""
     path = tmp_path / f"wifi-{overhead_bits:g}.toml"
-    save_channel(dataclasses.replace(PRESETS["wifi-flight"], name="wifi-test", overhead_bits=overhead_bits), path)
+    save_channel(median_wifi(overhead_bits), path)
     return str(path)
+
+
+def median_wifi(overhead_bits: float = 0.0):
+    return dataclasses.replace(PRESETS["wifi-flight"], name="wifi-test", overhead_bits=overhead_bits,
+                               shadowing_sigma_db=0.0, rician_k_db=None)
 
 
 def mpi_command(ranks: int, *args: str) -> list[str]:
@@ -83,7 +89,7 @@ def test_emulated_iterations_last_the_predicted_transfer_plus_compute_time(tmp_p
                      "--channel", wifi(tmp_path, overhead_bits), "--positions", "fixed",
                      "--distances", ",".join(map(str, distances)))
     assert result.returncode == 0, result.stderr
-    preset = PRESETS["wifi-flight"]
+    preset = median_wifi()
     for r in records(tmp_path, "iteration"):
         workers = per_worker(r)
         for w, d in zip(workers, distances, strict=True):
@@ -254,7 +260,7 @@ def test_capacity_allocation_gives_the_nearer_worker_more_rows_and_duration_limi
     assert result.returncode == 0, result.stderr
     started = records(tmp_path, "run_started")[0]
     (a0, a1), (b0, b1) = started["shards"]
-    preset = PRESETS["wifi-flight"]
+    preset = median_wifi()
     share = preset.capacity_bps(8.0) / (preset.capacity_bps(8.0) + preset.capacity_bps(16.0))
     assert a0 == 0 and b1 == 517 and a1 == b0 and abs(a1 - 517 * share) <= 1
     summary = records(tmp_path, "run_summary")[0]

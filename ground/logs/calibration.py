@@ -1,0 +1,167 @@
+"""`nac-ground logs calibrate`: a log-distance radio fitted to measured probes (distance, throughput).
+
+Each probe's throughput is turned back into the SNR that gives it on average (the base radio's rate curve
+averaged over its fading: monotone, so invertible between "nothing got through" and "the top rate"); probes
+at either end are censored, since they only say the SNR was below or above. The SNR is then
+    SNR = P_t - PL(d0) - 10 n log10(d / d0) - noise + shadowing,   shadowing ~ N(0, sigma)
+and n, PL(d0) and sigma are fitted by maximum likelihood with the censored probes (a Tobit model), with 95 %
+confidence intervals from the likelihood's curvature. A shift of every MCS threshold moves the SNR exactly as
+PL(d0) does, so positions and throughput alone cannot tell them apart: the fit folds any MCS offset into
+PL(d0) and says so.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from scipy import optimize, special
+
+from nac_onboard.errors import BadInput
+from nac_onboard.link.channel import ChannelModel
+from nac_onboard.link.radio import link_rates
+
+SNR_GRID_DB = np.arange(-20.0, 60.0, 0.05)
+CENSOR_FRACTION = 0.02  # within 2 % of zero or of the top rate a probe is censored
+Z95 = 1.959964
+
+
+class CalibrationError(BadInput):
+    pass
+
+
+def mean_rate_curve(base: ChannelModel, draws: int = 2000, seed: int = 0) -> np.ndarray:
+    """The base radio's mean goodput at each SNR of SNR_GRID_DB over its Rician fading: what a probe long
+    enough to average the fading measures. The rate is chosen from the SNR's mean in dB (fades faster than the
+    rate adaptation, as on a moving link) and each fade meets it."""
+    if base.rician_k_db is None:
+        return link_rates(base, SNR_GRID_DB).goodput_bps
+    k = 10 ** (base.rician_k_db / 10)
+    rng = np.random.default_rng(seed)
+    g = (rng.normal(size=draws) + 1j * rng.normal(size=draws)) / math.sqrt(2)
+    fade_db = 10 * np.log10(np.abs(math.sqrt(k / (k + 1)) + math.sqrt(1 / (k + 1)) * g) ** 2)
+    truth = (SNR_GRID_DB[:, None] + fade_db[None, :]).ravel()
+    estimate = np.repeat(SNR_GRID_DB + fade_db.mean(), draws)
+    rates = link_rates(base, truth, estimate).goodput_bps
+    return rates.reshape(len(SNR_GRID_DB), draws).mean(axis=1)
+
+
+def fading_spread_db2(base: ChannelModel, curve: np.ndarray, samples_per_probe: int, probes: int = 300,
+                      seed: int = 1) -> np.ndarray:
+    """Per SNR of SNR_GRID_DB: the variance (dB^2) the fading leaves in a probe's inverted SNR when the probe
+    averages `samples_per_probe` independent fades. Added to sigma^2 in the fit, so sigma is the shadowing's."""
+    if base.rician_k_db is None or samples_per_probe <= 0:
+        return np.zeros(len(SNR_GRID_DB))
+    coarse = SNR_GRID_DB[::20]
+    k = 10 ** (base.rician_k_db / 10)
+    rng = np.random.default_rng(seed)
+    shape = (len(coarse), probes, samples_per_probe)
+    g = (rng.normal(size=shape) + 1j * rng.normal(size=shape)) / math.sqrt(2)
+    fade_db = 10 * np.log10(np.abs(math.sqrt(k / (k + 1)) + math.sqrt(1 / (k + 1)) * g) ** 2)
+    mean_fade_db = float(np.mean(fade_db))
+    truth = coarse[:, None, None] + fade_db
+    estimate = np.broadcast_to(coarse[:, None, None] + mean_fade_db, shape)
+    rates = link_rates(base, truth.ravel(), estimate.ravel()).goodput_bps.reshape(shape).mean(axis=2)
+    snr, censor, _, _ = probe_snr(rates.ravel(), base, curve)
+    kept = (censor == 0).reshape(len(coarse), probes)
+    snr = np.where(kept, snr.reshape(len(coarse), probes), 0.0)
+    count = kept.sum(axis=1)
+    mean = snr.sum(axis=1) / np.maximum(count, 1)
+    variance = (np.where(kept, (snr - mean[:, None]) ** 2, 0.0)).sum(axis=1) / np.maximum(count - 1, 1)
+    return np.interp(SNR_GRID_DB, coarse, np.where(count >= 10, variance, 0.0))
+
+
+def probe_snr(throughput_bps, base: ChannelModel, curve: np.ndarray | None = None):
+    """(SNR dB per probe, -1/0/+1: censored below, measured, censored above, the two censoring SNRs)."""
+    curve = mean_rate_curve(base) if curve is None else curve
+    top = curve.max()
+    low_rate, high_rate = CENSOR_FRACTION * top, (1 - CENSOR_FRACTION) * top
+    low_snr = float(SNR_GRID_DB[np.argmax(curve >= low_rate)])
+    high_snr = float(SNR_GRID_DB[np.argmax(curve >= high_rate)])
+    y = np.asarray(throughput_bps, float)
+    censor = np.where(y <= low_rate, -1, np.where(y >= high_rate, 1, 0))
+    increasing = np.maximum.accumulate(curve) + np.arange(len(curve)) * 1e-9 * max(top, 1.0)
+    snr = np.interp(y, increasing, SNR_GRID_DB)
+    return snr, censor, low_snr, high_snr
+
+
+def _negative_log_likelihood(params, x, snr, censor, low_snr, high_snr, fading_db2):
+    a, n, log_sigma = params
+    mu = a - n * x
+    sigma = np.sqrt(math.exp(2 * log_sigma) + np.interp(mu, SNR_GRID_DB, fading_db2))
+    z = (snr - mu) / sigma
+    measured, low, high = censor == 0, censor < 0, censor > 0
+    total = (-0.5 * z[measured] ** 2 - np.log(sigma[measured])).sum() - measured.sum() * 0.5 * math.log(2 * math.pi)
+    total += special.log_ndtr((low_snr - mu[low]) / sigma[low]).sum()
+    total += special.log_ndtr(-(high_snr - mu[high]) / sigma[high]).sum()
+    return -float(total)
+
+
+def _hessian(f, p, step=1e-3):
+    p = np.asarray(p, float)
+    h = np.zeros((len(p), len(p)))
+    for i in range(len(p)):
+        for j in range(len(p)):
+            e_i, e_j = np.eye(len(p))[i] * step, np.eye(len(p))[j] * step
+            h[i, j] = (f(p + e_i + e_j) - f(p + e_i - e_j) - f(p - e_i + e_j) + f(p - e_i - e_j)) / (4 * step ** 2)
+    return h
+
+
+def fit_channel(distance_m, throughput_bps, base: ChannelModel, samples_per_probe: int = 10) -> dict:
+    """Fit n, PL(d0) and sigma (see the module's text); the base radio gives everything else.
+    samples_per_probe: independent fades a probe averages (a 1 s probe on a moving link: about 10)."""
+    d = np.asarray(distance_m, float)
+    y = np.asarray(throughput_bps, float)
+    keep = np.isfinite(d) & (d > 0) & np.isfinite(y) & (y >= 0)
+    d, y = d[keep], y[keep]
+    curve = mean_rate_curve(base)
+    snr, censor, low_snr, high_snr = probe_snr(y, base, curve)
+    measured = censor == 0
+    if measured.sum() < 3 or np.ptp(np.log10(d[measured])) < 0.05:
+        raise CalibrationError(f"need throughput probes between nothing and the radio's top rate at 3 or more "
+                               f"distances spread over some range; found {int(measured.sum())} such of {len(y)}")
+    x = 10 * np.log10(d / base.ref_distance_m)
+    slope, intercept = np.polyfit(x[measured], snr[measured], 1)
+    start = [intercept, max(-slope, 0.5), math.log(max(np.std(snr[measured] - (intercept + slope * x[measured])),
+                                                       0.5))]
+
+    fading_db2 = fading_spread_db2(base, curve, samples_per_probe)
+
+    def nll(p):
+        return _negative_log_likelihood(p, x, snr, censor, low_snr, high_snr, fading_db2)
+
+    result = optimize.minimize(nll, start, method="Nelder-Mead",
+                               options={"xatol": 1e-6, "fatol": 1e-8, "maxiter": 20_000})
+    a, n, log_sigma = result.x
+    sigma = math.exp(log_sigma)
+    try:
+        cov = np.linalg.inv(_hessian(nll, result.x))
+        se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    except np.linalg.LinAlgError:
+        se = np.full(3, math.nan)
+    ref_loss = base.tx_power_dbm - base.noise_dbm - a
+    residual_db = snr[measured] - (a - n * x[measured])
+    return {
+        "exponent": float(n), "exponent_ci": (float(n - Z95 * se[1]), float(n + Z95 * se[1])),
+        "ref_loss_db": float(ref_loss), "ref_loss_ci_db": (float(ref_loss - Z95 * se[0]),
+                                                            float(ref_loss + Z95 * se[0])),
+        "sigma_db": sigma, "sigma_ci_db": (sigma * math.exp(-Z95 * se[2]), sigma * math.exp(Z95 * se[2])),
+        "probes": int(len(y)), "measured": int(measured.sum()), "censored_low": int((censor < 0).sum()),
+        "censored_high": int((censor > 0).sum()), "rms_residual_db": float(np.sqrt(np.mean(residual_db ** 2))),
+        "distance_min_m": float(d.min()), "distance_max_m": float(d.max()), "converged": bool(result.success),
+        "note": "an MCS offset is folded into PL(d0): throughput and positions alone cannot separate them",
+    }
+
+
+def fitted_model(base: ChannelModel, fit: dict, name: str, source: str) -> ChannelModel:
+    """The base radio with the fitted path loss and shadowing."""
+    return dataclasses.replace(
+        base, name=name, path_loss="log-distance", exponent=round(fit["exponent"], 4),
+        ref_loss_db=round(fit["ref_loss_db"], 3), shadowing_sigma_db=round(fit["sigma_db"], 3), overhead_bits=0.0,
+        notes=f"fitted to {fit['probes']} probes of {source} at {fit['distance_min_m']:.1f}-"
+              f"{fit['distance_max_m']:.1f} m (rms residual {fit['rms_residual_db']:.2f} dB)",
+        sources=f"n, PL(d0) and sigma: `nac-ground logs calibrate` on {source} (censored maximum likelihood; "
+                f"95 % intervals n {fit['exponent_ci'][0]:.2f}-{fit['exponent_ci'][1]:.2f}, PL(d0) "
+                f"{fit['ref_loss_ci_db'][0]:.1f}-{fit['ref_loss_ci_db'][1]:.1f} dB, sigma "
+                f"{fit['sigma_ci_db'][0]:.2f}-{fit['sigma_ci_db'][1]:.2f} dB); the rest from {base.name}")
