@@ -12,9 +12,10 @@ import time
 
 import numpy as np
 
-import _common  # (benchmarks/_common.py, beside this script)
 from nac_onboard.link.channel import PRESETS
 from nac_onboard.link.radio import AirRadio
+
+import _common  # (benchmarks/_common.py, beside this script)
 
 SMOKE = {"seconds": 2.0}
 RATE_HZ = 10.0
