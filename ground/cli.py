@@ -75,12 +75,14 @@ def _add_logs_parser(sub) -> None:
         p.add_argument("--bin-m", type=float, default=2.0, help="distance bin width for throughput vs distance")
         p.add_argument("--threshold-mbps", type=float, default=1.0,
                        help="throughput counted as 'in range' for the summary's range figure")
-    calibrate = lsub.add_parser("calibrate", help="fit a log-distance channel preset to measured throughput")
+    calibrate = lsub.add_parser("calibrate", help="fit path loss and shadowing to measured throughput: a preset")
     calibrate.add_argument("run_dir", type=Path)
     calibrate.add_argument("--out", type=Path, help="TOML to write (default RUN_DIR/calibrated-RUN.toml)")
     calibrate.add_argument("--base", default="wifi-flight",
                            help="preset or TOML giving the radio (bandwidth, noise, power, rate limits)")
     calibrate.add_argument("--name", help="the preset's name (default calibrated-RUN)")
+    calibrate.add_argument("--samples-per-probe", type=int, default=10,
+                           help="independent fades one probe averages (about 10 for a 1 s probe while moving)")
 
 
 def run_logs(args: argparse.Namespace, out=sys.stdout) -> int:
@@ -99,10 +101,19 @@ def run_logs(args: argparse.Namespace, out=sys.stdout) -> int:
         for tables in comparison.tables:
             print(f"  {tables.name}: {_brief(tables.summary)}", file=out)
     else:
-        model, fit, path = report.calibrate_run(args.run_dir, args.out, args.base, args.name)
-        print(f"{path}: log-distance exponent {fit['exponent']:.2f}, PL(d0) {fit['ref_loss_db']:.1f} dB from "
-              f"{fit['samples']} probes at {fit['distance_min_m']:.1f}-{fit['distance_max_m']:.1f} m "
-              f"(rms {fit['rms_error_db']:.2f} dB); range {model.range_m():.1f} m", file=out)
+        model, fit, path = report.calibrate_run(args.run_dir, args.out, args.base, args.name,
+                                                args.samples_per_probe)
+        low, high = fit["exponent_ci"]
+        print(f"{path}: from {fit['probes']} probes at {fit['distance_min_m']:.1f}-{fit['distance_max_m']:.1f} m "
+              f"({fit['censored_low']} at nothing, {fit['censored_high']} at the top rate: censored)", file=out)
+        print(f"  path-loss exponent n  {fit['exponent']:.2f}  (95 % {low:.2f}-{high:.2f})", file=out)
+        low, high = fit["ref_loss_ci_db"]
+        print(f"  PL(d0)                {fit['ref_loss_db']:.1f} dB  (95 % {low:.1f}-{high:.1f})", file=out)
+        low, high = fit["sigma_ci_db"]
+        print(f"  shadowing sigma       {fit['sigma_db']:.2f} dB  (95 % {low:.2f}-{high:.2f})", file=out)
+        print(f"  residuals             rms {fit['rms_residual_db']:.2f} dB over {fit['measured']} measured probes",
+              file=out)
+        print(f"  median range {model.range_m():.1f} m; figure {fit['figure']}; {fit['note']}", file=out)
     return 0
 
 

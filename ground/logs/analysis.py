@@ -168,9 +168,10 @@ def throughput(run: RunLog, t0_s: float) -> pd.DataFrame:
 
 
 def throughput_by_distance(table: pd.DataFrame, bin_m: float = DEFAULT_BIN_M) -> pd.DataFrame:
-    """Mean, standard deviation and count of throughput per distance bin (failed probes count as 0); on a kernel
-    network also the median rate the shaper applied and the median of measured / applied."""
-    columns = ["distance_from_m", "distance_to_m", "mean_mbps", "std_mbps", "count"]
+    """Mean, standard deviation, the 95 % band (2.5 and 97.5 percentiles) and count of throughput per distance
+    bin (failed probes count as 0); on a kernel network also the median rate the shaper applied and the median
+    of measured / applied."""
+    columns = ["distance_from_m", "distance_to_m", "mean_mbps", "std_mbps", "p2_5_mbps", "p97_5_mbps", "count"]
     applied = "applied_mbps" in table and table["applied_mbps"].notna().any()
     if applied:
         columns += ["applied_median_mbps", "measured_to_applied_median"]
@@ -181,6 +182,8 @@ def throughput_by_distance(table: pd.DataFrame, bin_m: float = DEFAULT_BIN_M) ->
     grouped = known.groupby(lower)["throughput_mbps"]
     out = pd.DataFrame({"distance_from_m": grouped.mean().index.astype(float),
                         "mean_mbps": grouped.mean().to_numpy(), "std_mbps": grouped.std(ddof=1).fillna(0.0).to_numpy(),
+                        "p2_5_mbps": grouped.quantile(0.025).to_numpy(),
+                        "p97_5_mbps": grouped.quantile(0.975).to_numpy(),
                         "count": grouped.count().to_numpy()})
     out["distance_to_m"] = out["distance_from_m"] + bin_m
     if applied:

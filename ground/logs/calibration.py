@@ -122,26 +122,30 @@ def fit_channel(distance_m, throughput_bps, base: ChannelModel, samples_per_prob
         raise CalibrationError(f"need throughput probes between nothing and the radio's top rate at 3 or more "
                                f"distances spread over some range; found {int(measured.sum())} such of {len(y)}")
     x = 10 * np.log10(d / base.ref_distance_m)
-    slope, intercept = np.polyfit(x[measured], snr[measured], 1)
-    start = [intercept, max(-slope, 0.5), math.log(max(np.std(snr[measured] - (intercept + slope * x[measured])),
-                                                       0.5))]
-
+    x_mean = float(x[measured].mean())  # centred: the intercept and the slope are then nearly independent
+    xc = x - x_mean
+    slope, intercept = np.polyfit(xc[measured], snr[measured], 1)
+    spread = np.std(snr[measured] - (intercept + slope * xc[measured]))
+    start = [intercept, max(-slope, 0.5), math.log(max(spread, 0.5))]
     fading_db2 = fading_spread_db2(base, curve, samples_per_probe)
 
     def nll(p):
-        return _negative_log_likelihood(p, x, snr, censor, low_snr, high_snr, fading_db2)
+        return _negative_log_likelihood(p, xc, snr, censor, low_snr, high_snr, fading_db2)
 
     result = optimize.minimize(nll, start, method="Nelder-Mead",
-                               options={"xatol": 1e-6, "fatol": 1e-8, "maxiter": 20_000})
-    a, n, log_sigma = result.x
+                               options={"xatol": 1e-7, "fatol": 1e-9, "maxiter": 20_000})
+    centre, n, log_sigma = result.x
+    a = centre + n * x_mean
     sigma = math.exp(log_sigma)
     try:
         cov = np.linalg.inv(_hessian(nll, result.x))
-        se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        var_n, var_log_sigma = cov[1, 1], cov[2, 2]
+        var_a = cov[0, 0] + x_mean ** 2 * cov[1, 1] + 2 * x_mean * cov[0, 1]
+        se = np.sqrt(np.maximum([var_a, var_n, var_log_sigma], 0.0))
     except np.linalg.LinAlgError:
         se = np.full(3, math.nan)
     ref_loss = base.tx_power_dbm - base.noise_dbm - a
-    residual_db = snr[measured] - (a - n * x[measured])
+    residual_db = snr[measured] - (centre - n * xc[measured])
     return {
         "exponent": float(n), "exponent_ci": (float(n - Z95 * se[1]), float(n + Z95 * se[1])),
         "ref_loss_db": float(ref_loss), "ref_loss_ci_db": (float(ref_loss - Z95 * se[0]),

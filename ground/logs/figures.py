@@ -48,12 +48,15 @@ def throughput_over_time(ax, t: RunTables) -> None:
 
 
 def throughput_vs_distance(ax, t: RunTables) -> None:
-    ax.set(title="Throughput vs distance (mean ± std per bin)", xlabel="distance (m)", ylabel="throughput (Mbit/s)")
+    ax.set(title="Throughput vs distance (mean ± std, 95 % band per bin)", xlabel="distance (m)",
+           ylabel="throughput (Mbit/s)")
     if t.throughput_by_distance.empty:
         return _empty(ax, "throughput probes with distances")
     b = t.throughput_by_distance
-    ax.errorbar((b["distance_from_m"] + b["distance_to_m"]) / 2, b["mean_mbps"], yerr=b["std_mbps"], fmt="o-",
-                capsize=3)
+    middle = (b["distance_from_m"] + b["distance_to_m"]) / 2
+    ax.fill_between(middle, b["p2_5_mbps"], b["p97_5_mbps"], alpha=0.2, label="95 % of probes")
+    ax.errorbar(middle, b["mean_mbps"], yerr=b["std_mbps"], fmt="o-", capsize=3, label="mean ± std")
+    ax.legend(loc="upper right")
     ax.set_xlim(left=0)
     ax.set_ylim(bottom=0)
 
@@ -91,6 +94,29 @@ def draw(name: str, runs: list[RunTables], path: Path) -> Path:
         ax.grid(alpha=0.3)
         if len(runs) > 1:
             ax.set_title(f"{run.name}: {ax.get_title()}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def draw_calibration(probes, model, path: Path) -> Path:
+    """Measured probes against the fitted radio's median and 95 % band by distance."""
+    import numpy as np
+
+    from nac_onboard.link.radio import rate_band
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.8))
+    d = probes["distance_m"].astype(float)
+    ax.scatter(d, probes["throughput_mbps"], s=10, alpha=0.5, label="measured probes")
+    grid = np.linspace(max(float(d.min()) * 0.8, 0.5), float(d.max()) * 1.1, 80)
+    band = rate_band(model, grid, draws=500)
+    ax.fill_between(grid, band["low_bps"] / 1e6, band["high_bps"] / 1e6, alpha=0.2, label="fitted: 95 % band")
+    ax.plot(grid, band["median_bps"] / 1e6, label="fitted: median")
+    ax.set(title=f"Calibration: {model.name}", xlabel="distance (m)", ylabel="throughput (Mbit/s)")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

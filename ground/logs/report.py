@@ -8,13 +8,12 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from ground.logs import figures
 from ground.logs.analysis import DEFAULT_BIN_M, DEFAULT_THRESHOLD_MBPS, RunTables, analyze
+from ground.logs.calibration import CalibrationError, fit_channel, fitted_model
 from ground.logs.runlog import read_run
-from nac_onboard.errors import BadInput
 from nac_onboard.link.channel import ChannelModel, load_channel, save_channel
 
 SUMMARY_LABELS = {
@@ -160,47 +159,20 @@ def compare_runs(run_a: str | Path, run_b: str | Path, out: str | Path, master: 
 
 
 # ---- calibration -------------------------------------------------------------------------------------------
-class CalibrationError(BadInput):
-    pass
-
-
-def fit_log_distance(distance_m, throughput_bps, base: ChannelModel, saturated_fraction: float = 0.95) -> dict:
-    """Log-distance path loss from throughput: each unsaturated, non-zero sample's Shannon-inverted received
-    power gives a loss; PL(d) = PL(d0) + 10 n log10(d / d0) is fitted by least squares."""
-    d = np.asarray(distance_m, float)
-    rate = np.asarray(throughput_bps, float)
-    cap = base.max_rate_bps or math.inf
-    usable = np.isfinite(d) & (d > 0) & (rate > 0) & (rate < saturated_fraction * cap)
-    if usable.sum() < 3 or np.ptp(np.log10(d[usable])) < 0.05:
-        raise CalibrationError(f"need throughput samples below the radio's top rate at 3 or more distances "
-                               f"spread over some range; found {int(usable.sum())} usable of {len(d)}")
-    snr = np.power(2.0, rate[usable] / base.bandwidth_hz) - 1.0
-    received_dbm = 10 * np.log10(snr * base.noise_w) + 30.0
-    loss_db = base.tx_power_dbm - received_dbm
-    x = 10 * np.log10(d[usable] / base.ref_distance_m)
-    exponent, ref_loss_db = np.polyfit(x, loss_db, 1)
-    residual = loss_db - (ref_loss_db + exponent * x)
-    return {"exponent": float(exponent), "ref_loss_db": float(ref_loss_db), "samples": int(usable.sum()),
-            "rms_error_db": float(np.sqrt(np.mean(residual ** 2))), "distance_min_m": float(d[usable].min()),
-            "distance_max_m": float(d[usable].max())}
-
-
 def calibrate_run(run_dir: str | Path, out: str | Path | None = None, base: str = "wifi-flight",
-                  name: str | None = None) -> tuple[ChannelModel, dict, Path]:
+                  name: str | None = None, samples_per_probe: int = 10) -> tuple[ChannelModel, dict, Path]:
+    """Fit the base radio's path loss and shadowing to a run's probes; write the preset (TOML) and a figure of
+    measured against fitted throughput by distance beside it."""
     run = read_run(run_dir)
-    probes = analyze(run).throughput
+    probes = analyze(run).throughput.dropna(subset=["distance_m"])
     if probes.empty:
-        raise CalibrationError(f"{run.path}: no throughput probes to calibrate from")
+        raise CalibrationError(f"{run.path}: no throughput probes with a distance to calibrate from")
     base_model = load_channel(base)
-    fit = fit_log_distance(probes["distance_m"].astype(float), probes["throughput_mbps"] * 1e6, base_model)
+    fit = fit_channel(probes["distance_m"].astype(float), probes["throughput_mbps"] * 1e6, base_model,
+                      samples_per_probe)
     name = name or f"calibrated-{run.name}"
-    model = ChannelModel(
-        name=name, path_loss="log-distance", freq_mhz=base_model.freq_mhz, bandwidth_hz=base_model.bandwidth_hz,
-        tx_power_dbm=base_model.tx_power_dbm, noise_w=base_model.noise_w, exponent=round(fit["exponent"], 4),
-        ref_distance_m=base_model.ref_distance_m, ref_loss_db=round(fit["ref_loss_db"], 3),
-        min_rate_bps=base_model.min_rate_bps, max_rate_bps=base_model.max_rate_bps,
-        notes=f"fitted to {fit['samples']} probes of run {run.name} at {fit['distance_min_m']:.1f}-"
-              f"{fit['distance_max_m']:.1f} m (rms {fit['rms_error_db']:.2f} dB); radio values from {base_model.name}")
+    model = fitted_model(base_model, fit, name, f"run {run.name}")
     path = Path(out) if out else run.path / f"{name}.toml"
     save_channel(model, path)
+    fit["figure"] = str(figures.draw_calibration(probes, model, path.with_suffix(".png")))
     return model, fit, path

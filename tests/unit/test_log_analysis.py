@@ -2,6 +2,7 @@
 and the path-loss fit."""
 
 import copy
+import dataclasses
 import io
 import json
 import shutil
@@ -14,11 +15,13 @@ import pytest
 from ground import cli
 from ground.logs.analysis import analyze
 from ground.logs.autopilot_logs import dataflash_positions, read_tlog, tlog_positions, ulog_positions
+from ground.logs.calibration import CalibrationError, fit_channel
 from ground.logs.findings import research_findings
-from ground.logs.report import CalibrationError, analyze_run, fit_log_distance
+from ground.logs.report import analyze_run
 from ground.logs.runlog import read_run
 from nac_onboard.flight_log import TlogWriter
-from nac_onboard.link.channel import PRESETS, ChannelModel
+from nac_onboard.link.channel import PRESETS
+from nac_onboard.link.radio import Radio
 from nac_onboard.mavlink.dialect import M
 from tests.logfiles import write_dataflash, write_ulog
 
@@ -41,8 +44,8 @@ def test_golden_run_gives_exactly_the_known_tables():
         [0.0, 3.0, 40.0, ""], [1.0, 3.5, 60.0, ""], [2.0, 5.0, 30.0, ""], [3.0, 9.0, 10.0, ""],
         [4.0, 9.5, 20.0, ""], [5.0, 21.0, 0.0, "unable to connect to server: timed out"]]
     assert rows(t.throughput_by_distance) == [
-        [2.0, 4.0, 50.0, round(np.sqrt(200), 6), 2], [4.0, 6.0, 30.0, 0.0, 1],
-        [8.0, 10.0, 15.0, round(np.sqrt(50), 6), 2], [20.0, 22.0, 0.0, 0.0, 1]]
+        [2.0, 4.0, 50.0, round(np.sqrt(200), 6), 40.5, 59.5, 2], [4.0, 6.0, 30.0, 0.0, 30.0, 30.0, 1],
+        [8.0, 10.0, 15.0, round(np.sqrt(50), 6), 10.25, 19.75, 2], [20.0, 22.0, 0.0, 0.0, 0.0, 0.0, 1]]
     assert rows(t.iterations[["iteration", "t_rel_s", "duration_s", "workers_present", "absent", "cost"]]) == [
         [0, 1.0, 0.5, 2, "", 10.0], [1, 1.5, 0.5, 2, "", 8.0], [2, 2.0, 1.0, 1, "w2:out_of_range", 7.0],
         [3, 3.0, 0.5, 2, "", 6.5]]
@@ -170,16 +173,25 @@ def test_a_vehicle_with_only_an_autopilot_log_gets_positions_from_it(tmp_path):
     assert np.allclose(np.diff(t.distances["distance_m"]), 0.7606, atol=1e-3), "1e-5 deg of longitude at 47 N"
 
 
-def test_log_distance_fit_recovers_the_model():
-    true = ChannelModel(name="truth", path_loss="log-distance", freq_mhz=2437.0, bandwidth_hz=20e6, tx_power_dbm=15,
-                        noise_w=PRESETS["wifi-flight"].noise_w, exponent=3.2, ref_loss_db=60.0)
-    rng = np.random.default_rng(1)
-    d = np.repeat([2.0, 5.0, 8.0, 11.0, 14.0, 17.0, 20.0, 23.0], 20)
-    rate = np.array([true.capacity_bps(x) for x in d]) * rng.uniform(0.9, 1.1, len(d))
-    fit = fit_log_distance(d, rate, true)
-    assert fit["exponent"] == pytest.approx(3.2, rel=0.05) and fit["ref_loss_db"] == pytest.approx(60.0, abs=1.5)
-    with pytest.raises(CalibrationError, match="3 or more distances"):
-        fit_log_distance([5.0, 5.0, 5.0], [1e6, 1e6, 1e6], true)
+def test_calibration_recovers_path_loss_and_shadowing_from_probes_the_model_made():
+    """600 one-second probes on moving links at 3-35 m (each probe a new place: its own shadowing; 20 fades
+    averaged), some at nothing and some at the top rate, fitted with the preset as the base radio."""
+    base = PRESETS["wifi-flight"]
+    true = dataclasses.replace(base, exponent=3.2, ref_loss_db=52.0, shadowing_sigma_db=4.0)
+    rng = np.random.default_rng(0)
+    d = rng.uniform(3, 35, 600)
+    r = Radio(true, len(d), seed=100)
+    r.step(0.0, d)
+    rate = np.mean([r.step(0.1, d, moved_m=np.zeros(len(d)), speed_mps=np.full(len(d), 1.34)).goodput_bps
+                    for _ in range(20)], axis=0)
+    fit = fit_channel(d, rate, base, samples_per_probe=20)
+    assert fit["censored_low"] > 0 and fit["censored_high"] > 0
+    assert fit["exponent"] == pytest.approx(3.2, rel=0.10)
+    assert fit["ref_loss_db"] == pytest.approx(52.0, rel=0.10)
+    assert fit["sigma_db"] == pytest.approx(4.0, rel=0.10)
+    assert fit["exponent_ci"][0] < fit["exponent"] < fit["exponent_ci"][1]
+    with pytest.raises(CalibrationError, match="3 or more"):
+        fit_channel([5.0, 5.0, 5.0], [1e6, 1e6, 1e6], base)
 
 
 def test_findings_state_whether_they_hold_with_their_numbers():
