@@ -269,6 +269,9 @@ def summarize(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, probes: pd.
     network = (run.experiment or {}).get("network")
     if network:
         summary["network"] = network.get("mode")
+    radio = (run.experiment or {}).get("radio")
+    if isinstance(radio, dict) and radio.get("describe"):
+        summary["radio"] = str(radio["describe"])
     if not dist.empty:
         summary["max_distance_m"] = {w: float(d["distance_m"].max()) for w, d in dist.groupby("worker")}
     return summary

@@ -68,6 +68,18 @@ def trains_through_link_loss(moving: RunTables) -> str:
             f"{cost_text}{rejoined}. The research's moving run stopped at its first link loss.")
 
 
+def _radio(*runs: RunTables) -> str:
+    """Which radio model made the runs' links, with its parameters (a finding is only as good as its model)."""
+    radios = {t.summary.get("radio") for t in runs}
+    if radios == {None}:
+        return ""
+    if len(radios) == 1:
+        return f" Radio: {radios.pop()}."
+    return " Radios: " + "; ".join(f"{t.name}: {t.summary.get('radio') or 'not recorded'}" for t in runs) + "."
+
+
 def research_findings(moving: RunTables, static: RunTables) -> list[str]:
-    return [falls_with_distance(moving), variance_larger_moving(moving, static),
-            static_more_iterations(moving, static), trains_through_link_loss(moving)]
+    return [falls_with_distance(moving) + _radio(moving),
+            variance_larger_moving(moving, static) + _radio(moving, static),
+            static_more_iterations(moving, static) + _radio(moving, static),
+            trains_through_link_loss(moving) + _radio(moving)]

@@ -27,7 +27,8 @@ SUMMARY_LABELS = {
     "std_throughput_per_link_mbps": "throughput std per link (Mbit/s)",
     "max_throughput_mbps": "max throughput (Mbit/s)",
     "range_above_threshold_m": "largest distance with throughput above threshold (m)",
-    "threshold_mbps": "throughput threshold (Mbit/s)", "max_distance_m": "largest master-worker distance (m)",
+    "radio": "radio model", "threshold_mbps": "throughput threshold (Mbit/s)",
+    "max_distance_m": "largest master-worker distance (m)",
 }
 TABLE_ROWS_SHOWN = 12
 

@@ -9,6 +9,7 @@ the partial run is analysed, and the outcome says what ended it.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import json
 import logging
@@ -28,7 +29,7 @@ from nac_onboard.child_process import AgentProcess, ChildStartError
 from nac_onboard.compute.options import options_from_argv
 from nac_onboard.errors import NacError, OperationFailed
 from nac_onboard.flight_log import JsonlLog, read_jsonl
-from nac_onboard.link.channel import load_channel
+from nac_onboard.link.channel import load_channel, save_channel
 from nac_onboard.link.iperf3 import iperf3_server
 from nac_onboard.mavlink.client import CommandError, LinkError, VehicleClient
 from nac_onboard.mavlink.dialect import M
@@ -127,12 +128,15 @@ class Experiment:
     # ---- the run ---------------------------------------------------------------------------------------------
     def run(self) -> ExperimentResult:
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        self._write_channel()
         outcome, detail = Outcome.COMPLETED, "the scenario ran to its end"
         self._write_record("experiment", scenario=self.scenario.name, path=str(self.scenario.path),
                            speedup=self.speedup, speedup_note=self._speedup_note(), duration_s=self.scenario.duration_s,
                            network={"mode": self.network, "why": self.network_why,
                                     "sharing": self.scenario.network.sharing,
                                     "period_s": self.scenario.network.period_s},
+                           radio={"name": self.radio.name, "describe": self.radio.describe(),
+                                  "sources": self.radio.sources},
                            vehicles=[{"id": v.id, "role": v.role} for v in self.scenario.vehicles])
         try:
             self._preflight()
@@ -151,6 +155,16 @@ class Experiment:
         if self.analyze:
             result.report, result.summary = self._analyze(outcome)
         return result
+
+    def _write_channel(self) -> None:
+        """The run's radio, overrides applied, as a channel file every process of the run reads: the run
+        directory says exactly which model made it."""
+        radio = self.scenario.radio or load_channel(self.scenario.channel)
+        path = self.run_dir / "config" / "channel.toml"
+        path.parent.mkdir(exist_ok=True)
+        save_channel(radio, path)
+        self.radio = radio
+        self.scenario = dataclasses.replace(self.scenario, channel=str(path), radio=radio)
 
     def _speedup_note(self) -> str:
         if self.speedup == 1.0:
@@ -195,7 +209,7 @@ class Experiment:
         self._clock_thread.start()
         if self.air is not None:
             self.network_log = JsonlLog(self.run_dir / "network.jsonl")
-            self.shaper = Shaper(self.air, self.sim.air_positions, load_channel(s.channel), self.pace.value,
+            self.shaper = Shaper(self.air, self.sim.air_positions, self.radio, self.pace.value,
                                  s.network.period_s, self.network_log)
             try:
                 self.shaper.start()

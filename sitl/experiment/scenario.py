@@ -4,6 +4,7 @@
     duration_s = 130            # simulated seconds from the missions' start
     max_speedup = 4             # fidelity limit: --speedup above it is refused
     [channel]  preset = "wifi-flight"           # or a TOML file (what `nac-ground logs calibrate` writes)
+               background_airtime = 0.2         # any other channel field overrides the preset's
     [compute]  task = "linreg"  iterations = 0  timeout_s = 3.0  args = []   # no [compute]: no MPI job
     [throughput]  period_s = 2.0  duration_s = 0.5  interval_s = 0.1
     [network]  period_s = 0.1  sharing = true   # the kernel network's shaper and the access point's airtime
@@ -16,6 +17,7 @@ a mission gives `home = [lat, lon, alt_m]` and stays on the ground. Paths are re
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,7 +26,7 @@ from missions.geo import Home
 from missions.model import Mission
 from nac_onboard.compute.tasks import all_tasks
 from nac_onboard.errors import BadInput
-from nac_onboard.link.channel import ChannelError, load_channel
+from nac_onboard.link.channel import ChannelError, ChannelModel, load_channel
 from nac_onboard.tomlfile import get_value, read_toml, to_dataclass
 from sitl.experiment.faults import Fault, FaultKind
 
@@ -78,6 +80,7 @@ class Scenario:
     channel: str  # preset name or absolute path
     compute: ComputePlan | None
     throughput: ProbePlan | None
+    radio: ChannelModel | None = None  # the channel with the scenario's overrides (None: `channel` as it is)
     faults: tuple[Fault, ...] = ()
     network: NetworkPlan = NetworkPlan()
     max_speedup: float = 1.0
@@ -120,19 +123,23 @@ def load_scenario(name_or_path: str) -> Scenario:
     ids = [v.id for v in vehicles]
     if len(set(ids)) != len(ids):
         raise ScenarioError(f"{where}: vehicle ids must be unique, got {ids}")
-    channel = get_value(data.get("channel", {}), "preset", "str", f"{where}: [channel]", ScenarioError,
-                        "paper-sim")
+    channel_table = dict(data.get("channel", {}))
+    channel = get_value(channel_table, "preset", "str", f"{where}: [channel]", ScenarioError, "paper-sim")
+    channel_table.pop("preset", None)
     relative = path.parent / channel
     channel = str(relative) if relative.suffix == ".toml" else channel
     try:
-        load_channel(channel)
+        radio = load_channel(channel)
+        if channel_table:  # the preset's fields with the scenario's on top, checked as a channel file is
+            radio = to_dataclass(ChannelModel, {**dataclasses.asdict(radio), **channel_table},
+                                 f"{where}: [channel]", ScenarioError)
     except ChannelError as err:
         raise ScenarioError(f"{where}: [channel] {err}") from None
     speedup = data.get("max_speedup", 1.0)
     scenario = Scenario(
         name=get_value(data, "name", "str", where, ScenarioError, path.stem), path=path,
         description=data.get("description", ""),
-        duration_s=duration_s, vehicles=vehicles, channel=channel,
+        duration_s=duration_s, vehicles=vehicles, channel=channel, radio=radio,
         compute=_compute(data["compute"], f"{where}: [compute]") if "compute" in data else None,
         throughput=_probes(data["throughput"], f"{where}: [throughput]") if "throughput" in data else None,
         faults=tuple(_fault(f, ids, f"{where}: fault {k + 1}") for k, f in enumerate(data.get("fault", []))),
