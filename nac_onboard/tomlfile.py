@@ -32,7 +32,10 @@ def read_toml(path: str | Path, what: str, error: type[BadInput] = BadInput) -> 
 
 
 def check_value(value, type_name: str, where: str, error: type[BadInput] = BadInput):
-    """value converted to the field type named (bool, int, float, str, tuple of str; `X | None` as X)."""
+    """value converted to the field type named (bool, int, float, str, tuple of str; `X | None` as X, or None
+    from the string "none": TOML has no null, and an override must be able to unset a preset's value)."""
+    if type_name.endswith(" | None") and (value is None or value == "none"):
+        return None
     type_name = type_name.removesuffix(" | None")
     if type_name == "bool":
         if isinstance(value, bool):

@@ -73,6 +73,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="kernel: each companion in its own network namespace, links shaped by tc/nftables from "
                           "the live positions (needs root); sleep: transfers sleep bits / capacity, the research's "
                           "method (default: kernel where it can run)")
+    exp.add_argument("--links", default="model",
+                     help="model: links from the radio model and the live positions; replay:RUN_DIR: each pair's "
+                          "throughput as a recorded run measured it, interpolated over time (kernel network)")
     exp.add_argument("-v", "--verbose", action="store_true")
     radio = sub.add_parser("radio", help="a channel's throughput against distance: median, 95 % band, MCS, range")
     radio.add_argument("channel", help="preset (paper-sim, wifi-flight, wifi-open-field) or channel TOML")
@@ -173,7 +176,7 @@ def experiment(args: argparse.Namespace, out=sys.stdout) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     result = run_scenario(scenario, args.out, speedup, args.base_port, out, stop, analyze=not args.no_analysis,
-                          network=args.network)
+                          network=args.network, links=args.links)
     return result.outcome.exit_code
 
 

@@ -155,14 +155,15 @@ def throughput(run: RunLog, t0_s: float) -> pd.DataFrame:
         t_s = float(start) if start is not None else r["t_s"]
         failed = "error" in r
         speedup = r.get("speedup") or 1.0
-        rows.append({"t_s": t_s, "t_rel_s": t_s - t0_s, "client": r.get("client"), "server": r.get("server"),
+        rows.append({"t_s": t_s, "t_rel_s": t_s - t0_s, "t_sim_s": r.get("t_sim_s"),
+                     "client": r.get("client"), "server": r.get("server"),
                      "distance_m": r.get("distance_m"), "distance_end_m": r.get("distance_end_m"),
                      "throughput_mbps": 0.0 if failed else got.get("bits_per_second", 0.0) / speedup / 1e6,
                      "applied_mbps": _applied_mbps(rates, r.get("client"), r.get("server"), r.get("t_sim_s"),
                                                    0.0 if failed else (got.get("seconds") or 0.0) * speedup),
                      "bytes": 0 if failed else got.get("bytes", 0), "seconds": got.get("seconds"),
                      "retransmits": sent.get("retransmits"), "error": r.get("error", "")})
-    columns = ["t_s", "t_rel_s", "client", "server", "distance_m", "distance_end_m", "throughput_mbps",
+    columns = ["t_s", "t_rel_s", "t_sim_s", "client", "server", "distance_m", "distance_end_m", "throughput_mbps",
                "applied_mbps", "bytes", "seconds", "retransmits", "error"]
     return pd.DataFrame(rows, columns=columns).sort_values("t_s", kind="stable").reset_index(drop=True)
 

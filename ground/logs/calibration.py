@@ -35,7 +35,7 @@ def mean_rate_curve(base: ChannelModel, draws: int = 2000, seed: int = 0) -> np.
     """The base radio's mean goodput at each SNR of SNR_GRID_DB over its Rician fading: what a probe long
     enough to average the fading measures. The rate is chosen from the SNR's mean in dB (fades faster than the
     rate adaptation, as on a moving link) and each fade meets it."""
-    if base.rician_k_db is None:
+    if not base.fading:
         return link_rates(base, SNR_GRID_DB).goodput_bps
     k = 10 ** (base.rician_k_db / 10)
     rng = np.random.default_rng(seed)
@@ -51,7 +51,7 @@ def fading_spread_db2(base: ChannelModel, curve: np.ndarray, samples_per_probe: 
                       seed: int = 1) -> np.ndarray:
     """Per SNR of SNR_GRID_DB: the variance (dB^2) the fading leaves in a probe's inverted SNR when the probe
     averages `samples_per_probe` independent fades. Added to sigma^2 in the fit, so sigma is the shadowing's."""
-    if base.rician_k_db is None or samples_per_probe <= 0:
+    if not base.fading or samples_per_probe <= 0:
         return np.zeros(len(SNR_GRID_DB))
     coarse = SNR_GRID_DB[::20]
     k = 10 ** (base.rician_k_db / 10)

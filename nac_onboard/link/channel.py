@@ -58,7 +58,7 @@ class ChannelModel:
     # shadowing and fading (0 / None = none: the research's deterministic link)
     shadowing_sigma_db: float = 0.0
     shadowing_decorrelation_m: float = 10.0
-    rician_k_db: float | None = None
+    rician_k_db: float | None = None  # None or inf: no fading
     hover_speed_mps: float = 0.0  # how much a hovering vehicle still moves: static links fade slowly
     # rate
     rate_model: str = "shannon"
@@ -107,6 +107,11 @@ class ChannelModel:
             fail(f"background_airtime must be in [0, 1), got {self.background_airtime}")
         if self.retry_limit < 0:
             fail(f"retry_limit must be >= 0, got {self.retry_limit}")
+
+    @property
+    def fading(self) -> bool:
+        """Rician fading on: a K factor given and finite (inf: pure line of sight; TOML has no None)."""
+        return self.rician_k_db is not None and math.isfinite(self.rician_k_db)
 
     @property
     def noise_dbm(self) -> float:
@@ -187,7 +192,7 @@ class ChannelModel:
         parts = [f"{self.name}: {loss} at {self.freq_mhz:g} MHz"]
         if self.shadowing_sigma_db:
             parts.append(f"shadowing sigma {self.shadowing_sigma_db:g} dB over {self.shadowing_decorrelation_m:g} m")
-        if self.rician_k_db is not None:
+        if self.fading:
             parts.append(f"Rician K {self.rician_k_db:g} dB")
         if self.rate_model == "802.11n":
             guard = "short" if self.short_guard_interval else "long"

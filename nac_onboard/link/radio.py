@@ -167,7 +167,7 @@ class Radio:
             self.shadow_db = rho * self.shadow_db + np.sqrt(1 - rho ** 2) * self.rng.normal(0, m.shadowing_sigma_db,
                                                                                              self.pairs)
         fade_db = np.zeros(self.pairs)
-        if m.rician_k_db is not None:
+        if m.fading:
             if dt_s > 0:
                 doppler_hz = np.maximum(speed, m.hover_speed_mps) * m.freq_mhz * 1e6 / C_MPS
                 rho = np.clip(bessel_j0(2.0 * math.pi * doppler_hz * dt_s), 0.0, 1.0)

@@ -1,6 +1,6 @@
 """`make demo`: the research's flight test in SITL, moving then static, and the comparison of the two.
 
-    python -m sitl.experiment.demo [--speedup 4] [--out runs/demo-ID] [--base-port 14550]
+    python -m sitl.experiment.demo [--speedup 1] [--out runs/demo-ID] [--base-port 14550]
 
 Each scenario is a full `nac-sitl experiment` (simulator, one agent per vehicle, missions, MPI job, report);
 the comparison's report.md (RUN/report.md) checks the research's findings against the two runs' numbers.
@@ -47,7 +47,7 @@ def run_demo(out: Path, speedup: float, base_port: int, stream=sys.stdout,
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m sitl.experiment.demo", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--speedup", type=float, default=4.0, help="capped by each scenario's max_speedup")
+    parser.add_argument("--speedup", type=float, default=1.0, help="capped by each scenario's max_speedup")
     parser.add_argument("--out", type=Path, default=Path("runs") / f"demo-{time.strftime('%Y%m%dT%H%M%S')}")
     parser.add_argument("--base-port", type=int, default=14550)
     args = parser.parse_args(argv)

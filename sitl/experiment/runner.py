@@ -50,6 +50,7 @@ from sitl.experiment.progress import VehicleProgress, follow, render_progress
 from sitl.experiment.scenario import Scenario
 from sitl.network.air import AirNetwork
 from sitl.network.netns import NetworkError, remove_leftovers
+from sitl.network.replay import ReplayError, ReplayLinks, parse_links
 from sitl.network.shaper import Shaper
 from sitl.server import Sitl, SitlConfig, SitlError
 
@@ -99,8 +100,9 @@ class ExperimentResult:
 class Experiment:
     def __init__(self, scenario: Scenario, run_dir: Path, speedup: float, base_port: int, out=sys.stdout,
                  stop: threading.Event | None = None, analyze: bool = True,
-                 network: tuple[str, str] = ("sleep", "")):
+                 network: tuple[str, str] = ("sleep", ""), replay: ReplayLinks | None = None):
         self.scenario, self.run_dir, self.speedup, self.out = scenario, run_dir, speedup, out
+        self.replay = replay
         self.network, self.network_why = network
         self.air: AirNetwork | None = None
         self.shaper: Shaper | None = None
@@ -137,6 +139,7 @@ class Experiment:
                                     "period_s": self.scenario.network.period_s},
                            radio={"name": self.radio.name, "describe": self.radio.describe(),
                                   "sources": self.radio.sources},
+                           links=f"replay:{self.replay.source}" if self.replay else "model",
                            vehicles=[{"id": v.id, "role": v.role} for v in self.scenario.vehicles])
         try:
             self._preflight()
@@ -178,6 +181,14 @@ class Experiment:
 
     def _preflight(self) -> None:
         """What would only fail minutes later (the MPI job's data) is checked before anything starts."""
+        if self.replay is not None:
+            if self.network != "kernel":
+                raise ExperimentError(Outcome.BAD_INPUT, "--links replay:RUN needs the kernel network (the "
+                                                         "recorded rates are applied by the link shaper)")
+            try:
+                self.replay.check_vehicles([v.id for v in self.scenario.vehicles])
+            except ReplayError as err:
+                raise ExperimentError(Outcome.BAD_INPUT, str(err)) from None
         if self.iperf3_probes and self.network != "kernel":
             raise ExperimentError(Outcome.BAD_INPUT, "[throughput] tool = \"iperf3\" needs the kernel network: on "
                                                      "loopback iperf3 cannot be paced to the channel model")
@@ -210,7 +221,7 @@ class Experiment:
         if self.air is not None:
             self.network_log = JsonlLog(self.run_dir / "network.jsonl")
             self.shaper = Shaper(self.air, self.sim.air_positions, self.radio, self.pace.value,
-                                 s.network.period_s, self.network_log)
+                                 s.network.period_s, self.network_log, self.replay)
             try:
                 self.shaper.start()
             except NetworkError as err:
@@ -488,14 +499,16 @@ def default_run_dir(scenario: Scenario) -> Path:
 
 def run_scenario(scenario: Scenario, run_dir: Path | None, speedup: float, base_port: int = 14550,
                  out=sys.stdout, stop: threading.Event | None = None, analyze: bool = True,
-                 network: str | None = None) -> ExperimentResult:
+                 network: str | None = None, links: str = "model") -> ExperimentResult:
     """Run one scenario and print its final summary; the result says how it ended and where the report is.
-    network: "kernel", "sleep" or None (kernel where it can run)."""
+    network: "kernel", "sleep" or None (kernel where it can run). links: "model" (the radio model) or
+    "replay:RUN" (a recorded run's measured throughput per pair; kernel network only)."""
+    replay = parse_links(links)
     chosen = choose_network(network)
     if chosen[0] != network:
         print(f"network: {chosen[0]} ({chosen[1]})", file=out, flush=True)
     run_dir = Path(run_dir) if run_dir else default_run_dir(scenario)
-    result = Experiment(scenario, run_dir, speedup, base_port, out, stop, analyze, chosen).run()
+    result = Experiment(scenario, run_dir, speedup, base_port, out, stop, analyze, chosen, replay).run()
     print(final_summary(result), file=out, flush=True)
     return result
 

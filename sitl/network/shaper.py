@@ -17,7 +17,7 @@ from nac_onboard.link.channel import ChannelModel
 from nac_onboard.link.radio import AirRadio
 from sitl.network.air import NFT_TABLE, AirNetwork
 from sitl.network.netns import NetworkError
-from sitl.network.shaping import AirState, air_state
+from sitl.network.shaping import AirState, air_state, with_replay
 
 log = logging.getLogger(__name__)
 LATE_LOG_EVERY_S = 5.0  # wall seconds between "falling behind" records
@@ -25,12 +25,15 @@ LATE_LOG_EVERY_S = 5.0  # wall seconds between "falling behind" records
 
 class Shaper:
     def __init__(self, air: AirNetwork, positions: Callable[[], tuple], channel: ChannelModel,
-                 speedup: float | Callable[[], float], period_s: float, out: JsonlLog):
+                 speedup: float | Callable[[], float], period_s: float, out: JsonlLog, replay=None):
         """positions: () -> (simulated time, earth-centred positions (N, 3)[, heights above ground (N,)]).
+        replay: a sitl.network.replay.ReplayLinks whose recorded pairs override the model's rates.
         speedup: the simulator's pace, or what measures it (nac_onboard.clock.Pace.value): rates on the
         wire are the model's times the pace at each update."""
         self.air, self.positions, self.channel = air, positions, channel
         self.radio = AirRadio(channel, len(air.stations))
+        self.replay = replay
+        self.ids = [s.vehicle_id for s in air.stations]
         self.pace = speedup if callable(speedup) else (lambda: speedup)
         self.period_s, self.out = period_s, out
         self.updates = self.late = 0
@@ -76,6 +79,8 @@ class Shaper:
         t_sim_s, ecef, *heights = self.positions()
         layout = self.air.layout
         state = air_state(self.radio, t_sim_s, ecef, layout.ap, layout.sharing, heights[0] if heights else None)
+        if self.replay is not None:
+            state = with_replay(state, self.ids, self.replay.rate_bps, t_sim_s)
         pace = self.pace()
         self.air.air_tc.send("\n".join(layout.air_update(state, pace)))
         if self.air.ap_tc is not None:
@@ -91,7 +96,7 @@ class Shaper:
         return state
 
     def _record(self, t_sim_s: float, state: AirState, pace: float) -> None:
-        ids = [s.vehicle_id for s in self.air.stations]
+        ids = self.ids
         n = len(ids)
         pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
         self.out.write("link_rates", t_sim_s=round(t_sim_s, 3), speedup=round(pace, 4),
@@ -101,4 +106,5 @@ class Shaper:
                        loss=[round(float(state.loss[i, j]), 6) for i, j in pairs],
                        snr_db=[round(float(state.snr_db[i, j]), 2) for i, j in pairs],
                        mcs=[int(state.mcs[i, j]) for i, j in pairs],
-                       budget_bps=None if state.budget_bps is None else round(state.budget_bps))
+                       budget_bps=None if state.budget_bps is None else round(state.budget_bps),
+                       source=f"replay:{self.replay.source}" if self.replay else self.channel.name)

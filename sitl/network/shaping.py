@@ -20,6 +20,7 @@ adds is bounded by the budget, the fastest station's rate.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -65,6 +66,25 @@ def air_state(radio: AirRadio, t_s: float, ecef_m: np.ndarray, ap: int | None, s
         budget = float(max(np.delete(rate[ap], ap).max(), floor))
     return AirState(radio.matrix(distance), rate, loss, budget, floor, radio.matrix(sample.snr_db),
                     radio.matrix(sample.mcs, -1))
+
+
+def with_replay(state: AirState, ids: list[str], rate_of, t_s: float) -> AirState:
+    """The state with each recorded pair's rate replaced by rate_of(a, b, t_s) (None: not recorded, the model's
+    stays); a recorded rate below the floor is a link with nothing through it."""
+    rate, loss = state.rate_bps.copy(), state.loss.copy()
+    n = len(ids)
+    for i in range(n):
+        for j in range(i + 1, n):
+            recorded = rate_of(ids[i], ids[j], t_s)
+            if recorded is None:
+                continue
+            through = recorded >= state.floor_bps
+            rate[i, j] = rate[j, i] = recorded if through else 0.0
+            loss[i, j] = loss[j, i] = 0.0 if through else 1.0
+    budget = state.budget_bps
+    if budget is not None:
+        budget = float(max(rate.max(), state.floor_bps))
+    return dataclasses.replace(state, rate_bps=rate, loss=loss, budget_bps=budget)
 
 
 MAX_WIRE_BPS = 40e9  # beyond what a veth carries here: unshaped in effect (paper-sim's ~100 Gbit/s)

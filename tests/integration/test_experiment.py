@@ -20,6 +20,7 @@ from missions import save_mission
 from missions.geo import enu_to_lla, lla_to_ecef
 from nac_onboard.flight_log import read_jsonl
 from nac_onboard.link.channel import PRESETS, load_channel, save_channel
+from sitl import cli as sitl_cli
 from sitl.experiment.runner import Experiment, Outcome
 from sitl.experiment.scenario import load_scenario
 from sitl.scenarios.generate import at, hover, route
@@ -254,3 +255,51 @@ def test_a_taken_port_or_missing_data_fails_the_run_with_a_sentence(tmp_path, mo
     result = Experiment(scenario, tmp_path / "run2", 4.0, base, out=io.StringIO()).run()
     assert result.outcome is Outcome.BAD_INPUT and result.outcome.exit_code == 2
     assert "Forest Fires CSV not found" in result.detail and time.monotonic() - t0 < 5.0
+
+
+def test_a_recorded_run_replays_its_links_on_the_kernel_network(short_run, tmp_path):
+    """The short run's probes (recorded on the sleep network) drive the kernel shaper of a second run of the same
+    scenario: the rates applied are the recording's, interpolated, and what the second run's probes measure
+    matches the recorded throughput at the same simulated times within 10 % (median)."""
+    from sitl.network.netns import NetworkUnavailable, check_kernel_network
+    from sitl.network.replay import ReplayLinks
+
+    try:
+        check_kernel_network()
+    except NetworkUnavailable as err:
+        pytest.skip(str(err))
+    result, scenario, _, _, _ = short_run
+    replay = ReplayLinks.from_run(result.run_dir)
+    assert set(replay.series) == {("master", "w1"), ("master", "w2")}
+    with open(tmp_path / "console.txt", "w") as console:
+        replayed = Experiment(scenario, tmp_path / "replayed", 4.0, allocate_base_port(3, slots=5), out=console,
+                              network=("kernel", "test"), replay=replay).run()
+    assert replayed.outcome is Outcome.COMPLETED, replayed.detail
+    run = replayed.run_dir
+    updates = read_jsonl(run / "network.jsonl").of_kind("link_rates")
+    assert updates and all(u["source"] == f"replay:{result.run_dir}" for u in updates)
+    applied, recorded = [], []
+    for u in updates:
+        k = u["b"].index("w1") if u["a"][0] == "master" else None
+        if k is None or u["rate_bps"][k] < 2e6:
+            continue
+        applied.append(u["rate_bps"][k])
+        recorded.append(replay.rate_bps("master", "w1", u["t_sim_s"]))
+    assert applied and np.allclose(applied, recorded, rtol=1e-3, atol=1.0), "the shaper applies the recording"
+    ratios = []
+    for probe in read_jsonl(run / "master" / "throughput.jsonl").of_kind("throughput"):
+        was = replay.rate_bps(probe["client"], probe["server"], probe["t_sim_s"])
+        got = (probe.get("end") or {}).get("sum_received", {}).get("bits_per_second")
+        if got and was and was > 2e6:
+            ratios.append(got / probe["speedup"] / was)
+    assert len(ratios) > 20
+    assert np.median(ratios) == pytest.approx(1.0, abs=0.10), sorted(ratios)
+    assert "replay:" in (run / "experiment.json").read_text()
+
+
+def test_replay_is_refused_on_the_sleep_network_and_for_unknown_vehicles(short_run, tmp_path):
+    result, scenario, _, _, _ = short_run
+    refused = sitl_cli.main(["experiment", str(scenario.path), "--network", "sleep", "--links",
+                             f"replay:{result.run_dir}", "--out", str(tmp_path / "r")])
+    assert refused == 2
+    assert sitl_cli.main(["experiment", str(scenario.path), "--links", f"replay:{tmp_path / 'nothing'}"]) == 2
