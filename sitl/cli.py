@@ -61,6 +61,11 @@ def build_parser() -> argparse.ArgumentParser:
                      help="extra ground link HOST:PORT (port + step*i per vehicle); repeatable")
     run.add_argument("--signing-key-file", type=Path,
                      help="MAVLink 2 signing: 64 hex characters or a passphrase; unsigned input is refused")
+    run.add_argument("--telemetry-radio", default="", metavar="RADIO",
+                     help="lose ground-link frames with distance as a telemetry radio does (sik-915); "
+                          "default: a lossless link")
+    run.add_argument("--ground-station", type=_home, metavar="LAT,LON,ALT_M",
+                     help="where the telemetry radio's ground antenna is (default: at each vehicle's home)")
     run.add_argument("-v", "--verbose", action="store_true")
     exp = sub.add_parser("experiment", help="run a scenario end to end: SITL, agents, missions, MPI job, report")
     exp.add_argument("scenario", help="scenario TOML, or the name of a shipped one (sitl/scenarios/)")
@@ -129,7 +134,7 @@ def config_from_args(args: argparse.Namespace) -> SitlConfig:
         params=params, host=args.host, gcs_base_port=args.gcs_base_port,
         companion_base_port=args.companion_base_port, tcp_base_port=args.tcp_base_port, tcp_bind=args.tcp_bind,
         port_step=args.port_step, extra_outs=tuple(args.out), signing_key=signing_key,
-        signing_state_file=signing_state,
+        signing_state_file=signing_state, telemetry_radio=args.telemetry_radio, ground_station=args.ground_station,
     )
 
 

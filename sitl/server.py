@@ -16,15 +16,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from missions.geo import Home
+from missions.geo import Home, lla_to_enu
 from nac_onboard.address import is_loopback
 from nac_onboard.errors import OperationFailed
+from nac_onboard.link.radio import TELEMETRY_RADIOS
 from nac_onboard.mavlink.signing import SigningState
 from sitl.mavlink.codec import new_parser, parse_datagram
 from sitl.mavlink.telemetry import Streams, TelemetrySource
 from sitl.mavlink.vehicle_protocol import VehicleProtocol
 from sitl.network.netns import socket_in_netns
-from sitl.vehicle.world import COMPANION, GROUND, World
+from sitl.vehicle.world import COMPANION, GEAR_HEIGHT_M, GROUND, World
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +58,10 @@ class SitlConfig:
     # One network namespace per vehicle (a simulated companion computer): its companion link is a UDP socket on
     # that namespace's loopback, as a serial or UDP link between a Pixhawk and a Jetson is off the Wi-Fi.
     companion_netns: tuple[str, ...] = ()
+    # The ground link's radio (nac_onboard.link.radio.TELEMETRY_RADIOS, e.g. "sik-915"): frames are lost with
+    # the distance to the ground station, as over a telemetry radio; "" = a lossless link (SITL's default).
+    telemetry_radio: str = ""
+    ground_station: Home | None = None  # where the ground station's antenna is (None: at each vehicle's home)
 
 
 class Connection:
@@ -145,7 +150,18 @@ class Sitl:
                           for i in range(n)]
         self.world.param_listeners.append(self._on_params_changed)
         self._faults_active = self.world.any_link_fault()
-        self.stats = {"bad_frames": 0, "handler_errors": 0, "io_errors": 0, "steps": 0, "overruns": 0}
+        self.telemetry_radio = None
+        if config.telemetry_radio:
+            if config.telemetry_radio not in TELEMETRY_RADIOS:
+                raise SitlError(f"telemetry radio {config.telemetry_radio!r}: known ones are "
+                                f"{', '.join(TELEMETRY_RADIOS)}")
+            self.telemetry_radio = TELEMETRY_RADIOS[config.telemetry_radio]
+            station = config.ground_station
+            self._station_enu = np.array([lla_to_enu(station.lat_deg, station.lon_deg, home.alt_m, home)
+                                          if station else np.zeros(3) for home in homes])
+        self.ground_loss = np.zeros(n)  # each vehicle's ground-link frame loss this step (telemetry radio)
+        self.stats = {"bad_frames": 0, "handler_errors": 0, "io_errors": 0, "steps": 0, "overruns": 0,
+                      "radio_lost": 0}
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -265,6 +281,11 @@ class Sitl:
 
     # ---- faults and links ---------------------------------------------------------------------------
     def link_passes(self, vehicle: int, kind: str) -> bool:
+        if kind == GROUND and self.telemetry_radio is not None:
+            loss = self.ground_loss[vehicle]
+            if loss > 0 and self.world.rng.random() < loss:
+                self.stats["radio_lost"] += 1
+                return False
         if not self._faults_active:
             return True
         if self.world.link_down(vehicle, kind):
@@ -276,6 +297,14 @@ class Sitl:
         self._faults_active = self.world.any_link_fault()
         for protocol in self.protocols:
             protocol.on_params_changed()
+
+    def _update_ground_loss(self) -> None:
+        pos = self.world.state.pos_m
+        horizontal = np.linalg.norm(pos[:, :2] - self._station_enu[:, :2], axis=1)
+        height = np.maximum(pos[:, 2], GEAR_HEIGHT_M)
+        radio = self.telemetry_radio
+        distance = np.hypot(horizontal, height - radio.ground_antenna_m)
+        self.ground_loss = radio.frame_loss(distance, height)
 
     def flush(self) -> None:
         """Send everything queued on every connection."""
@@ -326,6 +355,8 @@ class Sitl:
         """Advance the world by one step and send what falls due (call with the lock held)."""
         for vehicle, kind, value in self.world.step(self.config.dt_s):
             self.protocols[vehicle].on_event(kind, value)
+        if self.telemetry_radio is not None:
+            self._update_ground_loss()
         self.stats["steps"] += 1
         for vehicle, msgid in self.streams.due(self.world.t_s):
             protocol = self.protocols[vehicle]

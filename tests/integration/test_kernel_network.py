@@ -54,11 +54,12 @@ def host_state() -> dict:
             "nft": sorted(out(["nft", "list", "tables"]).splitlines())}
 
 
-def shortened(name: str, folder: Path, duration_s: float, channel: str = "") -> Path:
+def shortened(name: str, folder: Path, duration_s: float, channel: str = "", max_speedup: float = 1.0) -> Path:
     """A shipped scenario with a shorter duration, its missions read from where they are shipped; `channel`:
-    lines added to its [channel] table."""
+    lines added to its [channel] table; max_speedup: for tests of mechanics, not of results."""
     text = (SCENARIOS / f"{name}.toml").read_text()
     text = re.sub(r"^duration_s = .*$", f"duration_s = {duration_s}", text, count=1, flags=re.M)
+    text = re.sub(r"^max_speedup = .*$", f"max_speedup = {max_speedup}", text, count=1, flags=re.M)
     text = re.sub(r"^(preset = .*)$", lambda m: m.group(1) + "\n" + channel, text, count=1, flags=re.M)
     text = text.replace('mission = "', f'mission = "{SCENARIOS}/')
     path = folder / f"{name}-short.toml"
@@ -72,7 +73,8 @@ def shortened(name: str, folder: Path, duration_s: float, channel: str = "") -> 
 @pytest.mark.parametrize("sharing", [True, False])
 def test_two_workers_share_the_access_points_airtime_or_not(tmp_path, sharing):
     """Both workers 3 m from the master on a channel capped at 20 Mbit/s send to it at once (real iperf3)."""
-    channel = dataclasses.replace(PRESETS["wifi-flight"], name="capped", max_rate_bps=20e6)
+    channel = dataclasses.replace(PRESETS["wifi-flight"], name="capped", rate_model="shannon", max_rate_bps=20e6,
+                                  mac_efficiency=1.0, shadowing_sigma_db=0.0, rician_k_db=None)
     positions = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 3.0, 0.0]])
     air = AirNetwork(["m", "w1", "w2"], ap=0, sharing=sharing).create()
     servers = []
@@ -123,9 +125,13 @@ def test_a_dead_runs_namespaces_are_found_and_removed():
 
 
 # ---- whole experiments --------------------------------------------------------------------------------------
-def _measured_matches_applied(summary: dict) -> None:
+def _measured_matches_applied(summary: dict, solid_below_m: float = 20.0) -> None:
+    """Probes measure the rate the shaper applied, within 15 %, where the link is solid: near wifi-flight's
+    range (~24 m) packets are lost and rates change within a probe, so there a ratio says little about
+    shaping."""
     by_bin = summary["measured_to_applied_by_bin"]
-    assert by_bin and all(abs(ratio - 1.0) <= 0.15 for ratio in by_bin.values()), by_bin
+    solid = {key: ratio for key, ratio in by_bin.items() if float(key.split("-")[1].split()[0]) <= solid_below_m}
+    assert solid and all(abs(ratio - 1.0) <= 0.15 for ratio in solid.values()), by_bin
 
 
 @needs_kernel
@@ -193,7 +199,7 @@ def test_without_the_privileges_kernel_exits_2_quickly_and_sleep_still_runs(tmp_
     """Root without CAP_NET_ADMIN and CAP_SYS_ADMIN (as in a container that refuses namespaces)."""
     if os.geteuid() != 0 or shutil.which("setpriv") is None:
         pytest.skip("needs root to drop capabilities (setpriv)")
-    scenario = shortened("paper-flight-static", tmp_path, 6.0)
+    scenario = shortened("paper-flight-static", tmp_path, 6.0, max_speedup=4.0)
     unprivileged = ["setpriv", "--bounding-set=-net_admin,-sys_admin", "--inh-caps=-net_admin,-sys_admin"]
     t0 = time.monotonic()
     refused = subprocess.run([*unprivileged, sys.executable, "-m", "sitl.cli", "experiment", str(scenario),
@@ -214,7 +220,7 @@ def test_without_the_privileges_kernel_exits_2_quickly_and_sleep_still_runs(tmp_
 
 @needs_kernel
 def test_ctrl_c_on_a_kernel_network_leaves_nothing_behind(tmp_path):
-    scenario = shortened("paper-flight-static", tmp_path, 600.0)
+    scenario = shortened("paper-flight-static", tmp_path, 600.0, max_speedup=4.0)
     before = host_state()
     proc = subprocess.Popen([sys.executable, "-m", "sitl.cli", "experiment", str(scenario), "--network", "kernel",
                              "--speedup", "4", "--out", str(tmp_path / "run"), "--base-port",
