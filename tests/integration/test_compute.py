@@ -173,7 +173,7 @@ def test_a_killed_worker_ends_the_job_with_the_records_and_a_checkpoint_intact(t
     records are whole and results.npz holds the weights of its last checkpoint, not nothing."""
     with job("--task", "linreg", "--iterations", "100000", "--out", str(tmp_path), "--emulate", "sleep", "--channel",
              wifi(tmp_path), "--positions", "fixed", "--distances", "15,15", "--checkpoint-s", "0.2") as proc:
-        wait_until(lambda: (tmp_path / "results.npz").exists(), proc)
+        wait_until(lambda: (tmp_path / "results.npz").exists() and iterations_logged(tmp_path) >= 5, proc)
         worker = read_jsonl(tmp_path / "rank-2.jsonl").of_kind("worker_started")[0]
         os.kill(worker["pid"], signal.SIGKILL)
         code = proc.wait(timeout=30)

@@ -125,13 +125,13 @@ def test_a_dead_runs_namespaces_are_found_and_removed():
 
 
 # ---- whole experiments --------------------------------------------------------------------------------------
-def _measured_matches_applied(summary: dict, solid_below_m: float = 20.0) -> None:
-    """Probes measure the rate the shaper applied, within 15 %, where the link is solid: near wifi-flight's
-    range (~24 m) packets are lost and rates change within a probe, so there a ratio says little about
-    shaping."""
+def _measured_matches_applied(summary: dict, solid_below_m: float = 16.0) -> None:
+    """Probes measure the rate the shaper applied, within 15 %, where the link is solid: towards wifi-flight's
+    median range (~24 m) fades take the link below MCS 0 within a probe, packets are lost and rates change
+    every 0.1 s, so there a ratio says little about shaping."""
     by_bin = summary["measured_to_applied_by_bin"]
     solid = {key: ratio for key, ratio in by_bin.items() if float(key.split("-")[1].split()[0]) <= solid_below_m}
-    assert solid and all(abs(ratio - 1.0) <= 0.15 for ratio in solid.values()), by_bin
+    assert solid and all(abs(ratio - 1.0) <= 0.15 for ratio in solid.values()), str(by_bin)
 
 
 @needs_kernel

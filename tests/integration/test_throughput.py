@@ -1,6 +1,7 @@
 """Our throughput probe and real iperf3 measure the same paths: loopback, and a 10 Mbit/s `tc tbf` link between
 two network namespaces."""
 
+import dataclasses
 import json
 import os
 import secrets
@@ -109,7 +110,8 @@ def test_emulated_probes_follow_the_channel_model_at_the_live_distance(tmp_path)
                 "peers": {"w": peer} if peer else {}}
 
     settings = ThroughputSection(probe=True, duration_s=0.5, interval_s=0.1, emulate_channel="wifi-flight")
-    emulation = SleepEmulation(PRESETS["wifi-flight"])
+    wifi = dataclasses.replace(PRESETS["wifi-flight"], shadowing_sigma_db=0.0, rician_k_db=None)  # the median link
+    emulation = SleepEmulation(wifi)
     try:
         with JsonlLog(tmp_path / "throughput.jsonl") as out:
             scheduler = ProbeScheduler(settings, "m", lambda: [], positions, out, threading.Event(), emulation)
@@ -120,7 +122,6 @@ def test_emulated_probes_follow_the_channel_model_at_the_live_distance(tmp_path)
             unknown = scheduler.probe_once("w", "127.0.0.1", server.port)
     finally:
         server.stop()
-    wifi = PRESETS["wifi-flight"]
     capacity = wifi.capacity_bps(near["distance_m"])
     assert 9.9 < near["distance_m"] < 10.1 and near["emulated_rate_bps"] == capacity
     measured = near["end"]["sum_received"]["bits_per_second"]

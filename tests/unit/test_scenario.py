@@ -4,6 +4,7 @@
 import pytest
 
 from missions.geo import distance_m
+from nac_onboard.link.channel import PRESETS
 from sitl import cli
 from sitl.experiment.scenario import SCENARIO_DIR, ScenarioError, load_scenario
 
@@ -49,6 +50,12 @@ def test_the_shipped_scenarios_load_with_the_research_geometry():
      "fault 1: kill_worker needs a worker of the MPI job"),
     ("duration_s = 10\n[compute\n", "not valid TOML"),
     ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
+     "role = 'worker'\nhome = [47, 8, 500]\n[channel]\npreset = 'wifi-flight'\nbackground_airtime = 1.5\n",
+     "background_airtime must be in [0, 1)"),
+    ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
+     "role = 'worker'\nhome = [47, 8, 500]\n[channel]\npreset = 'wifi-flight'\nexponnent = 3\n",
+     "unknown key exponnent"),
+    ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
      "role = 'worker'\nhome = [47, 8, 500]\n[[fault]]\nat_s = 5\nvehicle = 'a'\nkind = 'gps_lost'\ncolour = 1\n",
      "unknown key fault.colour"),
     ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
@@ -61,6 +68,17 @@ def test_bad_scenarios_name_the_file_and_the_key(tmp_path, text, message):
     with pytest.raises(ScenarioError) as err:
         load_scenario(str(path))
     assert str(path) in str(err.value) and message in str(err.value)
+
+
+def test_a_scenario_overrides_its_channel_and_can_add_background_load(tmp_path):
+    path = tmp_path / "busy.toml"
+    path.write_text("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\n"
+                    "id = 'b'\nrole = 'worker'\nhome = [47, 8, 500]\n[channel]\npreset = 'wifi-flight'\n"
+                    "background_airtime = 0.25\nrician_k_db = 'none'\n")
+    radio = load_scenario(str(path)).radio
+    wifi = PRESETS["wifi-flight"]
+    assert radio.background_airtime == 0.25 and radio.rician_k_db is None and radio.exponent == wifi.exponent
+    assert radio.capacity_bps(10.0) == pytest.approx(0.75 * wifi.capacity_bps(10.0))
 
 
 def test_the_cli_refuses_bad_scenarios_and_speedups_with_exit_2(tmp_path, capsys):
