@@ -302,6 +302,8 @@ def analyze(run: RunLog, master: str | None = None, bin_m: float = DEFAULT_BIN_M
                      problems, missing)
 
 
+MACHINE_ITERATION_COST_S = 0.0024  # a linreg iteration with 2 workers at 1x, kernel network (docs/benchmarks.md)
+SHORT_ITERATION_WALL_S = 10 * MACHINE_ITERATION_COST_S
 CPU_SHARE_LIMIT = 0.10
 
 
@@ -312,8 +314,14 @@ def speedup_warning(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, summa
     if its.empty or workers.empty or "compute_s" not in workers or workers["compute_s"].dropna().empty:
         return None
     cpu_s = float(workers.groupby("iteration")["compute_s"].max().median()) * speedup
-    share = cpu_s / float(its["duration_s"].median()) if its["duration_s"].median() > 0 else 0.0
+    median_s = float(its["duration_s"].median())
+    share = cpu_s / median_s if median_s > 0 else 0.0
     summary["compute_share_of_iteration"] = round(share, 4)
+    if speedup > 1 and 0 < median_s / speedup < SHORT_ITERATION_WALL_S:
+        return (f"at {speedup:.1f}x an iteration lasted {1e3 * median_s / speedup:.1f} ms of wall-clock time: the "
+                f"MPI job's own costs on this machine (about {1e3 * MACHINE_ITERATION_COST_S:.1f} ms per "
+                "iteration, measured at 1x) are more than 10 % of it, so iterations per simulated minute depend "
+                "on the speed-up; run at 1x")
     if speedup > 1 and share > CPU_SHARE_LIMIT:
         return (f"at {speedup:g}x the workers' computing took {100 * share:.0f} % of an iteration in simulated time "
                 f"(more than {100 * CPU_SHARE_LIMIT:.0f} %): iterations per simulated minute depend on the speed-up; "

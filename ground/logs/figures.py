@@ -48,7 +48,7 @@ def throughput_over_time(ax, t: RunTables) -> None:
 
 
 def throughput_vs_distance(ax, t: RunTables) -> None:
-    ax.set(title="Throughput vs distance (mean ± std, 95 % band per bin)", xlabel="distance (m)",
+    ax.set(title="Throughput vs distance", xlabel="distance (m)",
            ylabel="throughput (Mbit/s)")
     if t.throughput_by_distance.empty:
         return _empty(ax, "throughput probes with distances")

@@ -45,7 +45,7 @@ def static_more_iterations(moving: RunTables, static: RunTables) -> str:
     if a is None or b is None:
         return "Iterations per minute: a run has no compute iterations."
     return (f"Static completes more iterations per minute: {_verdict(b > a)}; {b:.1f} ({static.name}) vs "
-            f"{a:.1f} ({moving.name}), per minute of computing (simulated minutes in a sped-up SITL run).")
+            f"{a:.1f} ({moving.name}), per minute of computing (simulated minutes in SITL).")
 
 
 def trains_through_link_loss(moving: RunTables) -> str:

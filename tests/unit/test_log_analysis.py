@@ -207,3 +207,24 @@ def test_findings_state_whether_they_hold_with_their_numbers():
            "from iteration 3" in lines[3]
     static.summary["iterations_per_min"] = 50.0
     assert "**does not hold**" in research_findings(moving, static)[2]
+
+
+@pytest.mark.parametrize(("speedup", "duration_sim_s", "warned"), [(4.0, 0.008, True), (4.0, 0.4, False),
+                                                                  (1.0, 0.003, False)])
+def test_a_sped_up_run_of_short_iterations_is_flagged(tmp_path, speedup, duration_sim_s, warned):
+    """At 4x an 8 ms iteration is 2 ms of wall-clock time: this machine's own cost per iteration; at 1x, or for
+    0.4 s iterations, nothing to say."""
+    run = tmp_path / "run"
+    shutil.copytree(GOLDEN, run)
+    lines = []
+    for line in (run / "compute" / "compute.jsonl").read_text().splitlines():
+        record = json.loads(line)
+        if record["kind"] == "run_started":
+            record["speedup"] = speedup
+        if record["kind"] == "iteration":
+            record["duration_sim_s"] = duration_sim_s
+            record["workers"]["compute_s"] = [1e-5, 1e-5]
+        lines.append(json.dumps(record))
+    (run / "compute" / "compute.jsonl").write_text("\n".join(lines) + "\n")
+    problems = " ".join(analyze(read_run(run)).problems)
+    assert ("ms of wall-clock time" in problems) is warned, problems

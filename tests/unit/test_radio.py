@@ -140,3 +140,16 @@ def test_sleep_emulation_steps_each_pair_and_charges_a_timeout_for_a_lost_packet
     assert emulation.transfer_s(8_000, 8e6) == pytest.approx(1e-3)
     assert emulation.transfer_s(8_000, 8e6, loss=1.0) == pytest.approx(1e-3 + 0.2)
     assert not emulation.link(60.0, "w1").in_range
+
+
+def test_nac_sitl_radio_prints_the_curve_with_its_band_and_steps(capsys):
+    from sitl import cli
+
+    assert cli.main(["radio", "wifi-flight", "--distances-m", "2,10,20,30", "--draws", "500"]) == 0
+    out = capsys.readouterr().out
+    rows = [line.split() for line in out.splitlines() if line.strip() and line.split()[0] in ("2", "10", "20", "30")]
+    assert [int(r[1]) for r in rows[:3]] == sorted((int(r[1]) for r in rows[:3]), reverse=True), "MCS steps down"
+    assert all(float(r[3]) <= float(r[2]) <= float(r[4]) for r in rows), "median inside its 95 % band"
+    assert "sources:" in out and "p97.5_mbps" in out
+    assert cli.main(["radio", "wifi-flight", "--distances-m", "ten"]) == 2
+    assert "--distances-m" in capsys.readouterr().err
