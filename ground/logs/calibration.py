@@ -5,9 +5,10 @@ averaged over its fading: monotone, so invertible between "nothing got through" 
 at either end are censored, since they only say the SNR was below or above. The SNR is then
     SNR = P_t - PL(d0) - 10 n log10(d / d0) - noise + shadowing,   shadowing ~ N(0, sigma)
 and n, PL(d0) and sigma are fitted by maximum likelihood with the censored probes (a Tobit model), with 95 %
-confidence intervals from the likelihood's curvature. A shift of every MCS threshold moves the SNR exactly as
-PL(d0) does, so positions and throughput alone cannot tell them apart: the fit folds any MCS offset into
-PL(d0) and says so.
+confidence intervals from the likelihood's curvature. The intervals take the probes as independent: probes
+from one place share its shadowing, so for a run of a few places (a range sweep) they are too narrow. A shift
+of every MCS threshold moves the SNR exactly as PL(d0) does, so positions and throughput alone cannot tell
+them apart: the fit folds any MCS offset into PL(d0) and says so.
 """
 
 from __future__ import annotations
@@ -23,7 +24,10 @@ from nac_onboard.link.channel import ChannelModel
 from nac_onboard.link.radio import link_rates
 
 SNR_GRID_DB = np.arange(-20.0, 60.0, 0.05)
-CENSOR_FRACTION = 0.02  # within 2 % of zero or of the top rate a probe is censored
+# A probe within 2 % of nothing, or within 10 % of the top rate, only says the SNR was below or above: a
+# measured link tops out a little under the radio's top goodput (TCP and the shaper take their share), and MCS 6
+# is 90 % of MCS 7, so little is lost by censoring that band.
+CENSOR_LOW_FRACTION, CENSOR_HIGH_FRACTION = 0.02, 0.90
 Z95 = 1.959964
 
 
@@ -76,7 +80,7 @@ def probe_snr(throughput_bps, base: ChannelModel, curve: np.ndarray | None = Non
     """(SNR dB per probe, -1/0/+1: censored below, measured, censored above, the two censoring SNRs)."""
     curve = mean_rate_curve(base) if curve is None else curve
     top = curve.max()
-    low_rate, high_rate = CENSOR_FRACTION * top, (1 - CENSOR_FRACTION) * top
+    low_rate, high_rate = CENSOR_LOW_FRACTION * top, CENSOR_HIGH_FRACTION * top
     low_snr = float(SNR_GRID_DB[np.argmax(curve >= low_rate)])
     high_snr = float(SNR_GRID_DB[np.argmax(curve >= high_rate)])
     y = np.asarray(throughput_bps, float)
@@ -98,7 +102,9 @@ def _negative_log_likelihood(params, x, snr, censor, low_snr, high_snr, fading_d
     return -float(total)
 
 
-def _hessian(f, p, step=1e-3):
+def _hessian(f, p, step=0.05):
+    """Central differences; the step spans the likelihood's small kinks (the fading spread is interpolated on
+    a 1 dB grid), which a finer one would read as curvature."""
     p = np.asarray(p, float)
     h = np.zeros((len(p), len(p)))
     for i in range(len(p)):
