@@ -168,6 +168,23 @@ def throughput(run: RunLog, t0_s: float) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=columns).sort_values("t_s", kind="stable").reset_index(drop=True)
 
 
+def with_distances(probes: pd.DataFrame, traj: pd.DataFrame) -> pd.DataFrame:
+    """Probes that came without a distance (iperf3's own files beside autopilot logs) get the distance between
+    their two vehicles' logged positions at the probe's start."""
+    missing = probes["distance_m"].isna() & probes["client"].notna() & probes["server"].notna()
+    if not missing.any() or traj.empty:
+        return probes
+    probes = probes.copy()
+    tracks = {v: rows.sort_values("t_s") for v, rows in traj.groupby("vehicle")}
+    for (client, server), rows in probes[missing].groupby(["client", "server"]):
+        if client not in tracks or server not in tracks:
+            continue
+        times = rows["t_s"].to_numpy(float)
+        a, b = interpolate_positions(tracks[client], times), interpolate_positions(tracks[server], times)
+        probes.loc[rows.index, "distance_m"] = np.linalg.norm(a - b, axis=1)
+    return probes
+
+
 def throughput_by_distance(table: pd.DataFrame, bin_m: float = DEFAULT_BIN_M) -> pd.DataFrame:
     """Mean, standard deviation, the 95 % band (2.5 and 97.5 percentiles) and count of throughput per distance
     bin (failed probes count as 0); on a kernel network also the median rate the shaper applied and the median
@@ -286,7 +303,7 @@ def analyze(run: RunLog, master: str | None = None, bin_m: float = DEFAULT_BIN_M
     master = run.master(master)
     traj = trajectories(run, t0_s)
     dist = distances(traj, master, t0_s)
-    probes = throughput(run, t0_s)
+    probes = with_distances(throughput(run, t0_s), traj)
     bins = throughput_by_distance(probes, bin_m)
     its, workers = iterations(run, t0_s)
     summary = summarize(run, its, workers, probes, bins, dist, threshold_mbps)

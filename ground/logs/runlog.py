@@ -12,6 +12,7 @@ last line, corrupt tlog bytes) or `missing` (a vehicle without positions, a reco
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -98,7 +99,8 @@ def _read_vehicle(run: RunLog, vehicle_dir: Path) -> None:
     vehicle = vehicle_dir.name
     agent_log = vehicle_dir / "agent.jsonl"
     flight_logs = sorted(p for p in vehicle_dir.iterdir() if p.suffix in READERS)
-    if not agent_log.exists() and not flight_logs:
+    iperf3_files = sorted(vehicle_dir.glob(IPERF3_GLOB))
+    if not agent_log.exists() and not flight_logs and not iperf3_files:
         return
     role = "?"
     telemetry = 0
@@ -127,8 +129,40 @@ def _read_vehicle(run: RunLog, vehicle_dir: Path) -> None:
             run.positions += rows
             if rows:
                 break
+    for path in iperf3_files:
+        probe, problem = _iperf3_probe(path, vehicle)
+        if problem:
+            _warn(run, [problem])
+        else:
+            run.probes.append(probe)
     throughput_log = vehicle_dir / "throughput.jsonl"
     if throughput_log.exists():
         read = read_jsonl(throughput_log)
         _warn(run, read.problems)
         run.probes += read.of_kind("throughput")
+
+
+IPERF3_GLOB = "iperf3-*.json"  # VEHICLE/iperf3-PEER[.anything].json: `iperf3 -c PEER --json` run on VEHICLE
+
+
+def _iperf3_probe(path: Path, client: str) -> tuple[dict | None, str | None]:
+    """A probe record from iperf3's own JSON output (the run's time from start.timestamp; its distance comes
+    later from the two vehicles' positions)."""
+    server = path.name[len("iperf3-"):].split(".")[0]
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        return None, f"{path}: not iperf3 JSON (expected the output of `iperf3 --client PEER --json`): {err}"
+    start = data.get("start") if isinstance(data, dict) else None
+    timesecs = (start or {}).get("timestamp", {}).get("timesecs") if isinstance(start, dict) else None
+    if not isinstance(timesecs, (int, float)) or not server:
+        return None, (f"{path}: iperf3 JSON without start.timestamp.timesecs (a test that never connected?) or "
+                      "without a peer in its name (iperf3-PEER.json): skipped")
+    record = {"kind": "throughput", "t_s": float(timesecs), "client": client, "server": server,
+              "start": start, "end": data.get("end") or {}, "source": str(path)}
+    received = (record["end"].get("sum_received") or {}).get("bits_per_second") if isinstance(
+        record["end"], dict) else None
+    if data.get("error") or not isinstance(received, (int, float)):
+        record["error"] = str(data.get("error") or "iperf3 reported no received total")
+    return record, None
+

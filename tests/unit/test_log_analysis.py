@@ -23,6 +23,7 @@ from nac_onboard.flight_log import TlogWriter
 from nac_onboard.link.channel import PRESETS
 from nac_onboard.link.radio import Radio
 from nac_onboard.mavlink.dialect import M
+from tests.conftest import SHARED_DATA
 from tests.logfiles import write_dataflash, write_ulog
 
 GOLDEN = Path(__file__).parents[1] / "data" / "golden-run"
@@ -228,3 +229,26 @@ def test_a_sped_up_run_of_short_iterations_is_flagged(tmp_path, speedup, duratio
     (run / "compute" / "compute.jsonl").write_text("\n".join(lines) + "\n")
     problems = " ".join(analyze(read_run(run)).problems)
     assert ("ms of wall-clock time" in problems) is warned, problems
+
+
+def test_iperf3_json_beside_autopilot_logs_becomes_probes_with_distances(tmp_path):
+    """A real `iperf3 --json` file run on the master against w1, and both vehicles' DataFlash logs: the probe
+    takes iperf3's time and received rate, and the distance between the logged positions then; iperf3's output
+    of a test that never connected is skipped by name."""
+    real = SHARED_DATA / "realworld" / "iperf3"
+    result = json.loads((real / "cloudpilot-baseline__baseline_target_host_direct_10.res").read_text())
+    t0 = float(result["start"]["timestamp"]["timesecs"])
+    run = tmp_path / "run"
+    for vehicle, east_deg in (("master", 0.0), ("w1", 20.0 / 75_840.0)):  # 20 m apart at 47 N
+        (run / vehicle).mkdir(parents=True)
+        write_dataflash(run / vehicle / "00000001.bin",
+                        [(t0 - 5 + k, 47.0, 8.0 + east_deg, 510.0) for k in range(30)], t0 - 20)
+    shutil.copy(real / "cloudpilot-baseline__baseline_target_host_direct_10.res", run / "master" / "iperf3-w1.json")
+    shutil.copy(real / "cloudpilot-failed__bw_host_proxy_proxy_0.res", run / "master" / "iperf3-w1.2.json")
+    t = analyze(read_run(run))
+    assert len(t.throughput) == 1
+    probe = t.throughput.iloc[0]
+    assert (probe["client"], probe["server"]) == ("master", "w1")
+    assert probe["distance_m"] == pytest.approx(20.0, abs=0.1)
+    assert probe["throughput_mbps"] == pytest.approx(result["end"]["sum_received"]["bits_per_second"] / 1e6)
+    assert any("iperf3-w1.2.json" in p and "never connected" in p for p in t.problems), t.problems
