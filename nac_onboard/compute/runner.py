@@ -42,6 +42,7 @@ from nac_onboard.compute.messages import (
     WARMUP_ANSWER,
     WORK_HEADER,
     pad_floats,
+    work_header,
 )
 from nac_onboard.compute.messages import message as message_buffer
 from nac_onboard.compute.options import ComputeOptions, build_source, parse_args
@@ -215,7 +216,7 @@ class Master:
         if message is None:
             message = message_buffer((), WORK_HEADER + payload.size, self.pad)
             message[WORK_HEADER:WORK_HEADER + payload.size] = payload
-        message[:WORK_HEADER] = (kind, iteration, rate, extra_rows, loss)
+        message[:WORK_HEADER] = work_header(kind, iteration, rate, extra_rows, loss)
         self.comm.Send([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
         links.bytes_down[k] += message.nbytes
         links.down_s[k] += down_s
@@ -240,7 +241,7 @@ class Master:
             pending = self._pings.get(rank)
             if now < self._next_ping_s.get(rank, 0.0) or (pending is not None and not pending[0].Test()):
                 continue
-            message = message_buffer((KIND_WARMUP, 0.0, 0.0, 0.0, 0.0), 0, self.pad)
+            message = message_buffer(work_header(KIND_WARMUP), 0, self.pad)
             self._pings[rank] = (self.comm.Isend([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK), message)
             self._next_ping_s[rank] = now + self.clock.wall_s(PING_S)
 
@@ -333,7 +334,7 @@ class Master:
                 self._next_checkpoint_s = time.monotonic() + o.checkpoint_s
         self.write_pending()
         self.checkpoint(iteration)
-        stop = message_buffer((KIND_STOP, iteration, 0.0, 0.0, 0.0), 0, self.pad)
+        stop = message_buffer(work_header(KIND_STOP, iteration), 0, self.pad)
         for rank in self.workers:
             if rank in self.unresponsive:  # it may never take it: do not wait for that
                 self._pings[rank] = (self.comm.Isend([stop, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK), stop)
@@ -397,7 +398,7 @@ class Master:
         """One untimed exchange of an input-sized message with every worker: MPI sets up its connections and
         buffers on first use, which would otherwise land in the first iteration's time."""
         t0 = time.monotonic()
-        message = message_buffer((KIND_WARMUP, 0.0, 0.0, 0.0, 0.0), floats, self.pad)
+        message = message_buffer(work_header(KIND_WARMUP), floats, self.pad)
         message[WORK_HEADER:] = 0.0
         for rank in self.workers:
             self.comm.Send([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
