@@ -80,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "method (default: kernel where it can run)")
     exp.add_argument("--links", default="model",
                      help="model: links from the radio model and the live positions; replay:RUN_DIR: each pair's "
-                          "throughput as a recorded run measured it, interpolated over time (kernel network)")
+                          "throughput as a recorded run measured it, interpolated over simulated time")
     exp.add_argument("-v", "--verbose", action="store_true")
     radio = sub.add_parser("radio", help="a channel's throughput against distance: median, 95 % band, MCS, range")
     radio.add_argument("channel", help="preset (paper-sim, wifi-flight, wifi-open-field) or channel TOML")

@@ -94,7 +94,7 @@ class ProbeScheduler:
         return self.out.write("throughput", **fields, **result)
 
     def _emulated_rate_bps(self, peer_id: str, distance_m: float, cap_bps: float | None) -> float:
-        link = self.emulation.link(distance_m, peer_id)
+        link = self.emulation.link(distance_m, peer_id, (self.self_id, peer_id))
         channel = self.emulation.channel
         if not link.in_range:
             # a real probe would wait out its connect timeout; the path is idle for the probe's slot either way

@@ -191,7 +191,7 @@ class Master:
                 if d is None:
                     links.absent[k] = "no_position"
                 else:
-                    now = self.emulation.link(d, rank)
+                    now = self.emulation.link(d, rank, (self.options.vehicle_of(0), self.options.vehicle_of(rank)))
                     links.rate_bps[k], links.loss[k] = now.capacity_bps, now.loss
                     if not now.in_range:
                         links.absent[k] = "out_of_range"

@@ -76,6 +76,9 @@ class ChannelModel:
     # model a measured stack cost; the radio itself is all above.
     overhead_bits: float = 0.0
     seed: int = 0
+    # A replay table (nac_onboard.link.replay, JSON): its recorded pairs' throughput replaces the model's rate
+    # in the sleep emulation (the runner writes it for `--links replay:RUN`); "" = the model everywhere.
+    replay_file: str = ""
     notes: str = ""
     sources: str = ""
 
@@ -205,6 +208,8 @@ class ChannelModel:
             parts.append(f"{self.background_airtime:.0%} background airtime")
         if self.overhead_bits:
             parts.append(f"{self.overhead_bits:g} bits of overhead per transfer")
+        if self.replay_file:
+            parts.append(f"recorded pairs replayed from {self.replay_file}")
         return "; ".join(parts)
 
 

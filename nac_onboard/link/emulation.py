@@ -24,6 +24,7 @@ import numpy as np
 from nac_onboard.clock import Clock
 from nac_onboard.link.channel import ChannelModel
 from nac_onboard.link.radio import Radio
+from nac_onboard.link.replay import ReplayLinks
 
 SEGMENT_BITS = 1448 * 8  # a TCP segment's payload on a 1500-byte path
 RTO_S = 0.2  # Linux's minimum retransmission timeout: what one lost segment costs a small transfer
@@ -53,8 +54,15 @@ class SleepEmulation:
         self.seed = channel.seed if seed is None else seed
         self.rng = np.random.default_rng(self.seed + 7919)
         self.pairs: dict[Hashable, _Pair] = {}
+        self.replay = ReplayLinks.load(channel.replay_file) if channel.replay_file else None
 
-    def link(self, distance_m: float, pair: Hashable = None) -> LinkNow:
+    def link(self, distance_m: float, pair: Hashable = None, ids: tuple[str, str] | None = None) -> LinkNow:
+        """The pair's link now. ids: the two vehicles' ids, for a replay table that recorded them."""
+        if self.replay is not None and ids is not None:
+            recorded = self.replay.rate_bps(ids[0], ids[1], self.clock.now_s())
+            if recorded is not None:
+                through = self.channel.usable(recorded)
+                return LinkNow(distance_m, recorded if through else 0.0, through, 0.0 if through else 1.0)
         state = self.pairs.get(pair)
         if state is None:
             state = self.pairs[pair] = _Pair(self.channel, self.seed + len(self.pairs))

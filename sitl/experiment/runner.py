@@ -31,6 +31,7 @@ from nac_onboard.errors import NacError, OperationFailed
 from nac_onboard.flight_log import JsonlLog, read_jsonl
 from nac_onboard.link.channel import load_channel, save_channel
 from nac_onboard.link.iperf3 import iperf3_server
+from nac_onboard.link.replay import ReplayError, ReplayLinks
 from nac_onboard.mavlink.client import CommandError, LinkError, VehicleClient
 from nac_onboard.mavlink.dialect import M
 from nac_onboard.mavlink.mission_transfer import MissionError
@@ -50,7 +51,7 @@ from sitl.experiment.progress import VehicleProgress, follow, render_progress
 from sitl.experiment.scenario import Scenario
 from sitl.network.air import AirNetwork
 from sitl.network.netns import NetworkError, remove_leftovers
-from sitl.network.replay import ReplayError, ReplayLinks, parse_links
+from sitl.network.replay import parse_links
 from sitl.network.shaper import Shaper
 from sitl.server import Sitl, SitlConfig, SitlError
 
@@ -164,7 +165,11 @@ class Experiment:
         directory says exactly which model made it."""
         radio = self.scenario.radio or load_channel(self.scenario.channel)
         path = self.run_dir / "config" / "channel.toml"
-        path.parent.mkdir(exist_ok=True)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if self.replay is not None and self.network == "sleep":  # the kernel shaper holds the table itself
+            table = path.with_name("replay.json")
+            self.replay.save(table)
+            radio = dataclasses.replace(radio, replay_file=str(table))
         save_channel(radio, path)
         self.radio = radio
         self.scenario = dataclasses.replace(self.scenario, channel=str(path), radio=radio)
@@ -182,9 +187,6 @@ class Experiment:
     def _preflight(self) -> None:
         """What would only fail minutes later (the MPI job's data) is checked before anything starts."""
         if self.replay is not None:
-            if self.network != "kernel":
-                raise ExperimentError(Outcome.BAD_INPUT, "--links replay:RUN needs the kernel network (the "
-                                                         "recorded rates are applied by the link shaper)")
             try:
                 self.replay.check_vehicles([v.id for v in self.scenario.vehicles])
             except ReplayError as err:
@@ -502,7 +504,7 @@ def run_scenario(scenario: Scenario, run_dir: Path | None, speedup: float, base_
                  network: str | None = None, links: str = "model") -> ExperimentResult:
     """Run one scenario and print its final summary; the result says how it ended and where the report is.
     network: "kernel", "sleep" or None (kernel where it can run). links: "model" (the radio model) or
-    "replay:RUN" (a recorded run's measured throughput per pair; kernel network only)."""
+    "replay:RUN" (a recorded run's measured throughput per pair)."""
     replay = parse_links(links)
     chosen = choose_network(network)
     if chosen[0] != network:

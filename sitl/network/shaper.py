@@ -27,7 +27,7 @@ class Shaper:
     def __init__(self, air: AirNetwork, positions: Callable[[], tuple], channel: ChannelModel,
                  speedup: float | Callable[[], float], period_s: float, out: JsonlLog, replay=None):
         """positions: () -> (simulated time, earth-centred positions (N, 3)[, heights above ground (N,)]).
-        replay: a sitl.network.replay.ReplayLinks whose recorded pairs override the model's rates.
+        replay: a nac_onboard.link.replay.ReplayLinks whose recorded pairs override the model's rates.
         speedup: the simulator's pace, or what measures it (nac_onboard.clock.Pace.value): rates on the
         wire are the model's times the pace at each update."""
         self.air, self.positions, self.channel = air, positions, channel

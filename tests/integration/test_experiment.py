@@ -262,14 +262,14 @@ def test_a_recorded_run_replays_its_links_on_the_kernel_network(short_run, tmp_p
     scenario: the rates applied are the recording's, interpolated, and what the second run's probes measure
     matches the recorded throughput at the same simulated times within 10 % (median)."""
     from sitl.network.netns import NetworkUnavailable, check_kernel_network
-    from sitl.network.replay import ReplayLinks
+    from sitl.network.replay import replay_from_run
 
     try:
         check_kernel_network()
     except NetworkUnavailable as err:
         pytest.skip(str(err))
     result, scenario, _, _, _ = short_run
-    replay = ReplayLinks.from_run(result.run_dir)
+    replay = replay_from_run(result.run_dir)
     assert set(replay.series) == {("master", "w1"), ("master", "w2")}
     with open(tmp_path / "console.txt", "w") as console:
         replayed = Experiment(scenario, tmp_path / "replayed", 4.0, allocate_base_port(3, slots=5), out=console,
@@ -297,9 +297,30 @@ def test_a_recorded_run_replays_its_links_on_the_kernel_network(short_run, tmp_p
     assert "replay:" in (run / "experiment.json").read_text()
 
 
-def test_replay_is_refused_on_the_sleep_network_and_for_unknown_vehicles(short_run, tmp_path):
+def test_on_the_sleep_network_the_replay_table_reaches_every_process(short_run, tmp_path):
+    """A sleep-network run with --links replay: the runner writes the table beside the run's channel, and the
+    channel every process loads gives the recorded rates; unknown vehicles or a missing run are refused."""
+    from nac_onboard.clock import Clock
+    from nac_onboard.link.emulation import SleepEmulation
+    from sitl.network.replay import replay_from_run
+
     result, scenario, _, _, _ = short_run
-    refused = sitl_cli.main(["experiment", str(scenario.path), "--network", "sleep", "--links",
-                             f"replay:{result.run_dir}", "--out", str(tmp_path / "r")])
-    assert refused == 2
+    replay = replay_from_run(result.run_dir)
+    experiment = Experiment(scenario, tmp_path / "replayed", 4.0, 14550, out=io.StringIO(),
+                            network=("sleep", "test"), replay=replay)
+    experiment._write_channel()
+    channel = load_channel(experiment.scenario.channel)
+    assert channel.replay_file == str(tmp_path / "replayed" / "config" / "replay.json")
+
+    class At(Clock):
+        def now_s(self) -> float:
+            return 20.0
+
+    emulation = SleepEmulation(channel, At())
+    link = emulation.link(12.0, 1, ("master", "w1"))
+    assert link.capacity_bps == pytest.approx(replay.rate_bps("master", "w1", 20.0))
+    assert emulation.link(12.0, 2, ("w1", "w2")).capacity_bps != link.capacity_bps, "unrecorded: the model"
+    other = dataclasses.replace(scenario, vehicles=scenario.vehicles[:2])
+    refused = Experiment(other, tmp_path / "r", 4.0, 14550, out=io.StringIO(), analyze=False, replay=replay).run()
+    assert refused.outcome is Outcome.BAD_INPUT and "w2" in refused.detail
     assert sitl_cli.main(["experiment", str(scenario.path), "--links", f"replay:{tmp_path / 'nothing'}"]) == 2

@@ -156,3 +156,16 @@ def test_nac_sitl_radio_prints_the_curve_with_its_band_and_steps(capsys):
     assert len(rows) == 4 and "sources:" in out and "p97.5_mbps" in out
     assert cli.main(["radio", "wifi-flight", "--distances-m", "ten"]) == 2
     assert "--distances-m" in capsys.readouterr().err
+
+
+def test_a_replay_table_round_trips_interpolates_and_names_a_bad_file(tmp_path):
+    from nac_onboard.link.replay import ReplayError, ReplayLinks
+
+    table = ReplayLinks("run-x", {("master", "w1"): (np.array([0.0, 10.0]), np.array([20e6, 10e6]))})
+    table.save(tmp_path / "replay.json")
+    back = ReplayLinks.load(tmp_path / "replay.json")
+    assert back.rate_bps("w1", "master", 5.0) == pytest.approx(15e6) and back.rate_bps("w1", "w2", 5.0) is None
+    assert back.rate_bps("master", "w1", -3.0) == 20e6 and back.rate_bps("master", "w1", 99.0) == 10e6
+    (tmp_path / "bad.json").write_text('{"pairs": [{"a": "m", "b": "w", "t_s": [2, 1], "rate_bps": [1, 2]}]}')
+    with pytest.raises(ReplayError, match="bad.json: not a replay table .*pair 1: .*times rising"):
+        ReplayLinks.load(tmp_path / "bad.json")
