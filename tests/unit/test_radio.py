@@ -169,3 +169,13 @@ def test_a_replay_table_round_trips_interpolates_and_names_a_bad_file(tmp_path):
     (tmp_path / "bad.json").write_text('{"pairs": [{"a": "m", "b": "w", "t_s": [2, 1], "rate_bps": [1, 2]}]}')
     with pytest.raises(ReplayError, match="bad.json: not a replay table .*pair 1: .*times rising"):
         ReplayLinks.load(tmp_path / "bad.json")
+
+
+def test_the_telemetry_radio_loses_more_frames_further_out_and_lower_down():
+    sik = radio.TELEMETRY_RADIOS["sik-915"]
+    loss = sik.frame_loss(np.array([100.0, 1000.0, 3000.0, 10_000.0]), 30.0)
+    assert loss[0] < 1e-6 and np.all(np.diff(loss) > 0) and loss[-1] > 0.99
+    assert 1000 < sik.range_m(30.0) < 5000, "stock SiK radios reach a few kilometres"
+    assert sik.range_m(3.0) < sik.range_m(30.0), "two-ray: a low antenna hears less far"
+    assert sik.received_dbm(500.0, 30.0) == pytest.approx(
+        20.0 + 4.0 - 25.0 - radio.two_ray_db(500.0, 1.5, 30.0, 915.0))
