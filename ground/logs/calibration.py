@@ -21,7 +21,7 @@ from scipy import optimize, special
 
 from nac_onboard.errors import BadInput
 from nac_onboard.link.channel import ChannelModel
-from nac_onboard.link.radio import link_rates
+from nac_onboard.link.radio import complex_normal, link_rates, rician_fade_db
 
 SNR_GRID_DB = np.arange(-20.0, 60.0, 0.05)
 # A probe within 2 % of nothing, or within 10 % of the top rate, only says the SNR was below or above: a
@@ -41,10 +41,7 @@ def mean_rate_curve(base: ChannelModel, draws: int = 2000, seed: int = 0) -> np.
     rate adaptation, as on a moving link) and each fade meets it."""
     if not base.fading:
         return link_rates(base, SNR_GRID_DB).goodput_bps
-    k = 10 ** (base.rician_k_db / 10)
-    rng = np.random.default_rng(seed)
-    g = (rng.normal(size=draws) + 1j * rng.normal(size=draws)) / math.sqrt(2)
-    fade_db = 10 * np.log10(np.abs(math.sqrt(k / (k + 1)) + math.sqrt(1 / (k + 1)) * g) ** 2)
+    fade_db = rician_fade_db(base.rician_k_db, complex_normal(np.random.default_rng(seed), draws))
     truth = (SNR_GRID_DB[:, None] + fade_db[None, :]).ravel()
     estimate = np.repeat(SNR_GRID_DB + fade_db.mean(), draws)
     rates = link_rates(base, truth, estimate).goodput_bps
@@ -58,11 +55,8 @@ def fading_spread_db2(base: ChannelModel, curve: np.ndarray, samples_per_probe: 
     if not base.fading or samples_per_probe <= 0:
         return np.zeros(len(SNR_GRID_DB))
     coarse = SNR_GRID_DB[::20]
-    k = 10 ** (base.rician_k_db / 10)
-    rng = np.random.default_rng(seed)
     shape = (len(coarse), probes, samples_per_probe)
-    g = (rng.normal(size=shape) + 1j * rng.normal(size=shape)) / math.sqrt(2)
-    fade_db = 10 * np.log10(np.abs(math.sqrt(k / (k + 1)) + math.sqrt(1 / (k + 1)) * g) ** 2)
+    fade_db = rician_fade_db(base.rician_k_db, complex_normal(np.random.default_rng(seed), shape))
     mean_fade_db = float(np.mean(fade_db))
     truth = coarse[:, None, None] + fade_db
     estimate = np.broadcast_to(coarse[:, None, None] + mean_fade_db, shape)

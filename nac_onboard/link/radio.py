@@ -122,6 +122,19 @@ def bessel_j0(x):
     return np.cos(np.multiply.outer(np.asarray(x, float), np.sin(t))).mean(axis=-1)
 
 
+def complex_normal(rng: np.random.Generator, shape) -> np.ndarray:
+    """Circular complex Gaussian draws of unit power: the scattered part of a fading channel."""
+    return (rng.normal(size=shape) + 1j * rng.normal(size=shape)) / math.sqrt(2.0)
+
+
+def rician_fade_db(k_db: float, scatter: np.ndarray) -> np.ndarray:
+    """A Rician channel's power gain (dB, unit mean power) with line-of-sight factor K and scattered part g:
+    |sqrt(K/(K+1)) + sqrt(1/(K+1)) g|^2."""
+    k = 10.0 ** (k_db / 10.0)
+    power = np.abs(math.sqrt(k / (k + 1)) + math.sqrt(1 / (k + 1)) * scatter) ** 2
+    return 10.0 * np.log10(np.maximum(power, 1e-12))
+
+
 def rician_power_moments(k_linear: float) -> tuple[float, float]:
     """Mean and variance of |h|^2 for a Rician channel of unit mean power."""
     return 1.0, (2.0 * k_linear + 1.0) / (k_linear + 1.0) ** 2
@@ -149,11 +162,8 @@ class Radio:
         self.rng = np.random.default_rng(model.seed if seed is None else seed)
         sigma = model.shadowing_sigma_db
         self.shadow_db = self.rng.normal(0.0, sigma, pairs) if sigma > 0 else np.zeros(pairs)
-        self.scatter = self._complex_normal(pairs)
+        self.scatter = complex_normal(self.rng, pairs)
         self.snr_estimate_db: np.ndarray | None = None
-
-    def _complex_normal(self, n: int) -> np.ndarray:
-        return (self.rng.normal(size=n) + 1j * self.rng.normal(size=n)) / math.sqrt(2.0)
 
     def step(self, dt_s: float, distance_m, height_a_m=None, height_b_m=None, moved_m=None,
              speed_mps=None) -> Sample:
@@ -171,10 +181,8 @@ class Radio:
             if dt_s > 0:
                 doppler_hz = np.maximum(speed, m.hover_speed_mps) * m.freq_mhz * 1e6 / C_MPS
                 rho = np.clip(bessel_j0(2.0 * math.pi * doppler_hz * dt_s), 0.0, 1.0)
-                self.scatter = rho * self.scatter + np.sqrt(1 - rho ** 2) * self._complex_normal(self.pairs)
-            k = 10.0 ** (m.rician_k_db / 10.0)
-            power = np.abs(math.sqrt(k / (k + 1)) + math.sqrt(1 / (k + 1)) * self.scatter) ** 2
-            fade_db = 10.0 * np.log10(np.maximum(power, 1e-12))
+                self.scatter = rho * self.scatter + np.sqrt(1 - rho ** 2) * complex_normal(self.rng, self.pairs)
+            fade_db = rician_fade_db(m.rician_k_db, self.scatter)
         snr_db = m.median_snr_db(distance_m, height_a_m, height_b_m) + self.shadow_db + fade_db
         if self.snr_estimate_db is None or m.rate_adaptation_s <= 0:
             self.snr_estimate_db = snr_db.copy()
