@@ -25,7 +25,7 @@ from sitl.mavlink.codec import new_parser, parse_datagram
 from sitl.mavlink.telemetry import Streams, TelemetrySource
 from sitl.mavlink.vehicle_protocol import VehicleProtocol
 from sitl.network.netns import socket_in_netns
-from sitl.vehicle.world import COMPANION, GEAR_HEIGHT_M, GROUND, World
+from sitl.vehicle.world import COMPANION, GROUND, World
 
 log = logging.getLogger(__name__)
 
@@ -301,7 +301,7 @@ class Sitl:
     def _update_ground_loss(self) -> None:
         pos = self.world.state.pos_m
         horizontal = np.linalg.norm(pos[:, :2] - self._station_enu[:, :2], axis=1)
-        height = np.maximum(pos[:, 2], GEAR_HEIGHT_M)
+        height = self.world.heights_m()
         radio = self.telemetry_radio
         distance = np.hypot(horizontal, height - radio.ground_antenna_m)
         self.ground_loss = radio.frame_loss(distance, height)
