@@ -20,7 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from nac_onboard.compute.options import core_binding
+from nac_onboard.compute.launch import core_binding
 
 import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from dataclasses import dataclass, field
 
@@ -163,13 +162,3 @@ def build_source(options: ComputeOptions, wait_s: float = 30.0):
         wait_for_feed(source, wait_s)
         return source
     return None
-
-
-def core_binding(ranks: int, cores: int | None = None) -> str:
-    """The `mpiexec -bind-to` value for ranks on one machine: one core per rank when there are enough; otherwise
-    the master alone on core 0 and the workers shared over the others. A master sharing its core with a worker
-    costs twice its own time per iteration, since the waiting rank polls MPI on that core while the other works."""
-    cores = cores or len(os.sched_getaffinity(0))
-    if cores < 2 or ranks <= cores:
-        return "core"
-    return "user:" + ",".join(["0"] + [str(1 + k % (cores - 1)) for k in range(ranks - 1)])

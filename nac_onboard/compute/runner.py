@@ -8,17 +8,22 @@ master sleeps I/C before each send and tells the worker the link's capacity C, s
 answer too; C comes from the channel model at the two vehicles' distance, and below the model's minimum rate
 the worker is out of range: nothing is sent. A worker that misses an iteration is absent for it (linreg carries
 on with the gradients that arrived, weighted by shard size; matmul re-assigns the missing rows to live workers or
-marks the iteration incomplete, --on-missing) and takes part again as soon as it answers. A rank that dies or
-raises aborts the whole job (exit code != 0): the master's records, one line each, are all on disk by then.
+marks the iteration incomplete, --on-missing) and takes part again as soon as it answers. A worker that misses
+UNRESPONSIVE_AFTER iterations in a row (out of range, stopped, or dead) is no longer waited for and is pinged
+until it answers; a worker process that dies leaves the others training (MPI errors are returned, not fatal, and
+sends give up at their deadline; launch.py starts the job so that hydra does not kill the rest). A master that
+raises aborts the job (exit code != 0): its records, one line each, and its last checkpoint are on disk by then.
 
 Records (JSON Lines, --out DIR/compute.jsonl): run_started, one `iteration` record per iteration, run_summary.
 """
 
 from __future__ import annotations
 
+import ctypes
 import json
 import math
 import os
+import signal
 import sys
 import time
 from dataclasses import dataclass, field
@@ -54,6 +59,7 @@ from nac_onboard.link.emulation import SleepEmulation
 IDLE_FIRST_S, IDLE_MAX_S = 0.05, 1.0  # back-off while no worker is in range
 UNRESPONSIVE_AFTER = 3  # iterations missed in a row before a worker is no longer waited for
 PING_S = 1.0  # how often an unresponsive worker is asked whether it is back
+PR_SET_PDEATHSIG = 1  # prctl(2)
 
 
 class _Poller:
@@ -81,6 +87,17 @@ class Inbox:
         self.buffers = [np.empty(floats + pad) for _ in self.sources]
         self.requests = [self._post(k) for k in range(len(self.sources))]
         self.status = mpi.Status()
+        self.failed: dict[int, str] = {}  # source -> the MPI error its receive ended with
+
+    def _drop_failed(self) -> None:
+        """After MPI reported an error on a posted receive (errors are returned, not fatal): find the peers whose
+        receives failed and stop receiving from them."""
+        for k, request in enumerate(self.requests):
+            try:
+                request.Test()
+            except self.mpi.Exception as err:
+                self.failed[self.sources[k]] = str(err)
+                self.requests[k] = self.mpi.REQUEST_NULL
 
     def _post(self, k: int):
         return self.comm.Irecv([self.buffers[k], self.mpi.DOUBLE], source=self.sources[k], tag=self.tag)
@@ -91,7 +108,12 @@ class Inbox:
         testany, undefined, status = self.mpi.Request.Testany, self.mpi.UNDEFINED, self.status
         poller = None  # made on the first miss: a message already there costs no clock reads
         while True:
-            index, done = testany(requests, status)
+            try:
+                index, done = testany(requests, status)
+            except self.mpi.Exception:
+                self._drop_failed()
+                requests = self.requests if source is None else [self.requests[self.sources.index(source)]]
+                continue
             if done and index != undefined:
                 k = index if source is None else self.sources.index(source)
                 message = self.buffers[k][:status.Get_count(self.mpi.DOUBLE) - self.pad].copy()
@@ -107,13 +129,15 @@ class Inbox:
         """Cancel the posted receives; wait for the cancellations unless told not to (a rank that does not answer
         can make that wait forever)."""
         for request in self.requests:
-            request.Cancel()
+            if request != self.mpi.REQUEST_NULL:
+                request.Cancel()
         if wait:
             self.mpi.Request.Waitall(self.requests)
 
 
 # ---- workers ---------------------------------------------------------------------------------------------------
-def run_worker(comm, mpi, options: ComputeOptions) -> None:
+def run_worker(comm, mpi, options: ComputeOptions) -> bool:
+    """Answers the master until its STOP; returns whether MPI_Finalize may run (no rank was lost)."""
     rank = comm.Get_rank()
     bounds = comm.bcast(None, root=0)
     task = options.task_class(options)
@@ -131,7 +155,7 @@ def run_worker(comm, mpi, options: ComputeOptions) -> None:
         kind, iteration, rate_bps, extra_rows, loss = message[:WORK_HEADER].tolist()  # Python floats: cheaper to test
         if kind == KIND_STOP:
             inbox.close()
-            return
+            return extra_rows == 0
         if kind == KIND_WARMUP:
             comm.Send([warmup_answer, mpi.DOUBLE], dest=0, tag=TAG_RESULT)
             continue
@@ -176,6 +200,9 @@ class Master:
         self._missed: dict[int, int] = {}
         self._next_ping_s: dict[int, float] = {}
         self._pings: dict[int, tuple] = {}  # rank -> (request, buffer) of the ping in flight
+        self._stuck: list[tuple] = []  # (rank, request, buffer) of sends that missed their deadline
+        self.lost: dict[int, str] = {}  # rank -> the MPI error that ended communication with it
+        self._stalled_s = 0.0  # wall seconds this iteration spent on sends that missed their deadline
         self._next_checkpoint_s = 0.0
         self.end_at_s = options.end_at_s
 
@@ -207,8 +234,9 @@ class Master:
         return kernels.split_rows(rows, shares)
 
     def send(self, rank: int, kind: float, iteration: int, payload: np.ndarray, links: IterationLinks,
-             extra_rows: int = 0, message: np.ndarray | None = None) -> None:
-        """Send one input; `message` is a reusable buffer whose payload part is already filled."""
+             extra_rows: int = 0, message: np.ndarray | None = None) -> np.ndarray:
+        """Send one input; `message` is a reusable buffer whose payload part is already filled. Returns the buffer
+        the next send may fill (a copy, if a send that missed its deadline still holds this one)."""
         k = rank - 1
         rate, loss = links.rate_bps[k] or 0.0, links.loss[k] or 0.0
         # the research's emulation: the transfer takes I/C before it happens
@@ -217,9 +245,57 @@ class Master:
             message = message_buffer((), WORK_HEADER + payload.size, self.pad)
             message[WORK_HEADER:WORK_HEADER + payload.size] = payload
         message[:WORK_HEADER] = work_header(kind, iteration, rate, extra_rows, loss)
-        self.comm.Send([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
+        sent = self._send_within(rank, message, time.monotonic() + self.clock.wall_s(self.options.timeout_s))
         links.bytes_down[k] += message.nbytes
         links.down_s[k] += down_s
+        return message if sent else message.copy()
+
+    def _send_within(self, rank: int, message: np.ndarray, deadline: float) -> bool:
+        """A send that gives up at the deadline: a large input waits for its receiver, which a dead or stopped
+        worker never is. The request is kept (with its buffer) until MPI completes or fails it."""
+        t0 = time.monotonic()
+        request = self._isend(rank, message)
+        poller = None
+        while request is not None and not self._test(rank, request):
+            if poller is None:
+                poller = _Poller()
+            elif time.monotonic() >= deadline:
+                self._stuck.append((rank, request, message))
+                self._stalled_s += time.monotonic() - t0
+                return False
+            poller.pause()
+        return True
+
+    def _isend(self, rank: int, message: np.ndarray):
+        """The request of a posted send, or None if MPI failed it at once (the rank is then lost)."""
+        try:
+            return self.comm.Isend([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
+        except self.mpi.Exception as err:
+            self._lose(rank, str(err))
+            return None
+
+    def _test(self, rank: int, request) -> bool:
+        """Whether a request is over; an MPI error on it (errors are returned, not fatal) loses the rank."""
+        try:
+            return request.Test()
+        except self.mpi.Exception as err:
+            self._lose(rank, str(err))
+            return True
+
+    def _lose(self, rank: int, error: str) -> None:
+        if rank not in self.lost:
+            self.lost[rank] = error
+            self.log.write("worker_lost", rank=rank, vehicle=self.options.vehicle_of(rank), error=error)
+        if rank not in self.unresponsive:
+            self.unresponsive.add(rank)
+            self._next_ping_s[rank] = float("inf")  # MPI said it is gone: nothing to ping
+
+    def _reap(self) -> None:
+        """Forget the sends that missed their deadline and have since completed or failed; note failed receives."""
+        self._stuck = [item for item in self._stuck if not self._test(item[0], item[1])]
+        for rank, error in self.inbox.failed.items():
+            self._lose(rank, error)
+        self.inbox.failed.clear()
 
     def _note_answers(self, iteration: int, waited: set[int], answered: set[int]) -> None:
         """A worker that misses UNRESPONSIVE_AFTER iterations in a row (a dead or stopped process, which MPI may
@@ -239,10 +315,12 @@ class Master:
         now = time.monotonic()
         for rank in sorted(self.unresponsive):
             pending = self._pings.get(rank)
-            if now < self._next_ping_s.get(rank, 0.0) or (pending is not None and not pending[0].Test()):
+            if now < self._next_ping_s.get(rank, 0.0) or (pending is not None and not self._test(rank, pending[0])):
                 continue
             message = message_buffer(work_header(KIND_WARMUP), 0, self.pad)
-            self._pings[rank] = (self.comm.Isend([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK), message)
+            request = self._isend(rank, message)
+            if request is not None:
+                self._pings[rank] = (request, message)
             self._next_ping_s[rank] = now + self.clock.wall_s(PING_S)
 
     def _back(self, rank: int) -> None:
@@ -254,15 +332,16 @@ class Master:
         message = message_buffer((), WORK_HEADER + payload.size, self.pad)
         message[WORK_HEADER:WORK_HEADER + payload.size] = payload
         for rank in ranks:
-            self.send(rank, KIND_WORK, iteration, payload, links, message=message)
+            message = self.send(rank, KIND_WORK, iteration, payload, links, message=message)
 
     def send_extra(self, rank: int, iteration: int, payload: np.ndarray, extra_rows: int,
                    links: IterationLinks) -> None:
         self.send(rank, KIND_EXTRA, iteration, payload, links, extra_rows=extra_rows)
 
     def deadline(self, t_start: float, timeouts: int = 1) -> float:
-        """The monotonic time at which `timeouts` x --timeout-s (simulated seconds) have passed since t_start."""
-        return t_start + self.clock.wall_s(timeouts * self.options.timeout_s)
+        """The monotonic time at which `timeouts` x --timeout-s (simulated seconds) have passed since t_start, not
+        counting the time spent on sends that missed their deadline: that is not the other workers' lateness."""
+        return t_start + self.clock.wall_s(timeouts * self.options.timeout_s) + self._stalled_s
 
     def receive_from(self, rank: int, deadline: float) -> np.ndarray | None:
         return self.inbox.receive(deadline, source=rank)[1]
@@ -318,6 +397,9 @@ class Master:
             t_start, start_unix, start_sim = time.monotonic(), time.time(), self.clock.now_s()
             links = self.link(self.source.distances_m(iteration, start_sim - t_run_sim) if self.source else {})
             present = [r for r in self.workers if links.present(r)]
+            self._stalled_s = 0.0
+            if self._stuck or self.inbox.failed:
+                self._reap()
             if self.unresponsive:
                 self._ping_unresponsive()
             if present:
@@ -334,13 +416,7 @@ class Master:
                 self._next_checkpoint_s = time.monotonic() + o.checkpoint_s
         self.write_pending()
         self.checkpoint(iteration)
-        stop = message_buffer(work_header(KIND_STOP, iteration), 0, self.pad)
-        for rank in self.workers:
-            if rank in self.unresponsive:  # it may never take it: do not wait for that
-                self._pings[rank] = (self.comm.Isend([stop, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK), stop)
-            else:
-                self.comm.Send([stop, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
-        self.inbox.close(wait=not self.unresponsive)
+        self.stop_workers(iteration)
         t = self.tally
         d = np.array(t.durations) if t.durations else np.array([np.nan])
         self.log.write("run_summary", task=task.name, iterations=iteration, complete_iterations=t.complete,
@@ -349,8 +425,30 @@ class Master:
                        p95_duration_s=float(np.percentile(d, 95)),
                        absent_iterations={str(r): n for r, n in t.absences.items()},
                        stale_results=self.stale_results, lost_workers=sorted(self.unresponsive),
-                       **task.final())
+                       failed_workers=sorted(self.lost), **task.final())
         return 0
+
+    @property
+    def finalizes(self) -> bool:
+        """Whether MPI_Finalize can end the job: not with a rank that does not answer (it would wait for it)."""
+        return not (self.unresponsive or self.lost or self._stuck)
+
+    def stop_workers(self, iteration: int) -> None:
+        """STOP to every worker, saying whether MPI_Finalize will run; each send gives up at its deadline."""
+        self._reap()
+        finalizes = self.finalizes
+        stop = message_buffer(work_header(KIND_STOP, iteration, extra_rows=0 if finalizes else 1), 0, self.pad)
+        deadline = time.monotonic() + self.clock.wall_s(self.options.timeout_s)
+        for rank in self.workers:
+            if rank in self.lost:
+                continue
+            if rank in self.unresponsive:  # it may never take it: do not wait for that
+                request = self._isend(rank, stop)
+                if request is not None:
+                    self._pings[rank] = (request, stop)
+            elif not self._send_within(rank, stop, deadline):
+                stop = stop.copy()
+        self.inbox.close(wait=self.finalizes)
 
     def wait_for_start(self) -> None:
         """--start-file: the job is set up (ranks, connections, data) before the go, so its start-up time does not
@@ -400,11 +498,12 @@ class Master:
         t0 = time.monotonic()
         message = message_buffer(work_header(KIND_WARMUP), floats, self.pad)
         message[WORK_HEADER:] = 0.0
+        deadline = t0 + self.options.timeout_s  # wall seconds: connections cost the machine's time, not the link's
         for rank in self.workers:
-            self.comm.Send([message, self.mpi.DOUBLE], dest=rank, tag=TAG_WORK)
+            if not self._send_within(rank, message, deadline):
+                raise TimeoutError(f"worker {rank} did not take the warm-up within {self.options.timeout_s:g} s")
         for rank in self.workers:
-            # wall seconds, not simulated: setting up connections costs the machine's time, not the link's
-            if self.inbox.receive(t0 + self.options.timeout_s, source=rank)[0] is None:
+            if self.inbox.receive(deadline, source=rank)[0] is None:
                 raise TimeoutError(f"worker {rank} did not answer the warm-up within {self.options.timeout_s:g} s")
         return time.monotonic() - t0
 
@@ -422,11 +521,32 @@ def read_start_file(path: str) -> float | None:
     return value
 
 
+def end_without_finalize(code: int) -> None:
+    """MPI_Finalize waits for every rank, a lost one too: with everything on disk, the rank ends here."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
+def die_with_parent() -> None:
+    """Ranks run in sessions of their own (hydra's doing): if their proxy is killed, they go with it instead of
+    computing on as orphans."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    except (OSError, AttributeError):  # not Linux: the launcher's own clean-up has to do
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
     options = parse_args(argv)  # bad input: exit 2 on every rank, before MPI starts any work
     from mpi4py import MPI
 
     comm = MPI.COMM_WORLD
+    comm.Set_errhandler(MPI.ERRORS_RETURN)  # a dead peer is an exception to handle, not the end of this rank
+    # hydra's notice that a rank died: the job finds lost ranks by their silence and needs no handler for it
+    signal.signal(signal.SIGUSR1, signal.SIG_IGN)
+    die_with_parent()
     if comm.Get_size() < 2:
         sys.stderr.write("nac-onboard compute: needs at least 2 ranks (mpiexec -n N+1 ...): a master and a worker\n")
         return 2
@@ -436,16 +556,15 @@ def main(argv: list[str] | None = None) -> int:
             with JsonlLog(os.path.join(options.out, "compute.jsonl")) as log:
                 master = Master(comm, MPI, options, log)
                 code = master.run()
-            if master.unresponsive:  # MPI_Finalize would wait on a rank that does not answer:
-                # everything is on disk, so the master ends here
-                sys.stdout.flush()
-                sys.stderr.flush()
-                os._exit(code)
+            if not master.finalizes:
+                end_without_finalize(code)
             return code
         with JsonlLog(os.path.join(options.out, f"rank-{comm.Get_rank()}.jsonl")) as log:
             log.write("worker_started", rank=comm.Get_rank(), pid=os.getpid(), host=MPI.Get_processor_name())
-            run_worker(comm, MPI, options)
-            log.write("worker_stopped", rank=comm.Get_rank())
+            finalizes = run_worker(comm, MPI, options)
+            log.write("worker_stopped", rank=comm.Get_rank(), finalizes=finalizes)
+        if not finalizes:
+            end_without_finalize(0)
         return 0
     except Exception as err:  # one failing rank must end the job, not leave the others waiting
         code = err.exit_code if isinstance(err, NacError) else 1

@@ -4,13 +4,12 @@ Pure apart from writing the MPI launcher and hostfile into the run's config fold
 
 from __future__ import annotations
 
-import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 from nac_onboard import clock
-from nac_onboard.compute.options import core_binding
+from nac_onboard.compute import launch
 from nac_onboard.link.channel import load_channel
 from nac_onboard.tomlfile import dumps_toml
 from sitl.experiment.scenario import Scenario
@@ -93,40 +92,24 @@ def compute_args(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: 
             "--allocation", c.allocation, *c.args]
 
 
-def mpiexec_path() -> str:
-    mpiexec = Path(sys.executable).parent / "mpiexec"
-    return str(mpiexec if mpiexec.exists() else "mpiexec")
-
-
 def mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: float) -> list[str]:
-    ranks = 1 + len(scenario.workers)
-    return [mpiexec_path(), "-n", str(ranks), "-bind-to", core_binding(ranks),
-            sys.executable, "-m", "mpi4py", "-m", "nac_onboard.compute",
-            *compute_args(scenario, run_dir, ports, end_at_sim_s)]
+    """mpiexec on this machine, one proxy per vehicle (named after it) as on the fleet: a killed rank ends
+    only itself (nac_onboard.compute.launch)."""
+    hosts = [scenario.master.id, *(w.id for w in scenario.workers)]
+    return [*launch.mpiexec_command(hosts, run_dir / "config"), sys.executable, "-m", "mpi4py", "-m",
+            "nac_onboard.compute", *compute_args(scenario, run_dir, ports, end_at_sim_s)]
 
 
 def kernel_mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: float, air: AirNetwork,
                        clock_path: Path) -> list[str]:
-    """mpiexec as on the fleet: started on the master's companion, one rank per vehicle's namespace through a
-    launcher called like ssh, over TCP only (shared memory would bypass the shaped links)."""
+    """mpiexec as on the fleet: started on the master's companion, one rank per vehicle's namespace, over TCP
+    only (shared memory would bypass the shaped links)."""
     ids = [v.id for v in scenario.vehicles]
     order = [ids.index(scenario.master.id), *(ids.index(w.id) for w in scenario.workers)]
-    hosts = [air.stations[k].netns for k in order]
-    binding = core_binding(len(order)).removeprefix("user:")
-    if len(os.sched_getaffinity(0)) < 2:
-        cpus = {}
-    elif binding == "core":
-        cpus = {h: k for k, h in enumerate(hosts)}
-    else:
-        cpus = {h: int(c) for h, c in zip(hosts, binding.split(","), strict=True)}
-    launcher = air.write_launcher(run_dir / "config" / "netns-launcher", cpus)
-    hostfile = run_dir / "config" / "hostfile"  # the fleet's hosts, one rank each: what a lab writes for its Jetsons
-    hostfile.write_text("".join(f"{host}:1\n" for host in hosts))
-    return [*air.exec_prefix(order[0]), mpiexec_path(), "-bootstrap-exec", str(launcher),
-            "-f", str(hostfile), "-localhost", air.stations[order[0]].address, "-n", str(len(order)),
-            "-ppn", "1", "-genv", "UCX_TLS", "tcp,self", "-genv", "UCX_NET_DEVICES", "air0",
-            "-genv", "MPIR_CVAR_NOLOCAL", "1",
-            "-genv", clock.ENV, str(clock_path), sys.executable, "-m", "mpi4py", "-m", "nac_onboard.compute",
+    env = {"UCX_TLS": "tcp,self", "UCX_NET_DEVICES": "air0", "MPIR_CVAR_NOLOCAL": "1", clock.ENV: str(clock_path)}
+    mpiexec = launch.mpiexec_command([air.stations[k].netns for k in order], run_dir / "config",
+                                     air.stations[order[0]].address, netns=True, env=env)
+    return [*air.exec_prefix(order[0]), *mpiexec, sys.executable, "-m", "mpi4py", "-m", "nac_onboard.compute",
             *compute_args(scenario, run_dir, ports, end_at_sim_s, kernel=True)]
 
 

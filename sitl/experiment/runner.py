@@ -122,6 +122,7 @@ class Experiment:
         self.clients: list[VehicleClient] = []
         self.mpi: subprocess.Popen | None = None
         self.mpi_log = None
+        self.master_pid: int | None = None  # the MPI master rank's process, once the job is set up
         self.progress = [VehicleProgress(v.id) for v in scenario.vehicles]
         self.pilots: list[threading.Thread] = []
         self.mission_start_sim_s: float | None = None
@@ -340,7 +341,7 @@ class Experiment:
         which at a speed-up would otherwise be flight without computing, more of it the faster the run."""
         deadline = time.monotonic() + timeout_s
         path = self.run_dir / "compute" / "compute.jsonl"
-        while not (path.exists() and read_jsonl(path).of_kind("run_started")):
+        while not (path.exists() and (started := read_jsonl(path).of_kind("run_started"))):
             self._check_children()
             if self.mpi.poll() is not None:
                 raise ExperimentError(Outcome.COMPUTE_FAILED, f"mpiexec exited {self.mpi.returncode} while setting "
@@ -349,6 +350,7 @@ class Experiment:
                 raise ExperimentError(Outcome.COMPUTE_FAILED, f"the MPI job was not set up within {timeout_s:g} s")
             if self.stop_event.wait(0.02):
                 raise KeyboardInterrupt
+        self.master_pid = started[0].get("pid")
 
     def _start_mpi(self) -> None:
         end_at_sim_s = self.sim.t_s + TAKEOFF_TIMEOUT_S + self.scenario.duration_s  # the go gives the real end
@@ -401,6 +403,10 @@ class Experiment:
         if self.mpi is not None and self.mpi.poll() not in (None, 0) and not self._compute_summary():
             raise ExperimentError(Outcome.COMPUTE_FAILED, f"mpiexec exited {self.mpi.returncode} (see "
                                                           f"{self.run_dir / 'compute' / 'mpiexec.log'})")
+        # mpiexec waits on for the other ranks when the master alone dies
+        if self.master_pid and not _alive(self.master_pid) and not self._compute_summary():
+            raise ExperimentError(Outcome.COMPUTE_FAILED, f"the MPI master (pid {self.master_pid}) ended without its "
+                                                          f"summary (see {self.run_dir / 'compute' / 'mpiexec.log'})")
 
     def _compute_summary(self) -> dict | None:
         """The master's run_summary: a job that wrote it finished, even when mpiexec reports a worker it lost."""
@@ -493,6 +499,16 @@ class Experiment:
             print(f"analysis: {err}", file=self.out)
             return None, {}
         return self.run_dir / "report.md", tables.summary
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def default_run_dir(scenario: Scenario) -> Path:

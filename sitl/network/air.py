@@ -155,18 +155,6 @@ class AirNetwork:
         """The command prefix that runs a program on station `index`."""
         return ["ip", "netns", "exec", self.stations[index].netns]
 
-    def write_launcher(self, path: Path, cpus: dict[str, int] | None = None) -> Path:
-        """The program hydra's mpiexec calls like ssh (`LAUNCHER [-x] HOST COMMAND...`) to start its proxy on a
-        station: it enters that station's namespace, pinned to a core when `cpus` gives one per namespace."""
-        cases = "".join(f"  {name}) cpu={cpu} ;;\n" for name, cpu in (cpus or {}).items())
-        path.write_text("#!/bin/sh\n# written by nac-sitl experiment: hydra's bootstrap into a companion's namespace\n"
-                        "[ \"$1\" = \"-x\" ] && shift\nhost=$1; shift\ncpu=\ncase \"$host\" in\n" + cases +
-                        "esac\nif [ -n \"$cpu\" ] && command -v taskset >/dev/null; then\n"
-                        "  exec ip netns exec \"$host\" taskset -c \"$cpu\" sh -c \"$*\"\nfi\n"
-                        "exec ip netns exec \"$host\" sh -c \"$*\"\n")
-        path.chmod(0o755)
-        return path
-
     def close(self) -> None:
         for stream in (self.air_tc, self.ap_tc, self.nft):
             if stream is not None:

@@ -157,7 +157,7 @@ def test_calibrate_recovers_the_channel_the_run_was_made_with(short_run, tmp_pat
     assert preset.with_suffix(".png").read_bytes().startswith(PNG_MAGIC)
 
 
-def test_scheduled_faults_happen_and_a_dead_worker_fails_the_run_with_its_records_and_checkpoint(tmp_path):
+def test_scheduled_faults_happen_and_the_job_trains_on_without_a_killed_worker(tmp_path):
     faults = """
 [[fault]]
 at_s = 3.0
@@ -165,7 +165,7 @@ vehicle = "w2"
 kind = "link_down"
 duration_s = 18.0  # 4.5 s wall-clock at 4x: longer than the agent's 3 s link timeout
 [[fault]]
-at_s = 25.0
+at_s = 12.0
 vehicle = "w1"
 kind = "kill_worker"
 """
@@ -174,18 +174,21 @@ kind = "kill_worker"
     os.environ.setdefault("NAC_DATA_DIR", str(SHARED_DATA))
     experiment = Experiment(scenario, tmp_path / "run", 4.0, allocate_base_port(3, slots=5), out=console)
     result = experiment.run()
-    assert result.outcome is Outcome.COMPUTE_FAILED and result.outcome.exit_code == 1, console.getvalue()
-    assert "mpiexec exited" in result.detail
+    assert result.outcome is Outcome.COMPLETED, console.getvalue()
     text = console.getvalue()
     assert "fault: link_down on for w2" in text and "fault: link_down off for w2" in text
     assert "fault: kill_worker on for w1" in text
     w2 = read_jsonl(result.run_dir / "w2" / "agent.jsonl")
     assert w2.of_kind("link_lost") and w2.of_kind("link_restored"), "the agent saw its autopilot link go and return"
     compute = read_jsonl(result.run_dir / "compute" / "compute.jsonl")
-    assert compute.problems == [] and len(compute.of_kind("iteration")) > 5, "the master's records are intact"
-    assert (result.run_dir / "compute" / "results.npz").exists(), "the last checkpoint of the weights"
-    report = (result.run_dir / "report.md").read_text()
-    assert "ended: compute_failed" in report
+    summary = compute.of_kind("run_summary")[0]
+    assert summary["ended_by"] == "end_at" and summary["lost_workers"] == [1], "w1 lost, the job ran to the end"
+    killed_at = experiment.mission_start_sim_s + next(r["t_sim_s"] for r in experiment.fault_log
+                                                      if r["kind"] == "kill_worker")
+    after = [r for r in compute.of_kind("iteration") if r["start_sim_s"] > killed_at + 5.0]
+    assert after and all(r["workers"]["present"][1] for r in after), "w2 kept training"
+    assert (result.run_dir / "compute" / "results.npz").exists()
+    assert "ended: completed" in (result.run_dir / "report.md").read_text()
     assert not any(agent.alive() for agent in experiment.agents) and not experiment.sim.alive
 
 

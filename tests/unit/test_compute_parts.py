@@ -3,14 +3,16 @@
 import hashlib
 import io
 import math
+import os
 import zipfile
 
 import numpy as np
 import pytest
 
 from nac_onboard.compute import forestfires, kernels
-from nac_onboard.compute.options import core_binding
+from nac_onboard.compute.launch import core_binding, cpu_per_host, mpiexec_command
 from nac_onboard.compute.positions import ScriptedDistances
+from nac_onboard.errors import BadInput
 from nac_onboard.link.channel import PRESETS, ChannelError, ChannelModel, load_channel, save_channel
 from tests.conftest import SHARED_DATA
 
@@ -157,3 +159,27 @@ def test_core_binding_gives_the_master_its_own_core_when_ranks_share_cores():
     assert core_binding(3, cores=2) == "user:0,1,1"
     assert core_binding(5, cores=3) == "user:0,1,2,1,2"
     assert core_binding(4, cores=1) == "core"
+
+
+def test_each_host_gets_the_core_its_rank_would_be_bound_to():
+    assert cpu_per_host(["m", "w1", "w2"], cores=2) == {"m": 0, "w1": 1, "w2": 1}
+    assert cpu_per_host(["m", "w1"], cores=4) == {"m": 0, "w1": 1}
+    assert cpu_per_host(["m", "w1"], cores=1) == {}
+
+
+def test_the_job_gets_a_proxy_per_host_and_no_clean_up_that_kills_the_survivors(tmp_path):
+    command = mpiexec_command(["m", "w1", "w2"], tmp_path, env={"A": "1"})
+    assert "-disable-auto-cleanup" in command and command[command.index("-ppn") + 1] == "1"
+    assert command[command.index("-n") + 1] == "3" and command[-3:] == ["-genv", "A", "1"]
+    assert (tmp_path / "hostfile").read_text() == "m:1\nw1:1\nw2:1\n"
+    launcher = (tmp_path / "launcher").read_text()
+    assert "ip netns" not in launcher and os.access(tmp_path / "launcher", os.X_OK)
+    mpiexec_command(["a", "b"], tmp_path, netns=True)
+    assert "ip netns exec" in (tmp_path / "netns-launcher").read_text()
+
+
+@pytest.mark.parametrize("hosts", [["m", "m"], ["m", "w 1"], ["m", "w1;reboot"], ["-x", "w1"]])
+def test_host_names_that_would_break_the_launcher_are_refused(tmp_path, hosts):
+    with pytest.raises(BadInput, match="MPI host"):
+        mpiexec_command(hosts, tmp_path)
+
