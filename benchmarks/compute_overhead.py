@@ -1,8 +1,9 @@
 """Iterations per second of `nac-onboard compute --task linreg --emulate none` with 2 and 4 workers on this
 machine, against a bare mpi4py loop that sends the same messages (the same header + weights down, the same
 header + gradient up, blocking Send/Recv, no records, no timeouts), in the same run, alternating.
-Targets: ratio >= 0.8, and >= 1000 iterations/s with 2 workers. Ranks pinned as `core_binding` says (with more
-ranks than cores: the master alone on core 0), the same for both programs; `--bind` overrides.
+Targets: ratio >= 0.8, and >= 1000 iterations/s with 2 workers. Both programs are launched as the experiment
+runner launches jobs (`nac_onboard.compute.launch`: a hydra proxy per rank, each rank pinned as `core_binding`
+says: with more ranks than cores, the master alone on core 0).
 
     python benchmarks/compute_overhead.py [--iterations 3000] [--repeats 11] [--workers 2 4] [--smoke]
     (with --bare-loop, this file is the bare loop itself, run by mpiexec)
@@ -20,14 +21,12 @@ import tempfile
 import time
 from pathlib import Path
 
-from nac_onboard.compute.launch import core_binding
+from nac_onboard.compute import launch
 
 import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = {"iterations": 200, "repeats": 1, "workers": [2]}  # --smoke: one pair with 2 workers
-MPIEXEC = Path(sys.executable).parent / "mpiexec"
-BIND = ""  # --bind: an mpiexec -bind-to value for both programs (default: nac_onboard's core_binding)
 
 
 def bare_loop(iterations: int) -> None:
@@ -71,9 +70,10 @@ def bare_loop(iterations: int) -> None:
 
 
 def run(ranks: int, args: list[str], env: dict) -> subprocess.CompletedProcess:
-    command = [str(MPIEXEC), "-n", str(ranks), "-bind-to", BIND or core_binding(ranks), sys.executable, "-m", "mpi4py",
-               *args]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=600, env=env, cwd=ROOT)
+    with tempfile.TemporaryDirectory() as config:
+        hosts = ["m", *(f"w{k}" for k in range(1, ranks))]
+        command = [*launch.mpiexec_command(hosts, Path(config)), sys.executable, "-m", "mpi4py", *args]
+        result = subprocess.run(command, capture_output=True, text=True, timeout=600, env=env, cwd=ROOT)
     if result.returncode != 0:
         raise SystemExit(f"{' '.join(command)} failed: {result.stderr}")
     return result
@@ -95,11 +95,8 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=3000)
     parser.add_argument("--repeats", type=int, default=11)
     parser.add_argument("--workers", type=int, nargs="+", default=[2, 4])
-    parser.add_argument("--bind", default="", help="mpiexec -bind-to value (default: core_binding(ranks))")
     parser.add_argument("--bare-loop", action="store_true")
     args = _common.parse_args(parser, SMOKE)
-    global BIND
-    BIND = args.bind
     if args.bare_loop:
         bare_loop(args.iterations)
         return

@@ -245,21 +245,21 @@ class Master:
             message = message_buffer((), WORK_HEADER + payload.size, self.pad)
             message[WORK_HEADER:WORK_HEADER + payload.size] = payload
         message[:WORK_HEADER] = work_header(kind, iteration, rate, extra_rows, loss)
-        sent = self._send_within(rank, message, time.monotonic() + self.clock.wall_s(self.options.timeout_s))
+        sent = self._send_within(rank, message, self.clock.wall_s(self.options.timeout_s))
         links.bytes_down[k] += message.nbytes
         links.down_s[k] += down_s
         return message if sent else message.copy()
 
-    def _send_within(self, rank: int, message: np.ndarray, deadline: float) -> bool:
-        """A send that gives up at the deadline: a large input waits for its receiver, which a dead or stopped
-        worker never is. The request is kept (with its buffer) until MPI completes or fails it."""
-        t0 = time.monotonic()
+    def _send_within(self, rank: int, message: np.ndarray, timeout_s: float) -> bool:
+        """A send that gives up after timeout_s (wall): a large input waits for its receiver, which a dead or
+        stopped worker never is. A request left behind is kept (with its buffer) until MPI completes or fails it."""
         request = self._isend(rank, message)
-        poller = None
-        while request is not None and not self._test(rank, request):
-            if poller is None:
-                poller = _Poller()
-            elif time.monotonic() >= deadline:
+        if request is None or self._test(rank, request):  # the usual case: a small message goes at once
+            return True
+        t0 = time.monotonic()
+        poller = _Poller()
+        while not self._test(rank, request):
+            if time.monotonic() - t0 >= timeout_s:
                 self._stuck.append((rank, request, message))
                 self._stalled_s += time.monotonic() - t0
                 return False
@@ -438,7 +438,7 @@ class Master:
         self._reap()
         finalizes = self.finalizes
         stop = message_buffer(work_header(KIND_STOP, iteration, extra_rows=0 if finalizes else 1), 0, self.pad)
-        deadline = time.monotonic() + self.clock.wall_s(self.options.timeout_s)
+        timeout_s = self.clock.wall_s(self.options.timeout_s)
         for rank in self.workers:
             if rank in self.lost:
                 continue
@@ -446,7 +446,7 @@ class Master:
                 request = self._isend(rank, stop)
                 if request is not None:
                     self._pings[rank] = (request, stop)
-            elif not self._send_within(rank, stop, deadline):
+            elif not self._send_within(rank, stop, timeout_s):
                 stop = stop.copy()
         self.inbox.close(wait=self.finalizes)
 
@@ -500,7 +500,7 @@ class Master:
         message[WORK_HEADER:] = 0.0
         deadline = t0 + self.options.timeout_s  # wall seconds: connections cost the machine's time, not the link's
         for rank in self.workers:
-            if not self._send_within(rank, message, deadline):
+            if not self._send_within(rank, message, deadline - time.monotonic()):
                 raise TimeoutError(f"worker {rank} did not take the warm-up within {self.options.timeout_s:g} s")
         for rank in self.workers:
             if self.inbox.receive(deadline, source=rank)[0] is None:
