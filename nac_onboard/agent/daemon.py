@@ -29,6 +29,7 @@ from nac_onboard.agent.peers import (
     PeerMessageError,
     PeerState,
     PeerTable,
+    SenderMute,
     decode_peer_state,
     encode_peer_state,
 )
@@ -50,6 +51,7 @@ EXPIRE_CHECK_S = 0.1
 REJECT_LOG_PERIOD_S = 10.0
 SUPERVISE_S = 1.0
 MIN_WAKE_S = 0.002  # at most 500 turns of the loop a second: routed frames wait 2 ms at most for it
+FLOOD_WAKE_S, FLOOD_REFUSED = 0.01, 20  # a turn that refused this many datagrams: the next waits 10 ms (a flood)
 
 
 def run_directory(config: AgentConfig, run_id: str | None = None) -> Path:
@@ -115,6 +117,10 @@ class Agent:
             except LinkError as err:
                 self.log.write("routing_error", endpoint=uri, error=str(err))
         self.peer_sock = _udp_socket(c.peers.listen, "peers.listen", broadcast=True)
+        # one byte more than allowed, so a longer datagram shows as too big instead of cut short; one buffer, so a
+        # refused datagram costs no allocation
+        self._peer_buffer = memoryview(bytearray(MAX_DATAGRAM_BYTES + 1))
+        self.sender_mute = SenderMute()
         self.feed_sock = _udp_socket(c.state_feed.listen, "state_feed.listen")
         if c.state_feed.expose:
             self.log.write("warning", text=f"the state feed listens on {c.state_feed.listen}: whoever reaches it "
@@ -172,11 +178,11 @@ class Agent:
         supervise = _Timer(SUPERVISE_S)
         sync = _Timer(c.log.fsync_s) if c.log.fsync_s > 0 else None
         watchdog = _Timer(self.notifier.watchdog_period_s) if self.notifier.watchdog_period_s else None
-        woke_s = 0.0
+        woke_s, wake_s, refused = 0.0, MIN_WAKE_S, 0
         while not self.stop_event.is_set():
             now = time.monotonic()
-            if now - woke_s < MIN_WAKE_S:  # under a flood, take datagrams in batches: each wake costs its own work
-                time.sleep(woke_s + MIN_WAKE_S - now)
+            if now - woke_s < wake_s:  # under a flood, take datagrams in batches: each wake costs its own work
+                time.sleep(woke_s + wake_s - now)
                 now = time.monotonic()
             woke_s = now
             due = [t.due_s for t in (telemetry, publish, expire, sync, watchdog, supervise) if t is not None]
@@ -195,6 +201,8 @@ class Agent:
                 self._read_peers(now)
             if self.feed_sock in ready:
                 self._answer_feed(now)
+            refused, before = self.counters["bad_peer_msgs"] + self.counters["routing_refused"], refused
+            wake_s = FLOOD_WAKE_S if refused - before >= FLOOD_REFUSED else MIN_WAKE_S
             self.autopilot.check(now)
             if telemetry.fire(now):
                 self._log_telemetry()
@@ -328,32 +336,42 @@ class Agent:
 
     def _read_peers(self, now: float) -> None:
         key, allow_unsigned = self.config.fleet_key, self.config.peers.allow_unsigned
-        recvfrom = self.peer_sock.recvfrom
+        buffer, receive, magic = self._peer_buffer, self.peer_sock.recvfrom_into, len(SIGNED_MAGIC)
+        mute, muted, muted_host = self.sender_mute, 0, ""
         while True:
             try:
-                # one byte more than allowed, so a longer datagram shows as too big instead of cut short
-                data, (host, _) = recvfrom(MAX_DATAGRAM_BYTES + 1)
+                size, sender = receive(buffer)
             except (BlockingIOError, InterruptedError):
+                if muted:
+                    self._peer_rejected("muted", muted_host, now, muted)
                 return
-            if key is not None and not allow_unsigned and not data.startswith(SIGNED_MAGIC) \
-                    and len(data) <= MAX_DATAGRAM_BYTES:
-                self._peer_rejected("unsigned", host, now)  # the cheapest refusal first: a flood is mostly these
+            host = sender[0]
+            if mute.muted_until and mute.muted(sender, now):
+                muted, muted_host = muted + 1, host  # counted once per batch: the cheapest path of all
                 continue
-            try:
-                peer = decode_peer_state(data, host, key, allow_unsigned)
-                with self._state_lock:
-                    event = self.peers.update(peer, now, time.time())
-            except PeerMessageError as err:
-                self._peer_rejected(err.reason, host, now)
+            if key is not None and not allow_unsigned and buffer[:magic] != SIGNED_MAGIC \
+                    and size <= MAX_DATAGRAM_BYTES:
+                reason = "unsigned"  # the cheapest refusal first: a flood is mostly these
+            else:
+                try:
+                    peer = decode_peer_state(bytes(buffer[:size]), host, key, allow_unsigned)
+                    with self._state_lock:
+                        event = self.peers.update(peer, now, time.time())
+                    reason = None
+                except PeerMessageError as err:
+                    reason = err.reason
+            if reason is not None:
+                self._peer_rejected(reason, host, now)
+                mute.refused(sender, now)  # the rate-limited peer_rejected record counts what muting then drops
                 continue
             self.counters["peer_msgs"] += 1
             if event:
                 self.log.write(event, peer=peer.id, role=peer.role, host=host, probe_port=peer.probe_port)
 
-    def _peer_rejected(self, reason: str, host: str, now: float) -> None:
+    def _peer_rejected(self, reason: str, host: str, now: float, count: int = 1) -> None:
         """Count it; log at most one peer_rejected record per REJECT_LOG_PERIOD_S, with the counts since the last."""
-        self.counters["bad_peer_msgs"] += 1
-        self.peer_rejects[reason] = self.peer_rejects.get(reason, 0) + 1
+        self.counters["bad_peer_msgs"] += count
+        self.peer_rejects[reason] = self.peer_rejects.get(reason, 0) + count
         if now - self._last_reject_log_s >= REJECT_LOG_PERIOD_S:
             since = {r: n - self._rejects_logged.get(r, 0) for r, n in self.peer_rejects.items()
                      if n != self._rejects_logged.get(r, 0)}

@@ -217,3 +217,43 @@ class PeerTable:
             record.update(age_s=round(now_mono_s - e.heard_mono_s, 3), lost=e.lost)
             out[peer_id] = record
         return out
+
+
+class SenderMute:
+    """Senders (address, port) that sent more than `bad_per_window` refused datagrams within `window_s` are muted
+    for `mute_s`: their datagrams are counted and dropped before any check (under a flood, checking the signature
+    of each is most of the agent's work). A fleet peer sends a few good datagrams a second and is never muted;
+    one that an attacker impersonates from its own address loses at most `mute_s` of updates at a time. At most
+    `max_senders` are tracked: a flood from ever new ports resets the table instead of growing it."""
+
+    def __init__(self, bad_per_window: int = 50, window_s: float = 1.0, mute_s: float = 1.0,
+                 max_senders: int = 1024):
+        self.bad_per_window, self.window_s, self.mute_s = bad_per_window, window_s, mute_s
+        self.max_senders = max_senders
+        self._bad: dict[tuple, list[float]] = {}  # sender -> [window start, refused in it]
+        self.muted_until: dict[tuple, float] = {}
+
+    def muted(self, sender: tuple, now_s: float) -> bool:
+        until = self.muted_until.get(sender)
+        if until is None:
+            return False
+        if now_s < until:
+            return True
+        del self.muted_until[sender]
+        return False
+
+    def refused(self, sender: tuple, now_s: float) -> bool:
+        """Note a refused datagram; True when this one mutes its sender."""
+        entry = self._bad.get(sender)
+        if entry is None or now_s - entry[0] >= self.window_s:
+            if len(self._bad) >= self.max_senders:
+                self._bad.clear()
+            entry = self._bad[sender] = [now_s, 0]
+        entry[1] += 1
+        if entry[1] <= self.bad_per_window:
+            return False
+        if len(self.muted_until) >= self.max_senders:
+            self.muted_until.clear()
+        self.muted_until[sender] = now_s + self.mute_s
+        del self._bad[sender]
+        return True

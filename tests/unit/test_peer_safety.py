@@ -13,6 +13,7 @@ from nac_onboard.agent.peers import (
     PeerMessageError,
     PeerState,
     PeerTable,
+    SenderMute,
     decode_peer_state,
     encode_peer_state,
 )
@@ -115,3 +116,15 @@ def test_fuzzed_datagrams_are_refused_or_valid_never_an_exception(datagram):
             continue
         assert -90 <= (state.lat_deg or 0) <= 90 and 0 <= state.probe_port <= 65535
 
+
+
+def test_a_sender_of_refused_datagrams_is_muted_for_a_while_and_others_are_not():
+    mute = SenderMute(bad_per_window=3, window_s=1.0, mute_s=2.0, max_senders=4)
+    attacker, peer = ("10.0.0.9", 5000), ("10.0.0.2", 14560)
+    assert [mute.refused(attacker, 0.1 * k) for k in range(4)] == [False, False, False, True]
+    assert mute.muted(attacker, 1.0) and not mute.muted(peer, 1.0)
+    assert not mute.muted(attacker, 2.31), "muted for mute_s, then heard again"
+    assert not any(mute.refused(peer, 10.0 * k) for k in range(10)), "one refusal now and then never mutes"
+    for port in range(100):  # a flood from ever new ports resets the table instead of growing it
+        mute.refused(("10.0.0.9", port), 50.0)
+    assert len(mute._bad) <= 4 and len(mute.muted_until) <= 4
