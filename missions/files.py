@@ -26,10 +26,11 @@ def loads_mission(text: str, source: str = "<mission>") -> Mission:
                                              f"(JSON object) or a {HEADER!r} waypoint file")
 
 
-def load_mission(path: str | Path) -> Mission:
-    """Read and validate a mission file; MissionFileError names the file, the item or line, and the problem."""
+def load_mission(path: str | Path, flight: bool = True) -> Mission:
+    """Read and validate a mission file (for flight, or only as a file: validate's `flight`); MissionFileError
+    names the file, the item or line, and the problem."""
     mission = loads_mission(read_text(path), str(path))
-    validate(mission, str(path))
+    validate(mission, str(path), flight)
     return mission
 
 
@@ -46,7 +47,8 @@ def save_mission(mission: Mission, path: str | Path) -> None:
 
 
 def convert_mission(source: str | Path, target: str | Path) -> Mission:
-    """Read (and validate) one file and write it in the format of the target's extension."""
-    mission = load_mission(source)
+    """Read one file, check it holds what the target can carry, and write it in the format of the target's
+    extension. Whether it flies is `mission validate`'s question, not the converter's."""
+    mission = load_mission(source, flight=False)
     save_mission(mission, target)
     return mission

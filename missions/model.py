@@ -193,6 +193,8 @@ class Mission:
     plan: PlanInfo = field(default_factory=PlanInfo)
     #: .plan details by item seq; items without an entry are written with derived values
     item_info: dict[int, PlanItemInfo] = field(default_factory=dict)
+    #: row 0's CURRENT flag in a QGC WPL file (MAVProxy writes 1, ArduPilot's own test missions 0), kept as read
+    home_current: bool = True
     #: where each (mission_type, seq) was read from ("item 3 (doJumpId 3)", "line 5"), for error messages
     origins: dict[tuple[int, int], str] = field(default_factory=dict, compare=False, repr=False)
 
@@ -246,4 +248,5 @@ class Mission:
 
         return (same_home(self.home, other.home) and same_list(self.items, other.items)
                 and same_list(self.fence, other.fence) and same_list(self.rally, other.rally)
-                and self.plan == other.plan and self.item_info == other.item_info)
+                and self.plan == other.plan and self.item_info == other.item_info
+                and self.home_current == other.home_current)

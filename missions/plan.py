@@ -4,6 +4,11 @@ Format as QGC writes it: fileType "Plan", version 1; mission{version 2, firmware
 hoverSpeed, plannedHomePosition [lat, lon, alt AMSL], items}; geoFence{version 2, polygons, circles, breachReturn};
 rallyPoints{version 2, points}. Only SimpleItems have a MAVLink meaning: ComplexItems (survey, corridor scan,
 structure scan) are expanded by QGC itself at upload time, so they are refused here by name.
+
+Older files QGC still loads are read as it reads them: items with four params and a `coordinate` [lat, lon, alt]
+(params 5-7) or with param1..param4 keys; geoFence and rallyPoints of version 1, which QGC ignores (so does this
+reader when they are empty; with content, it refuses rather than drop it); and the pre-.plan `.mission` file
+(no fileType, version 2: the mission section at the top level).
 """
 
 from __future__ import annotations
@@ -136,35 +141,69 @@ def loads_plan(text: str, source: str = "<plan>") -> Mission:
     except RecursionError:
         raise r.fail("top level", "not valid JSON: nested deeper than any plan is") from None
     top = r.obj(doc, "top level", "the file")
+    if top.get("fileType", "Mission") == "Mission" and "items" in top and "mission" not in top:
+        return _read_mission_file(r, top)
     file_type = r.field(top, "fileType", "top level", ("a string",))
     if file_type != "Plan":
-        raise r.fail("top level", f'fileType is "{file_type}"; expected "Plan"')
+        raise r.fail("top level", f'fileType is "{file_type}"; expected "Plan" (or a QGroundControl .mission)')
     version = r.integer(top, "version", "top level")
     if version != PLAN_VERSION:
         raise r.fail("top level", f"version is {version}; expected {PLAN_VERSION} (QGroundControl plan format)")
     ground_station = r.field(top, "groundStation", "top level", ("a string",), PlanInfo.ground_station)
     m = r.obj(r.field(top, "mission", "top level", ("an object",)), "mission", "mission")
-    mission_version = r.integer(m, "version", "mission")
-    if mission_version != MISSION_VERSION:
-        raise r.fail("mission", f"version is {mission_version}; expected {MISSION_VERSION}")
-    plan = PlanInfo(
-        ground_station=ground_station,
-        firmware_type=r.integer(m, "firmwareType", "mission", PlanInfo.firmware_type),
-        vehicle_type=r.integer(m, "vehicleType", "mission", PlanInfo.vehicle_type),
-        cruise_speed_mps=r.number(m, "cruiseSpeed", "mission", PlanInfo.cruise_speed_mps),
-        hover_speed_mps=r.number(m, "hoverSpeed", "mission", PlanInfo.hover_speed_mps),
-        global_plan_altitude_mode=r.integer(m, "globalPlanAltitudeMode", "mission", None),
-    )
-    home_lat, home_lon, home_alt = r.numbers(m, "plannedHomePosition", "mission", (3,))
-    home = None if home_lat == 0.0 and home_lon == 0.0 else PlannedHome(home_lat, home_lon, home_alt)
-    mission = Mission(home=home, plan=plan)
-    mission.origins[(MissionType.MISSION, 0)] = "mission plannedHomePosition"
-    _read_items(r, r.field(m, "items", "mission", ("a list",)), mission)
+    mission = _read_mission_section(r, m, "mission", ground_station)
     if "geoFence" in top:
         _read_fence(r, r.obj(top["geoFence"], "geoFence", "geoFence"), mission)
     if "rallyPoints" in top:
         _read_rally(r, r.obj(top["rallyPoints"], "rallyPoints", "rallyPoints"), mission)
     return mission
+
+
+def _read_mission_file(r: _Reader, top: dict) -> Mission:
+    """QGC's pre-.plan `.mission` JSON: version 2 is the mission section at the top level; version 1 kept its
+    planned home as an object and complex items apart, and QGC converts it only when loading."""
+    version = r.integer(top, "version", "top level")
+    if version != MISSION_VERSION:
+        raise r.fail("top level", f"a QGroundControl .mission file of version {version}; this reader takes version "
+                                  f"{MISSION_VERSION}: open it in QGroundControl and save it as a .plan")
+    ground_station = r.field(top, "groundStation", "top level", ("a string",), PlanInfo.ground_station)
+    return _read_mission_section(r, top, "top level", ground_station)
+
+
+def _read_mission_section(r: _Reader, m: dict, where: str, ground_station: str) -> Mission:
+    mission_version = r.integer(m, "version", where)
+    if mission_version != MISSION_VERSION:
+        raise r.fail(where, f"version is {mission_version}; expected {MISSION_VERSION}")
+    plan = PlanInfo(
+        ground_station=ground_station,
+        firmware_type=r.integer(m, "firmwareType", where, PlanInfo.firmware_type),
+        vehicle_type=r.integer(m, "vehicleType", where, PlanInfo.vehicle_type),
+        cruise_speed_mps=r.number(m, "cruiseSpeed", where, PlanInfo.cruise_speed_mps),
+        hover_speed_mps=r.number(m, "hoverSpeed", where, PlanInfo.hover_speed_mps),
+        global_plan_altitude_mode=r.integer(m, "globalPlanAltitudeMode", where, None),
+    )
+    home_lat, home_lon, home_alt = r.numbers(m, "plannedHomePosition", where, (3,))
+    home = None if home_lat == 0.0 and home_lon == 0.0 else PlannedHome(home_lat, home_lon, home_alt)
+    mission = Mission(home=home, plan=plan)
+    mission.origins[(MissionType.MISSION, 0)] = f"{where} plannedHomePosition".removeprefix("top level ")
+    _read_items(r, r.field(m, "items", where, ("a list",)), mission)
+    return mission
+
+
+def _item_params(r: _Reader, obj: dict, where: str) -> list[float]:
+    """Params 1-7 of a SimpleItem as QGC writes it now, or as older QGC did: four params and a `coordinate`
+    [lat, lon, alt], or param1..param4 keys (QGC converts both on load)."""
+    if "params" not in obj and all(f"param{k}" in obj for k in range(1, 5)):
+        params = [r.number(obj, f"param{k}", where) for k in range(1, 5)]
+    else:
+        params = r.numbers(obj, "params", where, (4, 7) if "coordinate" in obj else (7,))
+    if "coordinate" in obj:
+        if len(params) != 4:
+            raise r.fail(where, f'has "coordinate" and {len(params)} params; expected 4 params with a coordinate')
+        params += r.numbers(obj, "coordinate", where, (3,))
+    elif len(params) != 7:
+        raise r.fail(where, f'field "params" has {len(params)} entries; expected 7 (or 4 with a "coordinate")')
+    return params
 
 
 def _read_items(r: _Reader, raw_items: list, mission: Mission) -> None:
@@ -180,7 +219,7 @@ def _read_items(r: _Reader, raw_items: list, mission: Mission) -> None:
             raise r.fail(where, f'ComplexItem "{complex_type}" has no MAVLink form in a file: QGroundControl turns '
                                 f"it into waypoints only when uploading. Upload the plan from QGroundControl and "
                                 f"download it (nac-ground mission download), or replace it with SimpleItems")
-        if kind != "SimpleItem":
+        if kind not in ("SimpleItem", "missionItem"):  # the second: QGC's first JSON format
             raise r.fail(where, f'type is "{kind}"; expected "SimpleItem"')
         jump_id = r.integer(obj, "doJumpId", where, seq)
         if jump_id < 1:
@@ -191,7 +230,7 @@ def _read_items(r: _Reader, raw_items: list, mission: Mission) -> None:
         seq_by_jump_id[jump_id] = seq
         command = r.integer(obj, "command", where)
         frame = r.integer(obj, "frame", where)
-        params = r.numbers(obj, "params", where, (7,))
+        params = _item_params(r, obj, where)
         auto = r.field(obj, "autoContinue", where, ("a boolean", "a number"))
         mission.items.append(MissionItem(seq, command, frame, *params, autocontinue=bool(auto),
                                          mission_type=MissionType.MISSION))
@@ -208,7 +247,20 @@ def _read_items(r: _Reader, raw_items: list, mission: Mission) -> None:
             mission.items[k] = replace(item, p1=float(target))
 
 
+def _ignored_old_version(r: _Reader, section: dict, name: str, content_keys: tuple[str, ...]) -> bool:
+    """QGC ignores geoFence and rallyPoints of version 1: so does this reader, when there is nothing to lose."""
+    if section.get("version") != 1:
+        return False
+    held = [key for key in content_keys if section.get(key)]
+    if held:
+        raise r.fail(name, f"version 1 with {', '.join(held)}: QGroundControl ignores version 1 {name} on load, so it "
+                           f"would be lost; draw it again in QGroundControl 4 and save the plan (version 2)")
+    return True
+
+
 def _read_fence(r: _Reader, fence: dict, mission: Mission) -> None:
+    if _ignored_old_version(r, fence, "geoFence", ("polygon", "polygons", "circles", "breachReturn")):
+        return
     version = r.integer(fence, "version", "geoFence")
     if version != GEOFENCE_VERSION:
         raise r.fail("geoFence", f"version is {version}; expected {GEOFENCE_VERSION} (polygons and circles)")
@@ -245,6 +297,8 @@ def _read_fence(r: _Reader, fence: dict, mission: Mission) -> None:
 
 
 def _read_rally(r: _Reader, rally: dict, mission: Mission) -> None:
+    if _ignored_old_version(r, rally, "rallyPoints", ("points",)):
+        return
     version = r.integer(rally, "version", "rallyPoints")
     if version != RALLY_VERSION:
         raise r.fail("rallyPoints", f"version is {version}; expected {RALLY_VERSION}")

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import math
 
+from missions.dialect import dialect_commands, dialect_name, known_command
 from missions.errors import MissionFileError
 from missions.model import (
-    COMMAND_NAMES,
     FENCE_COMMANDS,
     RALLY_COMMANDS,
     Frame,
@@ -33,8 +33,10 @@ NON_POSITION_FRAMES = POSITION_FRAMES | {Frame.MISSION}
 POSITION_COMMANDS = frozenset({16, 17, 18, 19, 21, 22, 31, 82, 84, 85, 94}) | FENCE_COMMANDS | RALLY_COMMANDS
 #: Fence shapes have no altitude: the fence's altitude limits are parameters, not items.
 NO_ALT_COMMANDS = frozenset({5001, 5002, 5003, 5004})
-#: ArduPilot reads lat = lon = 0 as "where the vehicle is" for these (take off here, land here...).
-ZERO_IS_HERE_COMMANDS = frozenset({16, 17, 18, 19, 20, 21, 22})
+#: ArduPilot reads lat = lon = 0 as "where the vehicle is" for its navigation commands (take off here, land here,
+#: loiter here...); only a fence vertex or a rally point at 0, 0 is taken for a mistake.
+ZERO_IS_HERE_COMMANDS = frozenset({16, 17, 18, 19, 20, 21, 22, 31, 36, 82, 84, 85, 93, 94})
+JUMP_TAG, DO_JUMP_TAG = 600, 601
 POLYGON_COMMANDS = frozenset({5001, 5002})
 CIRCLE_COMMANDS = frozenset({5003, 5004})
 
@@ -66,14 +68,16 @@ def _fmt(x: float) -> str:
     return "NaN" if math.isnan(x) else f"{x:g}" if abs(x) >= 1e6 else str(x)
 
 
-def validate(mission: Mission, source: str = "<mission>") -> None:
-    """Raise MissionFileError (`source: item ...: reason`) at the first problem; return None when fit to fly."""
+def validate(mission: Mission, source: str = "<mission>", flight: bool = True) -> None:
+    """Raise MissionFileError (`source: item ...: reason`) at the first problem; return None when fit to fly.
+    With flight=False only what any file must hold is checked (numbering, values MAVLink can carry), as a
+    converter needs: a home-only file, or frames and commands this SITL does not fly, still convert."""
     def fail(mission_type: int, seq: int, reason: str) -> None:
         raise MissionFileError(source, mission.where(mission_type, seq), reason)
 
     if mission.home is not None:
         _check_home(mission, fail)
-    if not mission.items:
+    if flight and not (mission.items or mission.fence or mission.rally):
         raise MissionFileError(source, "mission", "is empty (no mission items); expected at least one "
                                "(a flyable mission starts with NAV_TAKEOFF and ends with NAV_LAND or RTL)")
     for name, items, extra in (("mission", mission.items, 1), ("fence", mission.fence, 0), ("rally", mission.rally, 0)):
@@ -89,10 +93,14 @@ def validate(mission: Mission, source: str = "<mission>") -> None:
             if item.mission_type != mission_type:
                 fail(mission_type, k, f"has mission_type {item.mission_type}, expected {int(mission_type)} "
                                       f"({MissionType(mission_type).name})")
-            reason = _wire_problem(item) or _item_problem(item, mission_type, len(mission.items))
+            reason = _wire_problem(item)
+            if flight and not reason:
+                reason = _altitude_left_to_qgc(mission, item) or _item_problem(item, mission_type, len(mission.items))
             if reason:
                 fail(mission_type, k, reason)
-    _check_fence_shapes(mission, fail)
+    if flight:
+        _check_fence_shapes(mission, fail)
+        _check_jump_tags(mission, fail)
 
 
 def check_numbering(mission: Mission, source: str = "<mission>") -> None:
@@ -119,17 +127,17 @@ def _check_home(mission: Mission, fail) -> None:
 
 def _item_problem(item: MissionItem, mission_type: int, n_items: int) -> str | None:
     cmd = item.command
-    if cmd not in COMMAND_NAMES:
-        return (f"unknown command {cmd}: not a MAVLink mission command this library knows "
+    if not known_command(cmd):
+        return (f"unknown command {cmd}: neither MAVLink's common nor its ardupilotmega dialect defines it "
                 f"(e.g. 16 NAV_WAYPOINT, 22 NAV_TAKEOFF, 21 NAV_LAND, 178 DO_CHANGE_SPEED)")
-    name = command_name(cmd)
+    name = dialect_name(cmd)
     if mission_type == MissionType.MISSION and cmd in FENCE_COMMANDS | RALLY_COMMANDS:
         return f"{name} ({cmd}) is a fence/rally command; it belongs in the geofence or rally points, not the mission"
     if mission_type == MissionType.FENCE and cmd not in FENCE_COMMANDS:
         return f"{name} ({cmd}) in the fence; expected a fence command (5000-5004)"
     if mission_type == MissionType.RALLY and cmd not in RALLY_COMMANDS:
         return f"{name} ({cmd}) in the rally points; expected NAV_RALLY_POINT (5100)"
-    has_position = cmd in POSITION_COMMANDS
+    has_position = cmd in POSITION_COMMANDS or _navigates_to_location(cmd)
     frames = POSITION_FRAMES if has_position else NON_POSITION_FRAMES
     if item.frame not in frames:
         allowed = ", ".join(f"{int(f)} {f.name}" for f in sorted(frames))
@@ -137,6 +145,10 @@ def _item_problem(item: MissionItem, mission_type: int, n_items: int) -> str | N
                 f"expected one of {allowed}")
     if has_position:
         problem = _position_problem(item, name)
+        if problem:
+            return problem
+    elif cmd in dialect_commands() and dialect_commands()[cmd].has_location:
+        problem = _location_range_problem(item)  # a DO_ command's optional place (0, 0 or NaN: "here" or unset)
         if problem:
             return problem
     if cmd == MavCmd.DO_JUMP:
@@ -167,6 +179,53 @@ def _position_problem(item: MissionItem, name: str) -> str | None:
         return (f"altitude {_fmt(item.alt_m)} m is outside {lo:g}..{hi:g} m "
                 f"({reference}, frame {item.frame} {frame_name(item.frame)})")
     return None
+
+
+def _altitude_left_to_qgc(mission: Mission, item: MissionItem) -> str | None:
+    """QGC's altitude mode 3 ("calculated above terrain") leaves the altitude null in the file: QGC computes the
+    AMSL altitude from its terrain data when it uploads."""
+    info = mission.item_info.get(item.seq) if item.mission_type == MissionType.MISSION else None
+    if info is None or info.altitude_keys.get("AltitudeMode") != 3 or not math.isnan(item.alt_m):
+        return None
+    height = info.altitude_keys.get("Altitude")
+    return (f"altitude is null: QGroundControl's altitude mode 3 (calculated above terrain, {height} m) computes "
+            f"it from terrain data when it uploads. Upload the plan from QGroundControl and download it "
+            f"(nac-ground mission download), or set the item to a relative or AMSL altitude in QGroundControl")
+
+
+def _navigates_to_location(command: int) -> bool:
+    """A NAV_ command the dialect gives a position: its x/y/z get the same checks as a waypoint's."""
+    entry = dialect_commands().get(command)
+    return entry is not None and entry.has_location and entry.name.startswith("NAV_") and command < 5000
+
+
+def _location_range_problem(item: MissionItem) -> str | None:
+    for label, value, limit in (("latitude", item.lat_deg, 90.0), ("longitude", item.lon_deg, 180.0)):
+        if math.isfinite(value) and not -limit <= value <= limit:
+            return f"{label} {_fmt(value)} is outside -{limit:g}..{limit:g}"
+    return None
+
+
+def _check_jump_tags(mission: Mission, fail) -> None:
+    """DO_JUMP_TAG jumps to the JUMP_TAG item with its tag number (param1): that item must exist, once."""
+    tags: dict[int, int] = {}
+    for item in mission.items:
+        if item.command == JUMP_TAG:
+            tag = item.p1
+            if not math.isfinite(tag) or tag != int(tag) or tag < 0:
+                fail(MissionType.MISSION, item.seq, f"JUMP_TAG tag (param1) is {_fmt(tag)}; expected a whole number "
+                                                    f">= 0")
+            if int(tag) in tags:
+                fail(MissionType.MISSION, item.seq, f"JUMP_TAG {int(tag)} is also item {tags[int(tag)]}; expected "
+                                                    f"each tag once")
+            tags[int(tag)] = item.seq
+    for item in mission.items:
+        if item.command == DO_JUMP_TAG:
+            tag = item.p1
+            if not math.isfinite(tag) or tag != int(tag) or int(tag) not in tags:
+                known = ", ".join(str(t) for t in sorted(tags)) or "none"
+                fail(MissionType.MISSION, item.seq, f"DO_JUMP_TAG target tag (param1) {_fmt(tag)} has no JUMP_TAG "
+                                                    f"item; tags in this mission: {known}")
 
 
 def _jump_problem(item: MissionItem, n_items: int) -> str | None:

@@ -2,8 +2,10 @@
 
 First line `QGC WPL 110`, then one tab-separated row per item:
 INDEX CURRENT FRAME COMMAND P1 P2 P3 P4 LAT LON ALT AUTOCONTINUE. Row 0 is home (ArduPilot's convention), so
-rows 1..n are the mission items with the same sequence numbers they get on the wire. The format has no place
-for fence or rally points.
+rows 1..n are the mission items with the same sequence numbers they get on the wire. As pymavlink and MAVProxy
+read it: lines starting with `#` are comments, spaces may separate the columns, a file may hold home alone. A file
+whose first row is a fence command (5000-5004) or a rally point (5100) is a fence or rally file, as MAVProxy's
+`fence save`/`rally save` write them: every row is an item of that list, numbered from 0, with no home.
 """
 
 from __future__ import annotations
@@ -13,7 +15,16 @@ import re
 from pathlib import Path
 
 from missions.errors import MissionFileError
-from missions.model import Frame, MavCmd, Mission, MissionItem, MissionType, PlannedHome
+from missions.model import (
+    FENCE_COMMANDS,
+    RALLY_COMMANDS,
+    Frame,
+    MavCmd,
+    Mission,
+    MissionItem,
+    MissionType,
+    PlannedHome,
+)
 from missions.plan import read_text, write_text
 from missions.validate import check_numbering
 
@@ -53,9 +64,10 @@ def loads_wpl(text: str, source: str = "<waypoints>") -> Mission:
         raise MissionFileError(source, "line 1", f"header is {first!r}; expected {HEADER!r}")
     mission = Mission()
     expected_index = 0
+    kind = MissionType.MISSION
     for lineno, line in enumerate(lines[1:], 2):
-        if not line.strip(" \t"):
-            continue  # trailing or separating blank lines carry nothing
+        if not line.strip(" \t") or line.lstrip(" \t").startswith("#"):
+            continue  # blank lines and comments carry nothing
         where = f"line {lineno}"
         fields = _FIELD_SEPARATOR.split(line.strip(" \t"))
         if len(fields) != len(COLUMNS):
@@ -66,14 +78,22 @@ def loads_wpl(text: str, source: str = "<waypoints>") -> Mission:
             raise MissionFileError(source, where, f"INDEX is {row['INDEX']}; expected {expected_index} "
                                                   f"(rows are numbered 0..n-1 in order, row 0 is home)")
         if expected_index == 0:
+            kind = (MissionType.FENCE if row["COMMAND"] in FENCE_COMMANDS else
+                    MissionType.RALLY if row["COMMAND"] in RALLY_COMMANDS else MissionType.MISSION)
+        item = MissionItem(expected_index, row["COMMAND"], row["FRAME"], row["P1"], row["P2"], row["P3"], row["P4"],
+                           row["LAT"], row["LON"], row["ALT"], autocontinue=bool(row["AUTOCONTINUE"]),
+                           current=bool(row["CURRENT"]), mission_type=kind)
+        if kind == MissionType.FENCE:
+            mission.fence.append(item)
+        elif kind == MissionType.RALLY:
+            mission.rally.append(item)
+        elif expected_index == 0:
+            mission.home_current = item.current
             if row["LAT"] != 0.0 or row["LON"] != 0.0:
                 mission.home = PlannedHome(row["LAT"], row["LON"], row["ALT"])
         else:
-            mission.items.append(MissionItem(
-                expected_index, row["COMMAND"], row["FRAME"], row["P1"], row["P2"], row["P3"], row["P4"],
-                row["LAT"], row["LON"], row["ALT"], autocontinue=bool(row["AUTOCONTINUE"]),
-                current=bool(row["CURRENT"]), mission_type=MissionType.MISSION))
-        mission.origins[(MissionType.MISSION, expected_index)] = where
+            mission.items.append(item)
+        mission.origins[(kind, expected_index)] = where
         expected_index += 1
     return mission
 
@@ -87,19 +107,29 @@ def _fmt(x: float) -> str:
 
 
 def dumps_wpl(mission: Mission, source: str = "<waypoints>") -> str:
-    """The mission as QGC WPL 110 text; refuses a mission with fence or rally items, which the format cannot hold."""
+    """The mission as QGC WPL 110 text; a fence or rally list alone as a fence or rally file (rows from 0, no home).
+    Refuses a mission with items of more than one list, which one file cannot hold."""
+    lists = [items for items in (mission.fence, mission.rally) if items]
+    if len(lists) == 1 and not mission.items and mission.home is None:
+        body = ["\t".join(_fmt(v) if isinstance(v, float) else str(v) for v in _row(k, item))
+                for k, item in enumerate(lists[0])]
+        return "\n".join([HEADER, *body]) + "\n"
     if mission.fence or mission.rally:
         raise MissionFileError(source, "", f"QGC WPL 110 holds mission items only; this mission also has "
                                            f"{len(mission.fence)} fence items and {len(mission.rally)} rally points "
                                            f"(save it as .plan to keep them)")
     h = mission.home or PlannedHome(0.0, 0.0, 0.0)
-    rows = [[0, 1, int(Frame.GLOBAL), int(MavCmd.NAV_WAYPOINT), 0, 0, 0, 0, h.lat_deg, h.lon_deg, h.alt_m, 1]]
+    rows = [[0, int(mission.home_current), int(Frame.GLOBAL), int(MavCmd.NAV_WAYPOINT), 0, 0, 0, 0, h.lat_deg,
+             h.lon_deg, h.alt_m, 1]]
     check_numbering(mission, source)
-    for k, item in enumerate(mission.items, 1):
-        rows.append([k, int(item.current), int(item.frame), int(item.command), item.p1, item.p2, item.p3, item.p4,
-                     item.lat_deg, item.lon_deg, item.alt_m, int(bool(item.autocontinue))])
+    rows += [_row(k, item) for k, item in enumerate(mission.items, 1)]
     body = ["\t".join(_fmt(v) if isinstance(v, float) else str(v) for v in row) for row in rows]
     return "\n".join([HEADER, *body]) + "\n"
+
+
+def _row(index: int, item: MissionItem) -> list:
+    return [index, int(item.current), int(item.frame), int(item.command), item.p1, item.p2, item.p3, item.p4,
+            item.lat_deg, item.lon_deg, item.alt_m, int(bool(item.autocontinue))]
 
 
 def read_wpl(path: str | Path) -> Mission:

@@ -314,7 +314,8 @@ def analyze(run: RunLog, master: str | None = None, bin_m: float = DEFAULT_BIN_M
     if warning:
         problems.append(warning)
     if master is None:
-        missing.append("master: no vehicle logged role 'master' (give --master ID): no distances")
+        missing.append(f"master: no vehicle logged role 'master' and no probes tell (give --master ID; vehicles: "
+                       f"{', '.join(sorted(run.vehicles)) or 'none'}): no distances")
     return RunTables(run.name, master, t0_s, traj, dist, probes, bins, its, workers, training_cost(its), summary,
                      problems, missing)
 

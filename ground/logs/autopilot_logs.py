@@ -8,7 +8,11 @@ bytes that are not a record are skipped up to the next plausible one, frames fai
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
+import sys
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -126,68 +130,163 @@ def tlog_positions(path: str | Path, vehicle: str | None = None) -> tuple[list[d
     read = read_tlog(path)
     sysids = {msg.get_srcSystem() for _, msg in read.messages}
     rows = [{"vehicle": vehicle if vehicle and len(sysids) == 1 else f"{vehicle or ''}sysid{msg.get_srcSystem()}",
-             "source": "tlog", "t_s": t_s,
+             "source": "tlog", "t_s": t_s, "time_base": "unix",
              "time_boot_ms": msg.time_boot_ms, "lat_deg": msg.lat / 1e7, "lon_deg": msg.lon / 1e7,
              "alt_m": msg.alt / 1000, "rel_alt_m": msg.relative_alt / 1000}
             for t_s, msg in read.messages]
-    return rows, read.problems
+    rows, no_fix = with_fix(rows, path)
+    return rows, read.problems + no_fix
+
+
+UNIX_TIME_AFTER_S = 1e9  # 2001: a smaller time is seconds since boot, not a date
+
+
+def with_fix(rows: list[dict], path: str | Path) -> tuple[list[dict], list[str]]:
+    """Rows with a position: an autopilot logs latitude = longitude = 0 (or NaN) before its GPS has a fix, and
+    such a row would put the vehicle off the coast of Africa and the map's origin with it."""
+    kept = [r for r in rows if r["lat_deg"] == r["lat_deg"] and r["lon_deg"] == r["lon_deg"]  # NaN is not kept
+            and not (r["lat_deg"] == 0.0 and r["lon_deg"] == 0.0)]
+    dropped = len(rows) - len(kept)
+    return kept, [f"{path}: {dropped} of {len(rows)} position samples without a fix (latitude = longitude = 0) "
+                  f"dropped"] if dropped else []
+
+
+CHATTER_LINES = 5  # of what a reference reader printed, reported verbatim; the rest counted
+
+
+@contextlib.contextmanager
+def _reference_reader(path: Path, problems: list[str]):
+    """pymavlink and pyulog print what they find wrong (to stdout or stderr) instead of raising: it goes into the
+    report's problems, not onto the CLI's output."""
+    printed = io.StringIO()
+    with tempfile.TemporaryFile() as native, _native_output_to(native), contextlib.redirect_stdout(printed), \
+            contextlib.redirect_stderr(printed):
+        yield
+        native.seek(0)
+        printed.write(native.read().decode(errors="replace"))
+    lines = list(dict.fromkeys(line.strip() for line in printed.getvalue().splitlines() if line.strip()))
+    problems += [f"{path}: {line}" for line in lines[:CHATTER_LINES]]
+    if len(lines) > CHATTER_LINES:
+        problems.append(f"{path}: {len(lines) - CHATTER_LINES} more such messages from the reader")
+
+
+@contextlib.contextmanager
+def _native_output_to(file):
+    """File descriptors 1 and 2 into `file` for a while: pymavlink's compiled log indexer writes to them directly."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    try:
+        os.dup2(file.fileno(), 1)
+        os.dup2(file.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        for fd in saved:
+            os.close(fd)
 
 
 def dataflash_positions(path: str | Path, vehicle: str) -> tuple[list[dict], list[str]]:
-    """POS rows of an ArduPilot DataFlash `.bin` (GPS rows when it has no POS), on pymavlink's unix clock."""
+    """POS rows of an ArduPilot DataFlash `.bin` (GPS rows when it has no POS; logs from before 2015 stamp them
+    with TimeMS, later ones TimeUS), on pymavlink's clock: unix time from the GPS when the log has it, else
+    seconds since boot (then said, and the rows' time_base is "boot")."""
     from pymavlink import DFReader
 
     path = Path(path)
-    try:
-        reader = DFReader.DFReader_binary(str(path), zero_time_base=False)
-    except Exception as err:  # pymavlink raises bare exceptions on unreadable files
-        raise FlightLogError(f"{path}: not a DataFlash log ({err})") from None
-    rows = {"POS": [], "GPS": []}
-    while True:
+    problems: list[str] = []
+    with _reference_reader(path, problems):
         try:
-            msg = reader.recv_match(type=["POS", "GPS"])
-        except Exception:  # a damaged tail: keep what was read
-            break
-        if msg is None:
-            break
-        kind = msg.get_type()
-        rows[kind].append({"vehicle": vehicle, "source": "dataflash", "t_s": msg._timestamp,
-                           "time_boot_ms": msg.TimeUS / 1000, "lat_deg": msg.Lat, "lon_deg": msg.Lng,
-                           "alt_m": msg.Alt, "rel_alt_m": getattr(msg, "RelHomeAlt", None)})
-    return rows["POS"] or rows["GPS"], []
+            reader = DFReader.DFReader_binary(str(path), zero_time_base=False)
+        except Exception as err:  # pymavlink raises bare exceptions on unreadable files
+            raise FlightLogError(f"{path}: not a DataFlash log ({err})") from None
+        rows = {"POS": [], "GPS": []}
+        while True:
+            try:
+                msg = reader.recv_match(type=["POS", "GPS"])
+            except Exception as err:  # a damaged record: keep what was read before it
+                problems.append(f"{path}: a damaged record after {len(rows['POS']) + len(rows['GPS'])} positions "
+                                f"({type(err).__name__}: {err}); the rest of the log is not read")
+                break
+            if msg is None:
+                break
+            boot_ms = msg.TimeUS / 1000 if hasattr(msg, "TimeUS") else getattr(msg, "TimeMS", None)
+            rows[msg.get_type()].append({
+                "vehicle": vehicle, "source": "dataflash", "t_s": msg._timestamp, "time_boot_ms": boot_ms,
+                "lat_deg": msg.Lat, "lon_deg": msg.Lng, "alt_m": msg.Alt,
+                "rel_alt_m": getattr(msg, "RelHomeAlt", None)})
+    chosen, no_fix = with_fix(rows["POS"] or rows["GPS"], path)
+    base = "unix" if chosen and chosen[0]["t_s"] > UNIX_TIME_AFTER_S else "boot"
+    for row in chosen:
+        row["time_base"] = base
+    if chosen and base == "boot":
+        problems.append(f"{path}: no GPS time in the log; its times are seconds since boot and cannot be paired "
+                        f"with other vehicles' unix times")
+    return chosen, problems + no_fix
 
 
 def ulog_positions(path: str | Path, vehicle: str) -> tuple[list[dict], list[str]]:
-    """vehicle_global_position rows of a PX4 `.ulg`, put on unix time by the GPS's UTC stamps."""
+    """vehicle_global_position rows of a PX4 `.ulg` (the GPS's own when the log has none), on unix time by the
+    GPS's UTC stamps; without them, seconds since boot (then said, and the rows' time_base is "boot")."""
     from pyulog import ULog
 
     path = Path(path)
     topics = ["vehicle_global_position", "vehicle_gps_position", "sensor_gps"]
-    try:
-        ulog = ULog(str(path), message_name_filter_list=topics)
-    except Exception as err:  # pyulog raises bare exceptions on unreadable files
-        raise FlightLogError(f"{path}: not a ULog file ({err})") from None
+    problems: list[str] = []
+    with _reference_reader(path, problems):
+        try:
+            ulog = ULog(str(path), message_name_filter_list=topics)
+        except Exception as err:  # pyulog raises bare exceptions on unreadable files
+            raise FlightLogError(f"{path}: not a ULog file ({err})") from None
     data = {d.name: d.data for d in ulog.data_list}
-    problems = []
-    offset_us = None
+    offset_us, base = 0, "boot"
     for gps_topic in ("vehicle_gps_position", "sensor_gps"):
         gps = data.get(gps_topic)
         if gps is not None and "time_utc_usec" in gps:
             valid = gps["time_utc_usec"] > 0
             if valid.any():
                 offsets = gps["time_utc_usec"][valid].astype("int64") - gps["timestamp"][valid].astype("int64")
-                offset_us = int(sorted(offsets)[len(offsets) // 2])
+                offset_us, base = int(sorted(offsets)[len(offsets) // 2]), "unix"
                 break
-    if offset_us is None:
-        offset_us = int(ulog.start_timestamp)
-        problems.append(f"{path}: no GPS UTC time; times are seconds since boot, not aligned with other logs")
-    pos = data.get("vehicle_global_position")
-    if pos is None:
-        return [], problems + [f"{path}: no vehicle_global_position topic"]
-    rows = [{"vehicle": vehicle, "source": "ulog", "t_s": (int(ts) + offset_us) / 1e6, "time_boot_ms": int(ts) / 1000,
-             "lat_deg": float(lat), "lon_deg": float(lon), "alt_m": float(alt), "rel_alt_m": None}
-            for ts, lat, lon, alt in zip(pos["timestamp"], pos["lat"], pos["lon"], pos["alt"], strict=True)]
-    return rows, problems
+    if base == "boot":
+        problems.append(f"{path}: no GPS UTC time; its times are seconds since boot and cannot be paired with "
+                        f"other vehicles' unix times")
+    rows = _ulog_rows(data, vehicle, offset_us)
+    if rows is None:
+        return [], problems + [f"{path}: no positions (none of {', '.join(topics)})"]
+    if "vehicle_global_position" not in data:
+        problems.append(f"{path}: no vehicle_global_position; positions are the GPS receiver's")
+    for row in rows:
+        row["time_base"] = base
+    rows, no_fix = with_fix(rows, path)
+    return rows, problems + no_fix
+
+
+def _ulog_rows(data: dict, vehicle: str, offset_us: int) -> list[dict] | None:
+    """The estimator's positions, else the GPS receiver's (1e-7 degrees and mm in older PX4, degrees and metres
+    in sensor_gps since 1.14)."""
+    for topic in ("vehicle_global_position", "vehicle_gps_position", "sensor_gps"):
+        d = data.get(topic)
+        if d is None:
+            continue
+        if "lat" in d and topic == "vehicle_global_position":
+            lat, lon, alt = d["lat"], d["lon"], d["alt"]
+        elif "latitude_deg" in d:
+            lat, lon, alt = d["latitude_deg"], d["longitude_deg"], d["altitude_msl_m"]
+        elif "lat" in d:
+            lat, lon, alt = d["lat"] / 1e7, d["lon"] / 1e7, d["alt"] / 1e3
+        else:
+            continue
+        return [{"vehicle": vehicle, "source": "ulog", "t_s": (int(ts) + offset_us) / 1e6,
+                 "time_boot_ms": int(ts) / 1000, "lat_deg": float(la), "lon_deg": float(lo), "alt_m": float(al),
+                 "rel_alt_m": None}
+                for ts, la, lo, al in zip(d["timestamp"], lat, lon, alt, strict=True)]
+    return None
+
+
+def reader_for(path: Path):
+    """The position reader of a log, by its extension in any case (ArduPilot writes 00000001.BIN)."""
+    return READERS.get(path.suffix.lower())
 
 
 READERS = {".tlog": tlog_positions, ".bin": dataflash_positions, ".ulg": ulog_positions}

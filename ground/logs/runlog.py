@@ -17,7 +17,7 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ground.logs.autopilot_logs import READERS, FlightLogError
+from ground.logs.autopilot_logs import FlightLogError, reader_for
 from nac_onboard.errors import BadInput
 from nac_onboard.flight_log import read_jsonl
 
@@ -46,10 +46,24 @@ class RunLog:
         return self.path.name
 
     def master(self, requested: str | None = None) -> str | None:
+        """The master's vehicle id: the one asked for (it must be in the run), else the one whose agent logged
+        role master, else the client of the throughput probes (the master probes its workers), said as a
+        problem; None when nothing tells (the analysis then has no distances and says why)."""
+        found = ", ".join(sorted(self.vehicles)) or "none"
         if requested:
+            if requested not in self.vehicles:
+                raise BadInput(f"{self.name}: --master {requested}: no vehicle of that name in the run "
+                               f"(vehicles found: {found})")
             return requested
         masters = sorted(v for v, role in self.vehicles.items() if role == "master")
-        return masters[0] if masters else None
+        if masters:
+            return masters[0]
+        clients = sorted({p.get("client") for p in self.probes if p.get("client") in self.vehicles})
+        if len(clients) == 1:
+            _warn(self, [f"{self.name}: no agent logged role master; {clients[0]} taken as the master, as the client "
+                         f"of the throughput probes (give --master ID to choose)"])
+            return clients[0]
+        return None
 
 
 def _warn(run: RunLog, problems: list[str]) -> None:
@@ -82,6 +96,7 @@ def read_run(path: str | Path) -> RunLog:
         _warn(run, read.problems)
         run.compute_runs += read.of_kind("run_started")
         run.iterations += read.of_kind("iteration")
+    _check_clocks(run)
     if not run.vehicles and not run.iterations:
         raise RunDirError(f"{path}: no NAC logs here (expected VEHICLE/agent.jsonl, autopilot logs or "
                           "compute.jsonl); is this a run directory?")
@@ -95,10 +110,25 @@ def read_run(path: str | Path) -> RunLog:
     return run
 
 
+def _check_clocks(run: RunLog) -> None:
+    """Distances pair vehicles by time: a log without GPS time (seconds since boot) cannot be paired with unix
+    times, and two boot clocks only if the vehicles booted together. Say so instead of leaving tables empty."""
+    bases: dict[str, set[str]] = {}
+    for row in run.positions:
+        bases.setdefault(row["vehicle"], set()).add(row.get("time_base", "unix"))
+    on_boot = sorted(v for v, b in bases.items() if "boot" in b)
+    if on_boot and len(on_boot) < len(bases):
+        _warn(run, [f"{', '.join(on_boot)}: positions on seconds since boot (no GPS time in the log), the others on "
+                    f"unix time: they cannot be paired, so there are no distances to {', '.join(on_boot)}"])
+    elif len(on_boot) > 1:
+        _warn(run, [f"{', '.join(on_boot)}: every log is on seconds since boot (no GPS time): distances pair them "
+                    f"as if the vehicles had booted at the same moment"])
+
+
 def _read_vehicle(run: RunLog, vehicle_dir: Path) -> None:
     vehicle = vehicle_dir.name
     agent_log = vehicle_dir / "agent.jsonl"
-    flight_logs = sorted(p for p in vehicle_dir.iterdir() if p.suffix in READERS)
+    flight_logs = sorted(p for p in vehicle_dir.iterdir() if reader_for(p))
     iperf3_files = sorted(vehicle_dir.glob(IPERF3_GLOB))
     if not agent_log.exists() and not flight_logs and not iperf3_files:
         return
@@ -122,7 +152,7 @@ def _read_vehicle(run: RunLog, vehicle_dir: Path) -> None:
     if telemetry == 0:
         for flight_log in flight_logs:  # the autopilot's own record when the agent logged no positions
             try:
-                rows, problems = READERS[flight_log.suffix](flight_log, vehicle)
+                rows, problems = reader_for(flight_log)(flight_log, vehicle)
             except FlightLogError as err:
                 rows, problems = [], [str(err)]
             _warn(run, problems)

@@ -7,6 +7,8 @@ import os
 os.environ.setdefault("MAVLINK20", "1")  # before pymavlink is imported: it defaults to MAVLink 1
 from pymavlink import mavutil  # noqa: E402
 
+from missions.dialect import DialectCommand, register_commands  # noqa: E402
+
 M = mavutil.mavlink
 COPTER_MODES = {name: number for number, name in mavutil.mode_mapping_acm.items()}
 
@@ -15,3 +17,13 @@ def enum_name(enum: str, value: int) -> str:
     """MAVLink's name of an enum value (MAV_RESULT 4 -> MAV_RESULT_FAILED), or the number when it has none."""
     entry = M.enums.get(enum, {}).get(value)
     return entry.name if entry is not None else str(value)
+
+
+def _register_mission_commands() -> None:
+    """Every MAV_CMD of the dialect, for the mission files' validation (missions.dialect imports no pymavlink)."""
+    register_commands({number: DialectCommand(entry.name.removeprefix("MAV_CMD_"),
+                                              bool(getattr(entry, "has_location", False)))
+                       for number, entry in M.enums["MAV_CMD"].items() if not entry.name.endswith("_ENUM_END")})
+
+
+_register_mission_commands()

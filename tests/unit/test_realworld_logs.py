@@ -1,0 +1,112 @@
+"""Autopilot logs other tools wrote (../shared/data/realworld/tlog, bin, ulg; see its SOURCES.md): positions equal
+the reference readers' (pymavlink, pyulog) row for row once samples without a fix are dropped, times on the base
+each file allows (unix from GPS time, else seconds since boot, said), whatever the readers print goes into the
+problems, and a run folder of such logs (uppercase extensions included) is analysed."""
+
+import math
+import shutil
+from pathlib import Path
+
+import pytest
+
+from ground.logs.analysis import analyze
+from ground.logs.autopilot_logs import reader_for
+from ground.logs.runlog import read_run
+from nac_onboard.errors import BadInput
+from tests.conftest import SHARED_DATA
+
+REALWORLD = SHARED_DATA / "realworld"
+pytestmark = pytest.mark.skipif(not REALWORLD.is_dir(), reason=f"{REALWORLD} is absent (see the developers' guide)")
+
+#: file -> (positions, time base, words every listed problem must include, in order)
+OUTCOMES = {
+    "bin/joeydouglas__2014-10-18_21-12-23.bin": (104, "unix", []),  # 2014: GPS stamped with TimeMS, no TimeUS
+    "bin/pymavlink__test.BIN": (23, "unix", []),
+    "bin/rustdf__demo-flight.bin": (0, None, ["unpack requires a buffer", "bad header"]),
+    "bin/yladzislay__dataflash-sample-2.bin": (520, "boot", ["no GPS time in the log"]),
+    "tlog/dronekitpy__flight.tlog": (2684, "unix", ["cut short", "149 of 2833 position samples without a fix"]),
+    "tlog/dronekitpy__test.tlog": (0, None, ["cut short", "11 of 11 position samples without a fix"]),
+    "tlog/mavlinklog__tlog_data_0.tlog": (0, None, ["36 of 36 position samples without a fix"]),
+    "tlog/uavlogviewer__vtol.tlog": (807, "unix", []),
+    "ulg/px4ulogrs__6ba1abc7-b433-4029-b8f5-3b2bb12d3b6c.ulg": (129, "boot", ["no GPS UTC time"]),
+    "ulg/px4ulogrs__corrupt_actuator_armed_wrong_size.ulg": (0, None, ["no GPS UTC time", "no positions"]),
+    "ulg/pyulog__sample_appended_multiple.ulg": (0, None, ["no GPS UTC time", "no positions"]),
+    "ulg/pyulog__sample_log_small.ulg": (32, "unix", ["no vehicle_global_position; positions are the GPS"]),
+}
+
+
+def test_every_log_in_the_folder_has_a_documented_outcome():
+    found = sorted(str(p.relative_to(REALWORLD)) for kind in ("bin", "tlog", "ulg")
+                   for p in (REALWORLD / kind).iterdir())
+    assert found == sorted(OUTCOMES), "a new file in realworld/: give it its outcome here"
+
+
+@pytest.mark.parametrize("name", sorted(OUTCOMES))
+def test_a_real_log_reads_as_the_reference_reader_with_its_problems_said(name, capfd):
+    path = REALWORLD / name
+    rows, problems = reader_for(path)(path, "uav1")
+    count, base, words = OUTCOMES[name]
+    assert capfd.readouterr() == ("", ""), "nothing printed: the readers' complaints are problems of the file"
+    assert len(rows) == count and {r["time_base"] for r in rows} <= {base}
+    assert len(problems) >= len(words) and all(w in p for w, p in zip(words, problems, strict=False)), problems
+    reference = [r for r in _reference(path) if not (r[1] == 0 and r[2] == 0)]
+    assert len(reference) == len(rows)
+    for row, (t_s, lat, lon) in zip(rows, reference, strict=True):
+        assert (row["lat_deg"], row["lon_deg"]) == pytest.approx((lat, lon), abs=1e-9)
+        if t_s is not None:
+            assert row["t_s"] == pytest.approx(t_s, abs=1e-6)
+
+
+def _reference(path: Path) -> list[tuple]:
+    """(t_s or None, lat, lon) of every position sample, as pymavlink or pyulog read the file."""
+    suffix = path.suffix.lower()
+    if suffix == ".tlog":
+        from pymavlink import mavutil
+
+        conn = mavutil.mavlink_connection(str(path), robust_parsing=True)
+        out = []
+        while (msg := conn.recv_match(type="GLOBAL_POSITION_INT")) is not None:
+            out.append((msg._timestamp, msg.lat / 1e7, msg.lon / 1e7))
+        return out
+    if suffix == ".bin":
+        import contextlib
+        import io
+
+        from pymavlink import DFReader
+
+        rows = {"POS": [], "GPS": []}
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            try:
+                reader = DFReader.DFReader_binary(str(path), zero_time_base=False)
+                while (msg := reader.recv_match(type=["POS", "GPS"])) is not None:
+                    rows[msg.get_type()].append((msg._timestamp, msg.Lat, msg.Lng))
+            except Exception:  # the damaged file: what was read before
+                pass
+        return rows["POS"] or rows["GPS"]
+    from pyulog import ULog
+
+    ulog = ULog(str(path), message_name_filter_list=["vehicle_global_position", "vehicle_gps_position"])
+    data = {d.name: d.data for d in ulog.data_list}
+    if "vehicle_global_position" in data:
+        d = data["vehicle_global_position"]
+        return [(None, float(a), float(b)) for a, b in zip(d["lat"], d["lon"], strict=True)]
+    if "vehicle_gps_position" in data:
+        d = data["vehicle_gps_position"]
+        return [(None, a / 1e7, b / 1e7) for a, b in zip(d["lat"], d["lon"], strict=True)]
+    return []
+
+
+def test_a_folder_of_autopilot_logs_with_uppercase_names_is_analysed_and_clocks_are_explained(tmp_path):
+    run = tmp_path / "run"
+    for vehicle, name in (("copter", "bin/pymavlink__test.BIN"), ("old", "bin/yladzislay__dataflash-sample-2.bin")):
+        (run / vehicle).mkdir(parents=True)
+        shutil.copy(REALWORLD / name, run / vehicle / f"00000001{Path(name).suffix.upper()}")
+    read = read_run(run)
+    assert sorted(read.vehicles) == ["copter", "old"] and len(read.positions) == 23 + 520
+    assert any("old: positions on seconds since boot" in p for p in read.problems), read.problems
+    with pytest.raises(BadInput, match=r"--master nobody: no vehicle of that name in the run \(vehicles found: "
+                                       r"copter, old\)"):
+        analyze(read, master="nobody")
+    tables = analyze(read, master="copter")
+    assert tables.distances.empty and not math.isnan(tables.trajectories["lat_deg"].iloc[0])
+    assert tables.trajectories["lat_deg"].abs().min() > 1.0, "no sample without a fix on the map"

@@ -1,0 +1,83 @@
+"""Mission files other tools wrote (../shared/data/realworld/plan and wpl, see its SOURCES.md): each is either
+fit to fly (its items counted) or refused by `mission validate` with the sentence that says why, and every one
+converts losslessly to its own format and to the other where that format can hold it."""
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+
+import nac_onboard.mavlink.dialect  # noqa: F401 (registers the dialects' commands, as every NAC command does)
+from missions import MissionFileError, dumps_plan, dumps_wpl, load_mission, loads_plan, loads_wpl
+from tests.conftest import SHARED_DATA
+
+REALWORLD = SHARED_DATA / "realworld"
+
+#: file -> (mission items, fence items, rally points) when it flies, or the refusal's telling words
+OUTCOMES = {
+    "plan/gisnav__ksql_airport.plan": (8, 0, 0),
+    "plan/mavros__simple.plan": (10, 6, 3),
+    "plan/mavsdk-example__qgroundcontrol_sample.plan": (9, 0, 0),  # geoFence/rallyPoints version 1, empty
+    "plan/mavsdk__qgroundcontrol_sample.plan": (6, 0, 0),
+    "plan/mavsdk__qgroundcontrol_sample_with_survey.plan": 'ComplexItem "survey" has no MAVLink form in a file',
+    "plan/mavsdk__triangle.plan": (4, 0, 0),
+    "plan/qgc__ArduPilotSITL-ArduCopter.plan": "QGroundControl's altitude mode 3 (calculated above terrain",
+    "plan/qgc__OldFileFormat.mission": "NAV_TAKEOFF has frame 2 (MISSION), which is not flown here",
+    "plan/qgc__SectionTest.plan": (5, 0, 0),  # items with four params and a coordinate
+    "wpl/ardupilot__AVC2013.txt": (8, 0, 0),
+    "wpl/ardupilot__KSFO-VTOL.txt": (11, 0, 0),  # NAV_VTOL_TAKEOFF at 0, 0: "here"
+    "wpl/ardupilot__copter_parachute_mission.txt": (2, 0, 0),  # DO_PARACHUTE, space separators
+    "wpl/ardupilot__items.txt": (27, 0, 0),  # comment lines, NAV_ARC_WAYPOINT, JUMP_TAG / DO_JUMP_TAG...
+    "wpl/ardupilot__justhome.txt": "is empty (no mission items)",
+    "wpl/droneinterface__titan_shakedown_mission.waypoints": (8, 0, 0),
+    "wpl/pymavlink__fence-110.txt": (0, 10, 0),  # a fence file: every row a fence item
+    "wpl/qgc__MissionPlanner.waypoints.txt": (14, 0, 0),
+}
+
+needs_files = pytest.mark.skipif(not REALWORLD.is_dir(), reason=f"{REALWORLD} is absent (see the developers' guide)")
+
+
+def _files() -> list[str]:
+    if not REALWORLD.is_dir():
+        return sorted(OUTCOMES)
+    return sorted(str(p.relative_to(REALWORLD)) for kind in ("plan", "wpl") for p in (REALWORLD / kind).iterdir())
+
+
+@needs_files
+def test_every_mission_file_in_the_folder_has_a_documented_outcome():
+    assert _files() == sorted(OUTCOMES), "a new file in realworld/: give it its outcome here"
+
+
+@needs_files
+@pytest.mark.parametrize("name", sorted(OUTCOMES))
+def test_a_real_mission_file_flies_or_is_refused_with_the_reason(name):
+    path = REALWORLD / name
+    expected = OUTCOMES[name]
+    if isinstance(expected, str):
+        with pytest.raises(MissionFileError) as refused:
+            load_mission(path)
+        assert str(refused.value).startswith(f"{path}: ") and expected in str(refused.value)
+        return
+    mission = load_mission(path)
+    assert (len(mission.items), len(mission.fence), len(mission.rally)) == expected
+
+
+@needs_files
+@pytest.mark.parametrize("name", sorted(n for n, outcome in OUTCOMES.items() if "survey" not in str(outcome)))
+def test_a_real_mission_file_converts_losslessly_both_ways(name):
+    mission = load_mission(REALWORLD / name, flight=False)
+    as_plan = loads_plan(dumps_plan(mission))
+    assert as_plan.same_items_as(_plan_holds(mission)) and as_plan.home == mission.home
+    if Path(name).parent.name == "wpl":
+        again = loads_wpl(dumps_wpl(mission))
+        assert again.same_as(mission), "a WPL file reads back as it was, the CURRENT flags included"
+    if not (mission.items and (mission.fence or mission.rally)):  # WPL holds one list per file
+        via_wpl = loads_wpl(dumps_wpl(as_plan))
+        assert via_wpl.same_items_as(_plan_holds(mission)) and via_wpl.home == mission.home
+
+
+def _plan_holds(mission):
+    """What a .plan keeps of a mission: its geoFence and rallyPoints have no autocontinue (fence and rally items
+    are not flown in sequence, so the flag means nothing there)."""
+    return dataclasses.replace(mission, fence=[dataclasses.replace(i, autocontinue=True) for i in mission.fence],
+                               rally=[dataclasses.replace(i, autocontinue=True) for i in mission.rally])
