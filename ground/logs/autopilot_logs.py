@@ -19,6 +19,7 @@ from pathlib import Path
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
+from ground.logs.dataflash import read_positions_fast  # noqa: E402
 from nac_onboard.errors import BadInput
 from nac_onboard.mavlink.frames import TLOG_STAMP, frame_length, msgid_at  # noqa: E402
 
@@ -190,10 +191,44 @@ def _native_output_to(file):
 def dataflash_positions(path: str | Path, vehicle: str) -> tuple[list[dict], list[str]]:
     """POS rows of an ArduPilot DataFlash `.bin` (GPS rows when it has no POS; logs from before 2015 stamp them
     with TimeMS, later ones TimeUS), on pymavlink's clock: unix time from the GPS when the log has it, else
-    seconds since boot (then said, and the rows' time_base is "boot")."""
+    seconds since boot (then said, and the rows' time_base is "boot"). Modern logs are walked by record length
+    (ground.logs.dataflash); the rest go through pymavlink's DFReader."""
+    path = Path(path)
+    try:
+        fast = read_positions_fast(path.read_bytes())
+    except OSError as err:
+        raise FlightLogError(f"{path}: cannot read ({err.strerror or err})") from None
+    if fast is None:
+        return _dataflash_positions_dfreader(path, vehicle)
+    pos, gps = fast.columns.get("POS"), fast.columns.get("GPS")
+    columns = pos if pos is not None and len(pos["TimeUS"]) else gps
+    rows = []
+    if columns:
+        time_us = columns["TimeUS"]
+        rel_alt = columns["RelHomeAlt"].tolist() if "RelHomeAlt" in columns else [None] * len(time_us)
+        rows = [{"vehicle": vehicle, "source": "dataflash", "t_s": t_s, "time_boot_ms": boot_ms, "lat_deg": lat,
+                 "lon_deg": lon, "alt_m": alt, "rel_alt_m": rel}
+                for t_s, boot_ms, lat, lon, alt, rel in zip(
+                    (fast.timebase_s + time_us * 0.000001).tolist(), (time_us / 1000).tolist(),
+                    columns["Lat"].tolist(), columns["Lng"].tolist(), columns["Alt"].tolist(), rel_alt,
+                    strict=True)]
+    problems = [f"{path}: {fast.tail_problem}"] if fast.tail_problem else []
+    return _on_clock(rows, path, "unix" if fast.unix else "boot", problems)
+
+
+def _on_clock(rows: list[dict], path: Path, base: str, problems: list[str]) -> tuple[list[dict], list[str]]:
+    chosen, no_fix = with_fix(rows, path)
+    for row in chosen:
+        row["time_base"] = base
+    if chosen and base == "boot":
+        problems.append(f"{path}: no GPS time in the log; its times are seconds since boot and cannot be paired "
+                        f"with other vehicles' unix times")
+    return chosen, problems + no_fix
+
+
+def _dataflash_positions_dfreader(path: Path, vehicle: str) -> tuple[list[dict], list[str]]:
     from pymavlink import DFReader
 
-    path = Path(path)
     problems: list[str] = []
     with _reference_reader(path, problems):
         try:
@@ -215,14 +250,8 @@ def dataflash_positions(path: str | Path, vehicle: str) -> tuple[list[dict], lis
                 "vehicle": vehicle, "source": "dataflash", "t_s": msg._timestamp, "time_boot_ms": boot_ms,
                 "lat_deg": msg.Lat, "lon_deg": msg.Lng, "alt_m": msg.Alt,
                 "rel_alt_m": getattr(msg, "RelHomeAlt", None)})
-    chosen, no_fix = with_fix(rows["POS"] or rows["GPS"], path)
-    base = "unix" if chosen and chosen[0]["t_s"] > UNIX_TIME_AFTER_S else "boot"
-    for row in chosen:
-        row["time_base"] = base
-    if chosen and base == "boot":
-        problems.append(f"{path}: no GPS time in the log; its times are seconds since boot and cannot be paired "
-                        f"with other vehicles' unix times")
-    return chosen, problems + no_fix
+    chosen = rows["POS"] or rows["GPS"]
+    return _on_clock(chosen, path, "unix" if chosen and chosen[0]["t_s"] > UNIX_TIME_AFTER_S else "boot", problems)
 
 
 def ulog_positions(path: str | Path, vehicle: str) -> tuple[list[dict], list[str]]:

@@ -8,6 +8,8 @@ import shutil
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from ground.logs.analysis import analyze
 from ground.logs.autopilot_logs import reader_for
@@ -23,7 +25,7 @@ OUTCOMES = {
     "bin/joeydouglas__2014-10-18_21-12-23.bin": (104, "unix", []),  # 2014: GPS stamped with TimeMS, no TimeUS
     "bin/pymavlink__test.BIN": (23, "unix", []),
     "bin/rustdf__demo-flight.bin": (0, None, ["unpack requires a buffer", "bad header"]),
-    "bin/yladzislay__dataflash-sample-2.bin": (520, "boot", ["no GPS time in the log"]),
+    "bin/yladzislay__dataflash-sample-2.bin": (520, "boot", ["cut short", "no GPS time in the log"]),
     "tlog/dronekitpy__flight.tlog": (2684, "unix", ["cut short", "149 of 2833 position samples without a fix"]),
     "tlog/dronekitpy__test.tlog": (0, None, ["cut short", "11 of 11 position samples without a fix"]),
     "tlog/mavlinklog__tlog_data_0.tlog": (0, None, ["36 of 36 position samples without a fix"]),
@@ -110,3 +112,52 @@ def test_a_folder_of_autopilot_logs_with_uppercase_names_is_analysed_and_clocks_
     tables = analyze(read, master="copter")
     assert tables.distances.empty and not math.isnan(tables.trajectories["lat_deg"].iloc[0])
     assert tables.trajectories["lat_deg"].abs().min() > 1.0, "no sample without a fix on the map"
+
+
+MODERN_DATAFLASH = REALWORLD / "bin" / "yladzislay__dataflash-sample-2.bin"
+
+
+def _both_readers(raw: bytes, tmp_path: Path) -> tuple[list | str, list | str]:
+    """Rows (or the refusal) of the reader in use and of DFReader alone."""
+    from ground.logs.autopilot_logs import FlightLogError, _dataflash_positions_dfreader, dataflash_positions
+
+    path = tmp_path / "damaged.bin"
+    path.write_bytes(raw)
+    outcomes = []
+    for read in (dataflash_positions, _dataflash_positions_dfreader):
+        try:
+            outcomes.append(read(path, "uav1")[0])
+        except FlightLogError as err:
+            outcomes.append(str(err))
+    return outcomes[0], outcomes[1]
+
+
+@pytest.mark.skipif(not MODERN_DATAFLASH.is_file(), reason=f"{MODERN_DATAFLASH} is absent")
+def test_the_fast_dataflash_walk_ignores_header_bytes_inside_payloads_and_hands_damage_to_dfreader(tmp_path):
+    from ground.logs.dataflash import read_positions_fast
+
+    raw = bytearray(MODERN_DATAFLASH.read_bytes())
+    walked = read_positions_fast(bytes(raw))
+    assert walked is not None and len(walked.columns["POS"]["TimeUS"]) == 520, "a modern log takes the fast path"
+    # header bytes (and an FMT type) inside the last POS record's payload are not records
+    payload_at = len(raw) // 2
+    payload_at = raw.index(b"\xa3\x95", payload_at) + 3
+    raw[payload_at + 1:payload_at + 4] = b"\xa3\x95\x80"
+    fast, slow = _both_readers(bytes(raw), tmp_path)
+    assert read_positions_fast(bytes(raw)) is not None and fast == slow and len(fast) == 520
+    # bytes that are not a record in the middle: DFReader resynchronises, the fast walk steps aside
+    raw[payload_at - 3:payload_at - 3] = bytes(range(256)) * 4
+    assert read_positions_fast(bytes(raw)) is None
+    fast, slow = _both_readers(bytes(raw), tmp_path)
+    assert fast == slow and len(fast) == 520
+
+
+@pytest.mark.skipif(not MODERN_DATAFLASH.is_file(), reason=f"{MODERN_DATAFLASH} is absent")
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(flips=st.lists(st.tuples(st.integers(0, 749_567), st.integers(0, 255)), min_size=1, max_size=8))
+def test_a_damaged_dataflash_log_gives_the_rows_dfreader_gives(flips, tmp_path):
+    raw = bytearray(MODERN_DATAFLASH.read_bytes())
+    for at, value in flips:
+        raw[at % len(raw)] = value
+    fast, slow = _both_readers(bytes(raw), tmp_path)
+    assert fast == slow

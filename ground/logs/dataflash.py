@@ -1,0 +1,178 @@
+"""Positions from an ArduPilot DataFlash `.bin` without decoding every record: records are walked by the lengths
+their FMT records give, and only POS and GPS are unpacked, on the clock pymavlink's DFReader would give them.
+
+The walk is done on arrays rather than record by record: every place the two header bytes occur is a candidate
+record, each candidate points at the one its length says comes next, and the records are the candidates reached
+from offset 0 (found by pointer doubling, log2(n) array steps). Header bytes that happen to sit inside a payload
+are candidates no chain from 0 reaches.
+
+This path takes the logs ArduPilot has written since 2015 (every record stamped with TimeUS, GPS time as
+GWk/GMS). Anything else (older TimeMS logs, bytes between records that are not a record, a type no FMT defined,
+an FMT defined twice) returns None, and the caller reads the file with DFReader: same rows, only slower.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+
+import numpy as np
+
+HEAD = (0xA3, 0x95)
+FMT_TYPE = 128
+FMT_STRUCT = struct.Struct("<BB4s16s64s")  # Type, Length (with the 3-byte head), Name, Format, Columns
+FMT_LENGTH = 3 + FMT_STRUCT.size
+#: DataFlash format characters: numpy type and the divisor of the scaled ones (dividing by 1e7 rather than
+#: multiplying by 1e-7 is more accurate, and it is what DFReader does)
+CODES = {"a": ("S64", None), "b": ("i1", None), "B": ("u1", None), "g": ("<f2", None), "h": ("<i2", None),
+         "H": ("<u2", None), "i": ("<i4", None), "I": ("<u4", None), "f": ("<f4", None), "n": ("S4", None),
+         "N": ("S16", None), "Z": ("S64", None), "c": ("<i2", 100.0), "C": ("<u2", 100.0), "e": ("<i4", 100.0),
+         "E": ("<u4", 100.0), "L": ("<i4", 1.0e7), "d": ("<f8", None), "M": ("i1", None), "q": ("<i8", None),
+         "Q": ("<u8", None)}
+GPS_EPOCH_S = 86400 * (10 * 365 + int((1980 - 1969) / 4) + 1 + 6 - 2)  # 1980-01-06 in unix time
+GPS_LEAP_S = 18  # as DFReader counts it
+#: DFReader says nothing of bytes that are not a record this close to the end (block logs pad their last page)
+QUIET_TAIL_BYTES = 528
+
+
+@dataclass
+class Format:
+    name: str
+    length: int
+    dtype: np.dtype
+    divisors: dict[str, float]
+
+    def decode(self, data: np.ndarray, offsets: np.ndarray) -> dict[str, np.ndarray]:
+        """Columns of the records at `offsets`, scaled as DFReader scales them."""
+        payload = data[offsets[:, None] + np.arange(3, self.length)]
+        records = np.ascontiguousarray(payload).view(self.dtype).ravel()
+        return {c: records[c] / self.divisors[c] if c in self.divisors else records[c] for c in self.dtype.names}
+
+
+@dataclass
+class FastRead:
+    columns: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)  # POS and GPS columns, in file order
+    tail_problem: str | None = None  # what was skipped at the end, said as a sentence
+    timebase_s: float = 0.0
+    unix: bool = False  # the timebase came from GPS time (else seconds since boot)
+
+
+def _format(body: bytes) -> tuple[int, Format | None] | None:
+    """The type an FMT record defines and its layout (None for the FMT type itself); None if it does not parse."""
+    kind, length, name, fmt, columns = FMT_STRUCT.unpack(body)
+    if kind == FMT_TYPE:
+        return (kind, None) if length == FMT_LENGTH else None
+    chars = fmt.rstrip(b"\0").decode("ascii", "replace")
+    names = columns.rstrip(b"\0").decode("ascii", "replace").split(",") if columns.strip(b"\0") else []
+    if any(c not in CODES for c in chars) or len(names) != len(chars) or len(set(names)) != len(names):
+        return None
+    dtype = np.dtype([(n, CODES[c][0]) for n, c in zip(names, chars, strict=True)])
+    if dtype.itemsize + 3 != length:
+        return None
+    divisors = {n: CODES[c][1] for n, c in zip(names, chars, strict=True) if CODES[c][1] is not None}
+    return kind, Format(name.rstrip(b"\0").decode("ascii", "replace"), length, dtype, divisors)
+
+
+def _formats(data: np.ndarray, starts: np.ndarray) -> tuple[dict[int, Format], set[int]] | None:
+    """Every FMT candidate that parses, by type; None where two disagree. Also the offsets of those that parsed."""
+    formats: dict[int, Format] = {}
+    used: set[int] = set()
+    for start in starts[data[starts + 2] == FMT_TYPE]:
+        parsed = _format(data[start + 3:start + FMT_LENGTH].tobytes()) if start + FMT_LENGTH <= len(data) else None
+        if parsed is None:
+            continue
+        kind, fmt = parsed
+        used.add(int(start))
+        if fmt is None:
+            continue
+        if kind in formats and formats[kind] != fmt:
+            return None
+        formats[kind] = fmt
+    return formats, used
+
+
+def _chain(nxt: np.ndarray) -> np.ndarray:
+    """Mask of the nodes reached from node 0 by following `nxt` (the last node is a sink pointing at itself):
+    after step k the mask holds the first 2**k nodes of the path, so log2(n) steps find it all."""
+    on = np.zeros(len(nxt), dtype=bool)
+    on[0] = True
+    jump = nxt
+    for _ in range(max(1, int(len(nxt)).bit_length())):
+        on[jump[on]] = True
+        jump = jump[jump]
+    return on
+
+
+def read_positions_fast(raw: bytes, wanted=("POS", "GPS")) -> FastRead | None:
+    """The wanted records of a modern DataFlash log and its clock, or None where DFReader must read it."""
+    data = np.frombuffer(raw, dtype=np.uint8)
+    n = len(data)
+    if n < 3 or (data[0], data[1]) != HEAD:
+        return None
+    starts = np.flatnonzero((data[:-2] == HEAD[0]) & (data[1:-1] == HEAD[1]))
+    parsed = _formats(data, starts)
+    if parsed is None:
+        return None
+    formats, fmt_offsets = parsed
+    lengths = np.zeros(256, dtype=np.int64)  # 0: no FMT for the type
+    lengths[FMT_TYPE] = FMT_LENGTH
+    for kind, fmt in formats.items():
+        lengths[kind] = fmt.length
+    kinds = data[starts + 2]
+    ends = starts + lengths[kinds]
+    sink = len(starts)
+    nxt = np.searchsorted(starts, ends)
+    nxt[(nxt >= sink) | (starts[np.minimum(nxt, sink - 1)] != ends) | (lengths[kinds] == 0)] = sink
+    on = _chain(np.append(nxt, sink))[:sink]
+    records, record_kinds = starts[on], kinds[on]
+    last = len(records) - 1
+    tail_problem = _tail(n, int(records[last]), int(lengths[record_kinds[last]]))
+    if tail_problem == "":
+        return None
+    if tail_problem and "cut short" in tail_problem:
+        records, record_kinds = records[:last], record_kinds[:last]
+    on_chain = set(records[record_kinds == FMT_TYPE].tolist())
+    if not fmt_offsets <= on_chain or len(on_chain) != len(fmt_offsets):
+        return None  # an FMT that is not a record, or a record FMT that did not parse
+    out = FastRead(tail_problem=tail_problem)
+    by_name = {f.name: (kind, f) for kind, f in formats.items()}
+    for name in wanted:
+        if name not in by_name:
+            continue
+        kind, fmt = by_name[name]
+        if fmt.dtype.names[0] != "TimeUS":
+            return None  # a log stamped in TimeMS: DFReader's older clocks
+        out.columns[name] = fmt.decode(data, records[record_kinds == kind])
+    return out if _set_clock(out, by_name.get("GPS", (0, None))[1]) else None
+
+
+def _tail(n: int, last_start: int, last_length: int) -> str | None:
+    """What ends the walk: None for the end of the file, a sentence for a cut record or a short tail of bytes
+    that are not records (DFReader skips both quietly), "" for anything DFReader must resynchronise over."""
+    if last_length == 0:
+        return ""  # a type no FMT defined
+    end = last_start + last_length
+    if end == n:
+        return None
+    if end > n:
+        return "the last record is cut short (the writer stopped mid-record); skipped"
+    if n - end < QUIET_TAIL_BYTES:
+        return f"{n - end} bytes after the last record are not a record; skipped"
+    return ""
+
+
+def _set_clock(read: FastRead, gps: Format | None) -> bool:
+    """DFReader's microsecond clock: the first GPS record with a GPS week sets unix time; a log whose GPS never
+    has one (or has no GPS) stays on seconds since boot. A GPS without GWk/GMS is an older log: not this path."""
+    columns = read.columns.get("GPS")
+    if gps is None or columns is None or not len(columns["TimeUS"]):
+        return True
+    if not {"GWk", "GMS"} <= set(gps.dtype.names):
+        return False
+    with_week = np.flatnonzero(columns["GWk"] > 0)
+    if len(with_week):
+        k = with_week[0]
+        week, week_ms, time_us = int(columns["GWk"][k]), int(columns["GMS"][k]), int(columns["TimeUS"][k])
+        t = GPS_EPOCH_S + 86400 * 7 * week + week_ms * 0.001 - GPS_LEAP_S
+        read.timebase_s, read.unix = t - time_us * 0.000001, True
+    return True
