@@ -85,7 +85,8 @@ def _add_logs_parser(sub) -> None:
                            help="independent fades one probe averages (about 10 for a 1 s probe while moving)")
 
 
-def run_logs(args: argparse.Namespace, out=sys.stdout) -> int:
+def run_logs(args: argparse.Namespace, out=None) -> int:
+    out = out or sys.stdout  # looked up per call: a caller may have replaced sys.stdout since import
     from ground.logs import report  # pandas and matplotlib only for the commands that use them
 
     if args.action == "analyze":
@@ -126,7 +127,8 @@ def _brief(summary: dict) -> str:
     return ", ".join(parts)
 
 
-def run(args: argparse.Namespace, out=sys.stdout) -> int:
+def run(args: argparse.Namespace, out=None) -> int:
+    out = out or sys.stdout
     if args.command == "logs":
         return run_logs(args, out)
     key = (args.command, getattr(args, "action", None))

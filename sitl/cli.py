@@ -91,7 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def radio_table(channel: str, distances_text: str, draws: int, out=sys.stdout) -> None:
+def radio_table(channel: str, distances_text: str, draws: int, out=None) -> None:
+    out = out or sys.stdout  # looked up per call: a caller may have replaced sys.stdout since import
     from nac_onboard.link.channel import load_channel
     from nac_onboard.link.radio import rate_band
 
@@ -138,8 +139,9 @@ def config_from_args(args: argparse.Namespace) -> SitlConfig:
     )
 
 
-def run(config: SitlConfig, stop: threading.Event | None = None, out=sys.stdout) -> None:
+def run(config: SitlConfig, stop: threading.Event | None = None, out=None) -> None:
     """Serve until `stop` is set (or SIGINT/SIGTERM when run from the command line)."""
+    out = out or sys.stdout
     sim = Sitl(config)
     for i, ends in enumerate(sim.endpoints):
         home = sim.homes[i]
@@ -169,7 +171,8 @@ def _wait(sim: Sitl, stop: threading.Event | None) -> None:
             raise SitlError("the simulation loop stopped on an internal error (see the log above)")
 
 
-def experiment(args: argparse.Namespace, out=sys.stdout) -> int:
+def experiment(args: argparse.Namespace, out=None) -> int:
+    out = out or sys.stdout
     from sitl.experiment.runner import run_scenario
     from sitl.experiment.scenario import load_scenario
 

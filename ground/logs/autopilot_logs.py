@@ -226,6 +226,9 @@ def _on_clock(rows: list[dict], path: Path, base: str, problems: list[str]) -> t
     return chosen, problems + no_fix
 
 
+POSITION_COLUMNS = {"Lat", "Lng", "Alt"}
+
+
 def _dataflash_positions_dfreader(path: Path, vehicle: str) -> tuple[list[dict], list[str]]:
     from pymavlink import DFReader
 
@@ -235,7 +238,8 @@ def _dataflash_positions_dfreader(path: Path, vehicle: str) -> tuple[list[dict],
             reader = DFReader.DFReader_binary(str(path), zero_time_base=False)
         except Exception as err:  # pymavlink raises bare exceptions on unreadable files
             raise FlightLogError(f"{path}: not a DataFlash log ({err})") from None
-        rows = {"POS": [], "GPS": []}
+        rows: dict[str, list[dict]] = {"POS": [], "GPS": []}
+        unusable: set[str] = set()  # a type whose FMT (damaged, or not ArduPilot's) lacks a position column
         while True:
             try:
                 msg = reader.recv_match(type=["POS", "GPS"])
@@ -245,11 +249,16 @@ def _dataflash_positions_dfreader(path: Path, vehicle: str) -> tuple[list[dict],
                 break
             if msg is None:
                 break
+            if not set(msg.get_fieldnames()) >= POSITION_COLUMNS:
+                unusable.add(msg.get_type())
+                continue
             boot_ms = msg.TimeUS / 1000 if hasattr(msg, "TimeUS") else getattr(msg, "TimeMS", None)
             rows[msg.get_type()].append({
                 "vehicle": vehicle, "source": "dataflash", "t_s": msg._timestamp, "time_boot_ms": boot_ms,
                 "lat_deg": msg.Lat, "lon_deg": msg.Lng, "alt_m": msg.Alt,
                 "rel_alt_m": getattr(msg, "RelHomeAlt", None)})
+    problems += [f"{path}: {kind} records without the columns {', '.join(sorted(POSITION_COLUMNS))} (as their FMT "
+                 f"record describes them): not read as positions" for kind in sorted(unusable)]
     chosen = rows["POS"] or rows["GPS"]
     return _on_clock(chosen, path, "unix" if chosen and chosen[0]["t_s"] > UNIX_TIME_AFTER_S else "boot", problems)
 

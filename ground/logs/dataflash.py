@@ -22,6 +22,7 @@ HEAD = (0xA3, 0x95)
 FMT_TYPE = 128
 FMT_STRUCT = struct.Struct("<BB4s16s64s")  # Type, Length (with the 3-byte head), Name, Format, Columns
 FMT_LENGTH = 3 + FMT_STRUCT.size
+FMT_OF_FMT = (FMT_LENGTH, b"BBnNZ", b"Type,Length,Name,Format,Columns")
 #: DataFlash format characters: numpy type and the divisor of the scaled ones (dividing by 1e7 rather than
 #: multiplying by 1e-7 is more accurate, and it is what DFReader does)
 CODES = {"a": ("S64", None), "b": ("i1", None), "B": ("u1", None), "g": ("<f2", None), "h": ("<i2", None),
@@ -60,8 +61,8 @@ class FastRead:
 def _format(body: bytes) -> tuple[int, Format | None] | None:
     """The type an FMT record defines and its layout (None for the FMT type itself); None if it does not parse."""
     kind, length, name, fmt, columns = FMT_STRUCT.unpack(body)
-    if kind == FMT_TYPE:
-        return (kind, None) if length == FMT_LENGTH else None
+    if kind == FMT_TYPE:  # any other description of FMT itself is DFReader's to judge
+        return (kind, None) if (length, fmt.rstrip(b"\0"), columns.rstrip(b"\0")) == FMT_OF_FMT else None
     chars = fmt.rstrip(b"\0").decode("ascii", "replace")
     names = columns.rstrip(b"\0").decode("ascii", "replace").split(",") if columns.strip(b"\0") else []
     if any(c not in CODES for c in chars) or len(names) != len(chars) or len(set(names)) != len(names):
@@ -140,8 +141,8 @@ def read_positions_fast(raw: bytes, wanted=("POS", "GPS")) -> FastRead | None:
         if name not in by_name:
             continue
         kind, fmt = by_name[name]
-        if fmt.dtype.names[0] != "TimeUS":
-            return None  # a log stamped in TimeMS: DFReader's older clocks
+        if fmt.dtype.names[0] != "TimeUS" or not {"Lat", "Lng", "Alt"} <= set(fmt.dtype.names):
+            return None  # a log stamped in TimeMS (DFReader's older clocks), or a layout that is not ArduPilot's
         out.columns[name] = fmt.decode(data, records[record_kinds == kind])
     return out if _set_clock(out, by_name.get("GPS", (0, None))[1]) else None
 

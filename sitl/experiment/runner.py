@@ -99,10 +99,10 @@ class ExperimentResult:
 
 
 class Experiment:
-    def __init__(self, scenario: Scenario, run_dir: Path, speedup: float, base_port: int, out=sys.stdout,
+    def __init__(self, scenario: Scenario, run_dir: Path, speedup: float, base_port: int, out=None,
                  stop: threading.Event | None = None, analyze: bool = True,
                  network: tuple[str, str] = ("sleep", ""), replay: ReplayLinks | None = None):
-        self.scenario, self.run_dir, self.speedup, self.out = scenario, run_dir, speedup, out
+        self.scenario, self.run_dir, self.speedup, self.out = scenario, run_dir, speedup, out or sys.stdout
         self.replay = replay
         self.network, self.network_why = network
         self.air: AirNetwork | None = None
@@ -516,11 +516,12 @@ def default_run_dir(scenario: Scenario) -> Path:
 
 
 def run_scenario(scenario: Scenario, run_dir: Path | None, speedup: float, base_port: int = 14550,
-                 out=sys.stdout, stop: threading.Event | None = None, analyze: bool = True,
+                 out=None, stop: threading.Event | None = None, analyze: bool = True,
                  network: str | None = None, links: str = "model") -> ExperimentResult:
     """Run one scenario and print its final summary; the result says how it ended and where the report is.
     network: "kernel", "sleep" or None (kernel where it can run). links: "model" (the radio model) or
     "replay:RUN" (a recorded run's measured throughput per pair)."""
+    out = out or sys.stdout
     replay = parse_links(links)
     chosen = choose_network(network)
     if chosen[0] != network:

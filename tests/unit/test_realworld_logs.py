@@ -114,6 +114,52 @@ def test_a_folder_of_autopilot_logs_with_uppercase_names_is_analysed_and_clocks_
     assert tables.trajectories["lat_deg"].abs().min() > 1.0, "no sample without a fix on the map"
 
 
+def test_logs_analyze_takes_a_run_of_every_real_log_and_iperf3_file_with_no_traceback(tmp_path, capsys, caplog):
+    """One vehicle folder per file, the iperf3 outputs on the master: exit 0, every file's problems named."""
+    from ground import cli
+
+    run = tmp_path / "run"
+    for k, name in enumerate(sorted(OUTCOMES)):
+        (run / f"v{k}").mkdir(parents=True)
+        shutil.copy(REALWORLD / name, run / f"v{k}" / Path(name).name)
+    for k, name in enumerate(sorted(IPERF3_OUTCOMES)):
+        shutil.copy(REALWORLD / name, run / "v0" / f"iperf3-v{k + 1}.json")
+    assert cli.main(["logs", "analyze", str(run), "--out", str(tmp_path / "report"), "--master", "v0"]) == 0
+    out, err = capsys.readouterr()
+    assert "Traceback" not in out + err and "internal error" not in err
+    said = caplog.text
+    assert "rustdf__demo-flight.bin: unpack requires a buffer" in said and "iperf3-v2.json: iperf3 JSON" in said
+    assert "v3, v8: positions on seconds since boot" in said
+    assert (tmp_path / "report" / "report.md").is_file() and "report.md: 12 vehicles" in out, out
+
+
+#: iperf3 --json output -> (received Mbit/s of the probe, or None where the file is skipped with this problem)
+IPERF3_OUTCOMES = {
+    "iperf3/cloudpilot-baseline__baseline_target_host_direct_10.res": (89.148, None),
+    "iperf3/cloudpilot-failed__bw_host_proxy_proxy_0.res": (None, "never connected"),
+    "iperf3/cloudpilot-omit3__bw_proxy_target_direct.res": (464.786, None),  # the 3 omitted seconds left out
+}
+
+
+def test_every_iperf3_file_in_the_folder_has_a_documented_outcome():
+    assert sorted(f"iperf3/{p.name}" for p in (REALWORLD / "iperf3").iterdir()) == sorted(IPERF3_OUTCOMES)
+
+
+@pytest.mark.parametrize("name", sorted(IPERF3_OUTCOMES))
+def test_a_real_iperf3_file_is_a_probe_at_its_received_rate_or_skipped_with_the_reason(name, tmp_path):
+    from ground.logs.runlog import _iperf3_probe
+
+    saved = tmp_path / "iperf3-w1.json"
+    shutil.copy(REALWORLD / name, saved)
+    probe, problem = _iperf3_probe(saved, "master")
+    rate_mbps, words = IPERF3_OUTCOMES[name]
+    if rate_mbps is None:
+        assert probe is None and words in problem and str(saved) in problem
+    else:
+        assert problem is None and "error" not in probe and (probe["client"], probe["server"]) == ("master", "w1")
+        assert probe["end"]["sum_received"]["bits_per_second"] / 1e6 == pytest.approx(rate_mbps, abs=1e-3)
+
+
 MODERN_DATAFLASH = REALWORLD / "bin" / "yladzislay__dataflash-sample-2.bin"
 
 
@@ -150,6 +196,14 @@ def test_the_fast_dataflash_walk_ignores_header_bytes_inside_payloads_and_hands_
     assert read_positions_fast(bytes(raw)) is None
     fast, slow = _both_readers(bytes(raw), tmp_path)
     assert fast == slow and len(fast) == 520
+    # an FMT that gives POS no longitude: no positions from POS, said, no crash
+    columns_at = raw.index(b"TimeUS,Lat,Lng")
+    raw[columns_at + 11:columns_at + 14] = b"Lxg"
+    from ground.logs.autopilot_logs import dataflash_positions
+
+    (tmp_path / "no-lng.bin").write_bytes(bytes(raw))
+    rows, problems = dataflash_positions(tmp_path / "no-lng.bin", "uav1")
+    assert rows == [] and any("POS records without the columns Alt, Lat, Lng" in p for p in problems), problems
 
 
 @pytest.mark.skipif(not MODERN_DATAFLASH.is_file(), reason=f"{MODERN_DATAFLASH} is absent")

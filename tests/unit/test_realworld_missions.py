@@ -81,3 +81,26 @@ def _plan_holds(mission):
     are not flown in sequence, so the flag means nothing there)."""
     return dataclasses.replace(mission, fence=[dataclasses.replace(i, autocontinue=True) for i in mission.fence],
                                rally=[dataclasses.replace(i, autocontinue=True) for i in mission.rally])
+
+
+@needs_files
+@pytest.mark.parametrize("name", sorted(OUTCOMES))
+def test_the_cli_validates_and_converts_every_real_mission_file_with_exit_0_or_2_and_no_traceback(
+        name, tmp_path, capsys):
+    from ground import cli
+
+    path = REALWORLD / name
+    refused = isinstance(OUTCOMES[name], str)
+    assert cli.main(["mission", "validate", str(path)]) == (2 if refused else 0)
+    out, err = capsys.readouterr()
+    assert "Traceback" not in out + err
+    if refused:
+        assert str(path) in err and OUTCOMES[name] in err
+    target = tmp_path / ("converted.waypoints" if path.suffix in (".plan", ".mission") else "converted.plan")
+    expected = OUTCOMES[name]
+    # a survey has no MAVLink form in a file; a WPL file holds one list, so not a mission with its fence and rally
+    converts = "survey" not in str(expected) and not (
+        target.suffix == ".waypoints" and isinstance(expected, tuple) and expected[0] and any(expected[1:]))
+    assert cli.main(["mission", "convert", str(path), str(target)]) == (0 if converts else 2)
+    out, err = capsys.readouterr()
+    assert "Traceback" not in out + err and target.exists() == converts
