@@ -357,6 +357,7 @@ class Experiment:
         (self.run_dir / "compute").mkdir(exist_ok=True)
         self.mpi_log = open(self.run_dir / "compute" / "mpiexec.log", "wb")  # noqa: SIM115 (closed at shutdown)
         if self.air is not None:
+            self.air.wait_for_carrier()  # MPI's transport picks its devices once, at start
             command = kernel_mpi_command(self.scenario, self.run_dir, self.ports, end_at_sim_s, self.air,
                                          self.clock_path)
         else:

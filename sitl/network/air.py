@@ -12,9 +12,11 @@ process start.
 
 from __future__ import annotations
 
+import json
 import logging
 import subprocess
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,6 +26,8 @@ from sitl.network.shaping import Layout
 log = logging.getLogger(__name__)
 MAX_STATIONS = 250
 NFT_TABLE = "nacair"
+CARRIER_TIMEOUT_S = 5.0
+CARRIER_POLL_S = 0.02  # a carrier comes within microseconds of a successful set up: polled, not awaited
 TCP_RTO_MIN_US, TCP_RTO_MAX_MS = 200_000, 120_000  # Linux's defaults
 
 
@@ -135,6 +139,33 @@ class AirNetwork:
             self.ap_tc = CommandStream(["tc", "-n", self.stations[self.layout.ap].netns, "-force", "-batch", "-"],
                                        "tc (access point)")
         self.nft = CommandStream(["ip", "netns", "exec", self.air_ns, "nft", "-i"], "nft (air)")
+        self.wait_for_carrier()
+
+    def wait_for_carrier(self, timeout_s: float = CARRIER_TIMEOUT_S) -> None:
+        """Every station's air0 running before anything uses it. On some kernels (6.18) the access point's air0
+        loses its carrier when its root qdisc is attached and stays NO-CARRIER (operstate DOWN) until it is set
+        up again; MPI's transport then finds no usable device. Set up again until each runs, within the timeout."""
+        deadline = time.monotonic() + timeout_s
+        waiting = [s for s in self.stations if not self._running(s)]
+        while waiting:
+            if time.monotonic() > deadline:
+                names = ", ".join(s.vehicle_id for s in waiting)
+                raise netns.NetworkError(f"{names}: air0 has no carrier {timeout_s:g} s after it was set up")
+            for s in waiting:
+                log.info("%s: air0 without a carrier; setting it up again", s.vehicle_id)
+                netns.run(["ip", "-n", s.netns, "-batch", "-"], f"{s.vehicle_id}'s air0",
+                          "link set air0 down\nlink set air0 up\n")
+            time.sleep(CARRIER_POLL_S)
+            waiting = [s for s in waiting if not self._running(s)]
+
+    @staticmethod
+    def _running(station: Station) -> bool:
+        shown = netns.run(["ip", "-n", station.netns, "-j", "link", "show", "dev", "air0"],
+                          f"{station.vehicle_id}'s air0")
+        try:
+            return json.loads(shown)[0].get("operstate") == "UP"
+        except (ValueError, IndexError, AttributeError):
+            return False
 
     def tcp_settings(self) -> list[str]:
         """TCP's timers on the simulator's clock: its retransmission timeouts (and their back-off after a link

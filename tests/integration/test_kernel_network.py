@@ -109,6 +109,24 @@ def test_two_workers_share_the_access_points_airtime_or_not(tmp_path, sharing):
     assert not any(n.startswith(air.prefix) for n in netns.namespaces())
 
 
+
+def test_a_station_interface_without_a_carrier_is_set_up_again_before_use():
+    """What kernel 6.18 did to the access point's air0 now and then (NO-CARRIER after its qdisc was attached,
+    so MPI found no device): wait_for_carrier brings it back, and says who when it cannot."""
+    air = AirNetwork(["m", "w1"], ap=0, sharing=True).create()
+    try:
+        assert all(air._running(s) for s in air.stations), "create() hands over running interfaces"
+        netns.run(["ip", "-n", air.stations[0].netns, "link", "set", "air0", "down"], "test")
+        assert not air._running(air.stations[0])
+        air.wait_for_carrier()
+        assert air._running(air.stations[0])
+        netns.run(["ip", "-n", air.air_ns, "link", "set", air.stations[1].port, "down"], "test")  # no peer: no carrier
+        with pytest.raises(netns.NetworkError, match=r"w1: air0 has no carrier 0.2 s after it was set up"):
+            air.wait_for_carrier(timeout_s=0.2)
+    finally:
+        air.close()
+    assert not any(n.startswith(air.prefix) for n in netns.namespaces())
+
 def test_a_dead_runs_namespaces_are_found_and_removed():
     if _kernel_network_missing():
         pytest.skip(_kernel_network_missing())
