@@ -183,9 +183,15 @@ def _vfr_hud(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
 
 
 def _sys_status(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
-    health = SENSORS if w.fleet.gps_ok[i] else SENSORS & ~M.MAV_SYS_STATUS_SENSOR_GPS
+    """As ArduCopter fills it: the geofence is present and healthy (nothing breached: fences are not enforced),
+    enabled by FENCE_ENABLE; PREARM_CHECK is healthy while the pre-arm checks pass (MAVSDK's is_armable)."""
+    present = SENSORS | M.MAV_SYS_STATUS_GEOFENCE | M.MAV_SYS_STATUS_PREARM_CHECK
+    enabled = present if w.params.get(i, "FENCE_ENABLE") else present & ~M.MAV_SYS_STATUS_GEOFENCE
+    health = present if w.fleet.gps_ok[i] else present & ~M.MAV_SYS_STATUS_SENSOR_GPS
+    if w.fleet.prearm_failure(i):
+        health &= ~M.MAV_SYS_STATUS_PREARM_CHECK
     return enc.fields(
-        M.MAVLink_sys_status_message, SENSORS, SENSORS, health, 200, int(t.state.voltage_v[i] * 1000),
+        M.MAVLink_sys_status_message, present, enabled, health, 200, int(t.state.voltage_v[i] * 1000),
         int(t.state.current_a[i] * 100), int(round(t.state.soc[i] * 100)), 0, 0, 0, 0, 0, 0, 0, 0, 0)
 
 

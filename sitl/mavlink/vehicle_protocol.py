@@ -13,13 +13,12 @@ import time
 from collections.abc import Callable
 from typing import Protocol
 
-import numpy as np
-
 from missions.model import MavCmd, MissionItem, MissionType
 from nac_onboard.mavlink.signing import SigningState
 from sitl.mavlink.codec import FrameEncoder, mavlink
 from sitl.mavlink.mission_protocol import Ack, Complete, MissionReceiver, Request
 from sitl.mavlink.telemetry import BUILDERS, Streams, TelemetrySource
+from sitl.vehicle import guided
 from sitl.vehicle.flight import FORCE_DISARM_MAGIC, CommandOutcome, CopterMode, Event, Result, Severity, validate_item
 from sitl.vehicle.params import PARAM_DEFS, ParamError
 from sitl.vehicle.world import World
@@ -34,6 +33,8 @@ CAPABILITIES = (
     | M.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED | M.MAV_PROTOCOL_CAPABILITY_MAVLINK2
     | M.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE | M.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY
 )
+PARAM_TYPES = {"INT8": M.MAV_PARAM_TYPE_INT8, "INT16": M.MAV_PARAM_TYPE_INT16, "INT32": M.MAV_PARAM_TYPE_INT32,
+               "REAL32": M.MAV_PARAM_TYPE_REAL32}
 FLIGHT_SW_VERSION = (4 << 24) | (5 << 16) | (7 << 8) | 255  # 4.5.7 official: what an ArduCopter of today says
 
 
@@ -70,6 +71,7 @@ class VehicleProtocol:
         self._after_ack: list = []
         self._command_alt_amsl = False
         self._pending_transfer = None
+        self._refused_frames: set[tuple[str, int]] = set()
 
     def on_params_changed(self) -> None:
         self.receiver.item_timeout_s = self.world.params.get(self.i, "SIM_MIS_RETRY_MS") / 1000.0
@@ -193,12 +195,28 @@ class VehicleProtocol:
                 self.set_interval(msgid, -1 if stop else 1e6 / rate_hz)
 
     def _on_position_target(self, msg, channel: Connection) -> None:
+        """GUIDED setpoints, frames and type mask as ArduCopter reads them (sitl.vehicle.guided). Like
+        ArduCopter, nothing answers them: a frame it does not take is dropped, and said once per frame."""
+        vel, acc = (msg.vx, msg.vy, msg.vz), (msg.afx, msg.afy, msg.afz)
         if msg.get_type() == "SET_POSITION_TARGET_GLOBAL_INT":
-            goal = self.world.global_to_enu(self.i, msg.lat_int / 1e7, msg.lon_int / 1e7, msg.alt,
-                                          relative=msg.coordinate_frame != M.MAV_FRAME_GLOBAL_INT)
+            pos = None
+            if guided.position_used(msg.type_mask):
+                pos = self.world.global_to_enu(self.i, msg.lat_int / 1e7, msg.lon_int / 1e7, msg.alt,
+                                               relative=msg.coordinate_frame in guided.GLOBAL_RELATIVE_FRAMES)
+            target = guided.global_setpoint(msg.coordinate_frame, msg.type_mask, pos, vel, acc, msg.yaw,
+                                            msg.yaw_rate)
         else:
-            goal = np.array([msg.y, msg.x, -msg.z])  # NED -> ENU
-        self.fleet.goto(self.i, goal)
+            state = self.world.state
+            target = guided.local_setpoint(msg.coordinate_frame, msg.type_mask, (msg.x, msg.y, msg.z), vel, acc,
+                                           msg.yaw, msg.yaw_rate, state.pos_m[self.i].copy(),
+                                           float(state.yaw_rad[self.i]))
+        if target is None:
+            key = (msg.get_type(), msg.coordinate_frame)
+            if key not in self._refused_frames:
+                self._refused_frames.add(key)
+                self.statustext(Severity.WARNING, f"{msg.get_type()[20:]}: frame {msg.coordinate_frame} ignored")
+            return
+        self.fleet.setpoint(self.i, target)
 
     def _on_timesync(self, msg, channel: Connection) -> None:
         if msg.tc1 == 0:
@@ -209,7 +227,8 @@ class VehicleProtocol:
     def param_value(self, index: int):
         definition = PARAM_DEFS[index]
         value = self.world.params.get(self.i, definition.name)
-        return M.MAVLink_param_value_message(definition.name.encode(), value, M.MAV_PARAM_TYPE_REAL32,
+        # ArduPilot sends integers as their value in the float field ("C-cast"), typed as it stores them
+        return M.MAVLink_param_value_message(definition.name.encode(), value, PARAM_TYPES[definition.kind],
                                              len(PARAM_DEFS), index)
 
     def _on_param_request_list(self, msg, channel: Connection) -> None:

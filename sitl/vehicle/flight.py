@@ -15,6 +15,7 @@ import numpy as np
 
 from missions.geo import Home, lla_to_enu
 from missions.model import AMSL_FRAMES, Frame, MavCmd, MissionItem, MissionType
+from sitl.vehicle.guided import VELOCITY_TIMEOUT_S, Setpoint
 from sitl.vehicle.params import ParamTable
 from sitl.vehicle.physics import Command, Motion, VehicleState
 
@@ -84,6 +85,7 @@ class Phase(Enum):
     RTL_RETURN = "rtl_return"
     LAND = "land"
     DISARM_WAIT = "disarm_wait"
+    VELOCITY = "velocity"  # GUIDED velocity control: the timer is the setpoint's timeout
 
 
 class Check(IntEnum):
@@ -144,15 +146,24 @@ class Fleet:
         self.transfer_busy = np.zeros(n, dtype=bool)
         self.failsafe = np.zeros(n, dtype=bool)
         self.events: list[tuple[int, Event, object]] = []
+        self.velocity_mps = np.zeros((n, 3))  # GUIDED velocity control target, ENU
+        self.accel_mps2 = np.zeros((n, 3))  # ... and the acceleration that moves it
+        self.yaw_target_rad = np.full(n, math.nan)  # commanded heading (NaN: face the direction of travel)
+        self.yaw_rate_rps = np.full(n, math.nan)
         self.t_s = 0.0
         self.state: VehicleState | None = None
 
     # ---- per-step -------------------------------------------------------------------------------------
     def command(self) -> Command:
-        return Command(motion=self.motion, goal_m=self.goal_m, armed=self.armed, speed_xy_mps=self.speed_xy_mps)
+        return Command(motion=self.motion, goal_m=self.goal_m, armed=self.armed, speed_xy_mps=self.speed_xy_mps,
+                       velocity_mps=self.velocity_mps, yaw_target_rad=self.yaw_target_rad,
+                       yaw_rate_rps=self.yaw_rate_rps)
 
     def update(self, state: VehicleState, t_s: float) -> None:
         """Run completion checks and failsafes after a physics step."""
+        accelerating = (self.motion == Motion.VELOCITY) & self.accel_mps2.any(axis=1)
+        if accelerating.any():
+            self.velocity_mps[accelerating] += self.accel_mps2[accelerating] * max(0.0, t_s - self.t_s)
         self.state, self.t_s = state, t_s
         check = self.check
         if not check.any() and not self.armed.any():
@@ -225,6 +236,9 @@ class Fleet:
                 self._item_reached(i)
             self._text(i, "Landed")
             self._timer(i, self.params.get(i, "DISARM_DELAY"), Phase.DISARM_WAIT)
+        elif phase == Phase.VELOCITY:
+            self._text(i, "Guided: no velocity setpoint for 3 s, stopping", Severity.WARNING)
+            self._hold(i)
         elif phase == Phase.DISARM_WAIT:
             if self.state is not None and self.state.on_ground[i] and self.armed[i]:
                 self._disarm(i, "Auto-disarmed after landing")
@@ -357,11 +371,9 @@ class Fleet:
         if self.transfer_busy[i]:
             return CommandOutcome(Result.TEMPORARILY_REJECTED, "Arm refused: mission transfer in progress")
         if not force:
-            if not self.gps_ok[i]:
-                return CommandOutcome(Result.FAILED, "PreArm: GPS: no fix")
-            assert self.state is not None
-            if self.state.soc[i] * 100.0 < self.params.get(i, "BATT_LOW_PCT"):
-                return CommandOutcome(Result.FAILED, "PreArm: Battery below failsafe level")
+            failure = self.prearm_failure(i)
+            if failure:
+                return CommandOutcome(Result.FAILED, failure)
             if self.mode[i] in (CopterMode.RTL, CopterMode.LAND):
                 return CommandOutcome(Result.FAILED, f"Arm: mode {CopterMode(self.mode[i]).name} does not allow arming")
         self.armed[i] = True
@@ -370,6 +382,17 @@ class Fleet:
         self._text(i, "Arming motors")
         self._emit(i, Event.ARMED, True)
         return OK
+
+    def prearm_failure(self, i: int) -> str | None:
+        """Why vehicle i fails its pre-arm checks (the SYS_STATUS PREARM_CHECK health), or None; ARMING_CHECK = 0
+        skips them as on ArduCopter."""
+        if self.params.get(i, "ARMING_CHECK") == 0:
+            return None
+        if not self.gps_ok[i]:
+            return "PreArm: GPS: no fix"
+        if self.state is not None and self.state.soc[i] * 100.0 < self.params.get(i, "BATT_LOW_PCT"):
+            return "PreArm: Battery below failsafe level"
+        return None
 
     def _disarm(self, i: int, text: str) -> None:
         self.armed[i] = False
@@ -386,6 +409,7 @@ class Fleet:
             return CommandOutcome(Result.DENIED, f"Mode change failed: unsupported mode {mode}")
         previous = self.mode[i]
         self.mode[i] = mode
+        self.yaw_target_rad[i] = self.yaw_rate_rps[i] = math.nan
         if mode in HOLD_MODES:
             self._hold(i)
         elif mode == CopterMode.AUTO:
@@ -478,6 +502,26 @@ class Fleet:
         goal[2] = max(goal[2], 0.5)
         self._set_goal(i, goal, Motion.GOTO, Check.NONE)
         return OK
+
+    def setpoint(self, i: int, target: Setpoint) -> bool:
+        """A GUIDED setpoint (sitl.vehicle.guided); ignored, as ArduCopter does, outside GUIDED or on the
+        ground. Returns whether it was taken."""
+        if self.mode[i] != CopterMode.GUIDED or not self._flying(i):
+            return False
+        if target.pos_m is not None:
+            goal = np.array(target.pos_m, dtype=float)
+            goal[2] = max(goal[2], 0.5)
+            self._set_goal(i, goal, Motion.GOTO, Check.NONE)
+        elif target.is_velocity_control:
+            self.velocity_mps[i] = target.vel_mps if target.vel_mps is not None else self.state.vel_mps[i]
+            self.accel_mps2[i] = target.acc_mps2 if target.acc_mps2 is not None else 0.0
+            self._set_goal(i, self._pos(i), Motion.VELOCITY, Check.NONE)
+            self._timer(i, VELOCITY_TIMEOUT_S, Phase.VELOCITY)
+        else:
+            self._hold(i)  # every group ignored: ArduCopter stops
+        self.yaw_target_rad[i] = math.nan if target.yaw_rad is None else target.yaw_rad
+        self.yaw_rate_rps[i] = math.nan if target.yaw_rate_rps is None else target.yaw_rate_rps
+        return True
 
     def on_params_changed(self) -> None:
         """A new WPNAV_SPEED applies at once; a mission's DO_CHANGE_SPEED below it stays while in AUTO."""

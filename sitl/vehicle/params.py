@@ -14,6 +14,10 @@ import numpy as np
 from nac_onboard.errors import BadInput
 from sitl.vehicle.physics import PhysicsParams
 
+INT8, INT16, INT32, REAL32 = "INT8", "INT16", "INT32", "REAL32"  # MAV_PARAM_TYPE names, ArduPilot's storage
+INT_RANGES = {INT8: (-128, 127), INT16: (-32768, 32767), INT32: (-2**31, 2**31 - 1)}
+NOT_SIMULATED = "stored and reported for ground stations; not simulated"
+
 
 @dataclass(frozen=True)
 class ParamDef:
@@ -22,10 +26,14 @@ class ParamDef:
     min: float
     max: float
     doc: str
+    kind: str = REAL32  # the type ArduCopter stores it as (integer parameters read back as integers)
 
 
 PARAM_DEFS: tuple[ParamDef, ...] = (
-    ParamDef("SYSID_THISMAV", 1, 1, 255, "MAVLink system id (read-only here: set by vehicle index)"),
+    ParamDef("SYSID_THISMAV", 1, 1, 255, "MAVLink system id (read-only here: set by vehicle index)", INT16),
+    ParamDef("FRAME_CLASS", 1, 0, 15, f"1 = quad ({NOT_SIMULATED}: a point mass flies)", INT8),
+    ParamDef("FRAME_TYPE", 1, 0, 18, f"1 = X ({NOT_SIMULATED})", INT8),
+    ParamDef("ARMING_CHECK", 1, 0, 2**31 - 1, "pre-arm checks: 0 none, 1 all (GPS fix and battery here)", INT32),
     ParamDef("NAC_KP_XY", 0.15, 0.0, 10.0, "horizontal position gain k_x = k_y (1/s)"),
     ParamDef("NAC_KP_Z", 1.0, 0.0, 10.0, "vertical position gain k_z (1/s)"),
     ParamDef("NAC_VEL_TAU", 0.3, 0.01, 5.0, "velocity response time constant (s)"),
@@ -33,25 +41,47 @@ PARAM_DEFS: tuple[ParamDef, ...] = (
     ParamDef("WPNAV_SPEED_UP", 250, 10, 1000, "climb speed limit (cm/s)"),
     ParamDef("WPNAV_SPEED_DN", 150, 10, 500, "descent speed limit (cm/s)"),
     ParamDef("WPNAV_RADIUS", 200, 5, 1000, "waypoint acceptance radius (cm)"),
-    ParamDef("LAND_SPEED", 50, 30, 200, "final descent speed (cm/s)"),
-    ParamDef("RTL_ALT", 1500, 200, 8000, "return-to-launch altitude (cm)"),
+    ParamDef("WPNAV_ACCEL", 250, 50, 500, f"horizontal acceleration (cm/s/s; {NOT_SIMULATED})"),
+    ParamDef("WPNAV_ACCEL_Z", 100, 50, 500, f"vertical acceleration (cm/s/s; {NOT_SIMULATED})"),
+    ParamDef("WP_YAW_BEHAVIOR", 2, 0, 3, f"yaw in missions ({NOT_SIMULATED}: the nose follows the path)", INT8),
+    ParamDef("LAND_SPEED", 50, 30, 200, "final descent speed (cm/s)", INT16),
+    ParamDef("LAND_SPEED_HIGH", 0, 0, 500, f"descent speed above LAND_ALT_LOW (cm/s; {NOT_SIMULATED})", INT16),
+    ParamDef("LAND_ALT_LOW", 1000, 100, 10000, f"altitude of the final descent (cm; {NOT_SIMULATED})", INT16),
+    ParamDef("RTL_ALT", 1500, 200, 300000, "return-to-launch altitude (cm)", INT32),
+    ParamDef("RTL_ALT_FINAL", 0, 0, 1000, f"RTL final altitude, 0 = land (cm; {NOT_SIMULATED})", INT16),
+    ParamDef("RTL_CLIMB_MIN", 0, 0, 3000, f"RTL minimum climb (cm; {NOT_SIMULATED})", INT16),
+    ParamDef("RTL_SPEED", 0, 0, 2000, f"RTL speed, 0 = WPNAV_SPEED (cm/s; {NOT_SIMULATED})", INT16),
+    ParamDef("RTL_LOIT_TIME", 5000, 0, 60000, f"RTL loiter over home (ms; {NOT_SIMULATED})", INT32),
     ParamDef("PILOT_TKOFF_ALT", 0, 0, 1000, "default takeoff altitude when none is given (cm)"),
-    ParamDef("DISARM_DELAY", 2, 0, 127, "seconds on the ground after landing before auto-disarm"),
-    ParamDef("BATT_CAPACITY", 5000, 100, 100000, "battery capacity (mAh)"),
-    ParamDef("BATT_CELLS", 4, 1, 14, "battery cells in series"),
+    ParamDef("DISARM_DELAY", 2, 0, 127, "seconds on the ground after landing before auto-disarm", INT8),
+    ParamDef("FENCE_ENABLE", 0, 0, 1, f"geofence on ({NOT_SIMULATED} yet: fences are stored, not enforced)", INT8),
+    ParamDef("FENCE_TYPE", 7, 0, 15, f"fence kinds: 1 altitude, 2 circle, 4 polygons ({NOT_SIMULATED})", INT8),
+    ParamDef("FENCE_ACTION", 1, 0, 7, f"breach action: 0 report, 1 RTL or land ({NOT_SIMULATED})", INT8),
+    ParamDef("FENCE_ALT_MAX", 100, 10, 1000, f"fence ceiling (m; {NOT_SIMULATED})"),
+    ParamDef("FENCE_RADIUS", 300, 30, 10000, f"circular fence about home (m; {NOT_SIMULATED})"),
+    ParamDef("FENCE_MARGIN", 2, 1, 10, f"distance kept from the fence (m; {NOT_SIMULATED})"),
+    ParamDef("RALLY_INCL_HOME", 1, 0, 1, f"RTL may go home as well as to rally points ({NOT_SIMULATED})", INT8),
+    ParamDef("RALLY_LIMIT_KM", 0.3, 0, 100, f"rally points farther than this are not used (km; {NOT_SIMULATED})"),
+    ParamDef("FS_THR_ENABLE", 1, 0, 6, f"radio failsafe ({NOT_SIMULATED}: no radio)", INT8),
+    ParamDef("FS_GCS_ENABLE", 0, 0, 7, f"ground-station failsafe ({NOT_SIMULATED})", INT8),
+    ParamDef("FS_EKF_ACTION", 1, 1, 3, "EKF failsafe action (here: GPS lost lands)", INT8),
+    ParamDef("BATT_CAPACITY", 5000, 100, 100000, "battery capacity (mAh)", INT32),
+    ParamDef("BATT_CELLS", 4, 1, 14, "battery cells in series", INT8),
     ParamDef("BATT_HOVER_AMPS", 15, 0, 200, "current drawn in hover (A)"),
-    ParamDef("BATT_LOW_PCT", 20, 0, 99, "state of charge that triggers the low-battery failsafe (%)"),
-    ParamDef("BATT_FS_LOW_ACT", 2, 0, 2, "low-battery action: 0 none, 1 land, 2 RTL"),
+    ParamDef("BATT_LOW_PCT", 20, 0, 99, "state of charge that triggers the low-battery failsafe (%)", INT8),
+    ParamDef("BATT_FS_LOW_ACT", 2, 0, 2, "low-battery action: 0 none, 1 land, 2 RTL", INT8),
     ParamDef("SIM_GPS_NOISE", 0, 0, 10, "GPS horizontal noise sigma (m); vertical is 1.5x"),
-    ParamDef("SIM_GPS_DISABLE", 0, 0, 1, "fault: 1 = GPS lost (no fix, frozen position, vehicle lands)"),
+    ParamDef("SIM_GPS_DISABLE", 0, 0, 1, "fault: 1 = GPS lost (no fix, frozen position, vehicle lands)", INT8),
     ParamDef("SIM_BATT_PCT", -1, -1, 100, "fault: set battery state of charge (%), -1 = no override"),
     ParamDef("SIM_LOSS_GCS", 0, 0, 100, "fault: packet loss on the ground link, both directions (%)"),
     ParamDef("SIM_LOSS_CC", 0, 0, 100, "fault: packet loss on the companion link, both directions (%)"),
-    ParamDef("SIM_LINK_DOWN", 0, 0, 3, "fault: links down, bitmask 1 = ground, 2 = companion"),
-    ParamDef("SIM_MIS_RETRY_MS", 250, 10, 5000, "mission upload: re-request an item after this long without it (ms)"),
+    ParamDef("SIM_LINK_DOWN", 0, 0, 3, "fault: links down, bitmask 1 = ground, 2 = companion", INT8),
+    ParamDef("SIM_MIS_RETRY_MS", 250, 10, 5000, "mission upload: re-request an item after this long without it (ms)",
+             INT16),
     ParamDef("SIM_SPEEDUP", 1, 0.1, 1000, "simulation speed-up (read-only: set at start)"),
 )
 PARAMS_BY_NAME = {p.name: p for p in PARAM_DEFS}
+PARAM_INDEX = {p.name: k for k, p in enumerate(PARAM_DEFS)}
 READ_ONLY = frozenset({"SYSID_THISMAV", "SIM_SPEEDUP"})
 
 
@@ -68,10 +98,10 @@ class ParamTable:
 
     @staticmethod
     def index(name: str) -> int:
-        for i, p in enumerate(PARAM_DEFS):
-            if p.name == name:
-                return i
-        raise ParamError(f"unknown parameter {name!r}")
+        try:
+            return PARAM_INDEX[name]
+        except KeyError:
+            raise ParamError(f"unknown parameter {name!r}") from None
 
     def get(self, vehicle: int, name: str) -> float:
         return float(self.values[vehicle, self.index(name)])
@@ -86,8 +116,9 @@ class ParamTable:
             raise ParamError(f"unknown parameter {name!r}")
         if name in READ_ONLY and not force:
             raise ParamError(f"{name} is read-only")
+        value = stored_value(definition, value)
         if not math.isfinite(value) or not definition.min <= value <= definition.max:
-            raise ParamError(f"{name}={value} outside {definition.min}..{definition.max}")
+            raise ParamError(f"{name}={value:g} outside {definition.min:g}..{definition.max:g}")
         self.values[vehicle, self.index(name)] = value
         return value
 
@@ -105,6 +136,13 @@ class ParamTable:
             hover_current_a=self.column("BATT_HOVER_AMPS").copy(),
             current_per_mps_a=base.current_per_mps_a, idle_current_a=base.idle_current_a,
         )
+
+
+def stored_value(definition: ParamDef, value: float) -> float:
+    """What ArduPilot keeps of a value for this parameter: integer types hold the nearest integer."""
+    if definition.kind == REAL32 or not math.isfinite(value):
+        return float(value)
+    return float(round(value))
 
 
 def parse_param_file(text: str, source: str) -> dict[str, float]:

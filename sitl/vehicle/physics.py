@@ -6,18 +6,21 @@ logic above it decides goals and motions, the MAVLink layer only reads the resul
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from enum import IntEnum
 
 import numpy as np
 
 GRAVITY_MPS2 = 9.80665
+YAW_RATE_MAX_RPS = math.radians(90.0)  # how fast a commanded heading is turned to
 
 
 class Motion(IntEnum):
     IDLE = 0  # on the ground (motors off or spinning): holds still
     GOTO = 1  # position controller toward goal_m
     LAND = 2  # horizontal controller toward goal_m, descend at land speed until touchdown
+    VELOCITY = 3  # follow velocity_mps (GUIDED velocity control), within the speed limits
 
 
 @dataclass(frozen=True)
@@ -82,6 +85,9 @@ class Command:
     goal_m: np.ndarray  # (N, 3) ENU goal
     armed: np.ndarray  # (N,) bool
     speed_xy_mps: np.ndarray  # (N,) current horizontal speed limit (mission DO_CHANGE_SPEED may lower it)
+    velocity_mps: np.ndarray | None = None  # (N, 3) ENU, for Motion.VELOCITY
+    yaw_target_rad: np.ndarray | None = None  # (N,) heading to turn to; NaN: face the direction of travel
+    yaw_rate_rps: np.ndarray | None = None  # (N,) turn at this rate; NaN: no rate command
 
 
 def battery_voltage_v(soc: np.ndarray, current_a: np.ndarray, cells: np.ndarray) -> np.ndarray:
@@ -109,8 +115,37 @@ def desired_velocity_mps(pos_m, goal_m, params: PhysicsParams, speed_xy_mps) -> 
     return v_des
 
 
+def clamp_velocity_mps(velocity_mps, params: PhysicsParams, speed_xy_mps, which) -> np.ndarray:
+    """A commanded velocity within the horizontal, climb and descent limits of the vehicles `which` selects."""
+    v = np.array(velocity_mps, dtype=float)
+    horizontal = np.hypot(v[:, 0], v[:, 1])
+    limit = np.minimum(speed_xy_mps[which], params.speed_xy_max_mps[which])
+    v[:, :2] *= np.where(horizontal > limit, limit / np.maximum(horizontal, 1e-12), 1.0)[:, None]
+    v[:, 2] = np.clip(v[:, 2], -params.speed_down_max_mps[which], params.speed_up_max_mps[which])
+    return v
+
+
+def commanded_yaw_rad(yaw_rad, previous_rad, target_rad, rate_rps, dt_s: float) -> np.ndarray:
+    """Heading where a yaw (turned to at YAW_RATE_MAX_RPS at most) or a yaw rate is commanded; else `yaw_rad`."""
+    out = np.array(yaw_rad, dtype=float)
+    has_target = ~np.isnan(target_rad)
+    if has_target.any():
+        error = (target_rad[has_target] - previous_rad[has_target] + math.pi) % (2 * math.pi) - math.pi
+        turn = np.clip(error, -YAW_RATE_MAX_RPS * dt_s, YAW_RATE_MAX_RPS * dt_s)
+        out[has_target] = previous_rad[has_target] + turn
+    has_rate = ~has_target & ~np.isnan(rate_rps)
+    if has_rate.any():
+        out[has_rate] = previous_rad[has_rate] + np.clip(rate_rps[has_rate], -YAW_RATE_MAX_RPS,
+                                                          YAW_RATE_MAX_RPS) * dt_s
+    return (out + math.pi) % (2 * math.pi) - math.pi
+
+
 def step(state: VehicleState, cmd: Command, params: PhysicsParams, dt_s: float) -> VehicleState:
     v_des = desired_velocity_mps(state.pos_m, cmd.goal_m, params, cmd.speed_xy_mps)
+    if cmd.velocity_mps is not None:
+        following = cmd.motion == Motion.VELOCITY
+        if following.any():
+            v_des[following] = clamp_velocity_mps(cmd.velocity_mps[following], params, cmd.speed_xy_mps, following)
     landing = cmd.motion == Motion.LAND
     v_des[:, 2] = np.where(landing, -params.land_speed_mps, v_des[:, 2])
     idle = (cmd.motion == Motion.IDLE) | ~cmd.armed
@@ -133,6 +168,8 @@ def step(state: VehicleState, cmd: Command, params: PhysicsParams, dt_s: float) 
     speed_xy = np.hypot(vel[:, 0], vel[:, 1])
     moving = speed_xy > 0.3
     yaw = np.where(moving, np.arctan2(vel[:, 0], vel[:, 1]), state.yaw_rad)
+    if cmd.yaw_target_rad is not None:
+        yaw = commanded_yaw_rad(yaw, state.yaw_rad, cmd.yaw_target_rad, cmd.yaw_rate_rps, dt_s)
 
     flying = cmd.armed & ~on_ground
     current_a = params.idle_current_a + np.where(

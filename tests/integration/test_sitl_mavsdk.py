@@ -117,3 +117,30 @@ def test_mavsdk_uploads_arms_flies_and_sees_the_vehicle_land(start_sitl, mavsdk_
     final = telemetry.position()
     assert abs(final.latitude_deg - truth["lat_deg"]) < 2e-7 and abs(final.longitude_deg - truth["lon_deg"]) < 2e-7
     assert abs(final.absolute_altitude_m - truth["alt_m"]) < 0.05
+
+
+def test_mavsdk_reads_integer_parameters_rtl_altitude_and_armable_health(start_sitl, mavsdk_client):
+    """Parameters typed as ArduCopter stores them (MAVSDK's integer API refuses a REAL32), the RTL altitude
+    MAVSDK derives from RTL_ALT, and is_armable from SYS_STATUS' PREARM_CHECK health, following the vehicle."""
+    from mavsdk.plugins.param import Param
+
+    sim = start_sitl(speedup=4.0)
+    assert mavsdk_client.add_any_connection(f"udpin://0.0.0.0:{sim.config.companion_base_port}") == \
+        ConnectionResult.SUCCESS
+    system = wait_for_system(mavsdk_client, 1, 10.0)
+    assert system is not None
+    param, action, telemetry = Param(system), Action(system), Telemetry(system)
+    assert param.get_param_int("RTL_ALT") == 1500 and param.get_param_int("DISARM_DELAY") == 2
+    assert param.get_param_float("WPNAV_SPEED") == 500.0
+    assert action.get_return_to_launch_altitude() == pytest.approx(15.0)
+    param.set_param_int("RTL_ALT", 2500)
+    assert sim.world.params.get(0, "RTL_ALT") == 2500 and action.get_return_to_launch_altitude() == 25.0
+    deadline = time.monotonic() + 10.0
+    while not telemetry.health().is_armable and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert telemetry.health().is_armable, "PREARM_CHECK healthy while the checks pass"
+    param.set_param_int("SIM_GPS_DISABLE", 1)
+    deadline = time.monotonic() + 10.0
+    while telemetry.health().is_armable and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not telemetry.health().is_armable and not sim.truth(0)["armed"]

@@ -3,6 +3,8 @@
 import math
 import time
 
+import pytest
+
 from missions.builder import waypoint_mission
 from missions.model import Frame, MavCmd, MissionItem
 from tests.integration.gcs import M
@@ -207,6 +209,37 @@ def test_guided_goto_by_position_target_and_reposition(start_sitl, gcs_for):
     assert gcs.command(M.MAV_CMD_DO_REPOSITION, -1, 0, 0, float("nan"), target.lat_deg, target.lon_deg, 4.0) == 0
     assert gcs.recv("LOCAL_POSITION_NED", 60.0, lambda m: abs(m.y + 5) < 0.3 and abs(m.x - 5) < 0.3)
 
+
+
+def test_velocity_setpoints_fly_that_way_keep_height_and_stop_after_three_seconds(start_sitl, gcs_for):
+    """DroneKit's send_ned_velocity and send_global_velocity patterns (position bits ignored, lat/lon 0): the
+    copter flies north at the asked speed at its height, not toward home or (0, 0), and stops 3 s (simulated)
+    after the last setpoint; a BODY_OFFSET_NED position is about the vehicle."""
+    from tests.integration.gcs import take_off
+
+    sim = start_sitl(speedup=10.0)
+    gcs = gcs_for(sim)
+    take_off(gcs, 8)
+    assert gcs.recv("LOCAL_POSITION_NED", 20.0, lambda m: abs(m.vz) < 0.02 and -m.z > 7.9) is not None
+    height_m = sim.truth(0)["pos_m"][2]
+    velocity_only = 0b0000111111000111
+    gcs.conn.mav.set_position_target_local_ned_send(0, 1, 1, M.MAV_FRAME_LOCAL_NED, velocity_only,
+                                                    0, 0, 0, 2.0, 0, 0, 0, 0, 0, 0, 0)
+    moving = gcs.recv("LOCAL_POSITION_NED", 20.0, lambda m: m.x > 4.0)
+    assert moving is not None and moving.vx > 1.8 and abs(moving.vy) < 0.2
+    truth = sim.truth(0)
+    assert truth["pos_m"][2] == pytest.approx(height_m, abs=0.2) and truth["vel_mps"][1] == pytest.approx(2.0, abs=0.2)
+    stopped = gcs.recv("LOCAL_POSITION_NED", 20.0, lambda m: abs(m.vx) < 0.1 and m.x > 4.0)
+    assert stopped is not None and sim.truth(0)["t_s"] - truth["t_s"] < 8.0, "stopped about 3 s after the setpoint"
+    gcs.conn.mav.set_position_target_global_int_send(0, 1, 1, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, velocity_only,
+                                                     0, 0, 0, 0, -1.5, 0, 0, 0, 0, 0, 0)
+    west = gcs.recv("LOCAL_POSITION_NED", 20.0, lambda m: m.vy < -1.4)
+    assert west is not None and abs(-west.z - height_m) < 0.2, "no dive toward lat 0, lon 0 or to the ground"
+    gcs.conn.mav.set_position_target_local_ned_send(0, 1, 1, M.MAV_FRAME_BODY_OFFSET_NED, 0b0000111111111000,
+                                                    0, 0, -4.0, 0, 0, 0, 0, 0, 0, 0, 0)
+    goal_m = height_m + 4.0
+    up = gcs.recv("LOCAL_POSITION_NED", 30.0, lambda m: abs(-m.z - goal_m) < 0.2 and abs(m.vz) < 0.05)
+    assert up is not None and sim.truth(0)["pos_m"][2] == pytest.approx(goal_m, abs=0.3)
 
 def test_second_ground_station_is_denied_without_disturbing_the_first(start_sitl, gcs_for):
     from tests.integration.gcs import Gcs

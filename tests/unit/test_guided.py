@@ -1,0 +1,153 @@
+"""GUIDED setpoints as ArduCopter reads them: every frame and type-mask combination of SET_POSITION_TARGET_*
+against the motion it must produce, through the pure flight logic and physics (no sockets)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from sitl.vehicle import guided
+from sitl.vehicle.flight import CopterMode, Fleet, Phase
+from sitl.vehicle.guided import ACC_IGNORE, POS_IGNORE, VEL_IGNORE, YAW_IGNORE, YAW_RATE_IGNORE
+from tests.unit.test_flight import HOME, make, run
+
+ONLY_POS = VEL_IGNORE | ACC_IGNORE | YAW_IGNORE | YAW_RATE_IGNORE
+ONLY_VEL = POS_IGNORE | ACC_IGNORE | YAW_IGNORE | YAW_RATE_IGNORE
+ONLY_ACC = POS_IGNORE | VEL_IGNORE | YAW_IGNORE | YAW_RATE_IGNORE
+NOTHING = POS_IGNORE | VEL_IGNORE | ACC_IGNORE | YAW_IGNORE | YAW_RATE_IGNORE
+
+
+def airborne(heading_deg: float = 0.0):
+    """One copter hovering at 10 m over home in GUIDED, facing `heading_deg`."""
+    fleet, state, params = make()
+    fleet.set_mode(0, CopterMode.GUIDED)
+    fleet.arm(0, True)
+    fleet.takeoff(0, 10.0)
+    state, t = run(fleet, state, params, 30.0, until=lambda f, s: f.phase[0] == Phase.NONE and s.pos_m[0, 2] > 9.8)
+    if heading_deg:
+        fleet.setpoint(0, guided.Setpoint(yaw_rad=math.radians(heading_deg)))
+        state, t = run(fleet, state, params, 5.0, t0=t)
+    return fleet, state, params, t
+
+
+def local(frame, mask, xyz=(0, 0, 0), vel=(0, 0, 0), acc=(0, 0, 0), yaw=0.0, yaw_rate=0.0, state=None):
+    return guided.local_setpoint(frame, mask, xyz, vel, acc, yaw, yaw_rate, state.pos_m[0].copy(),
+                                 float(state.yaw_rad[0]))
+
+
+@pytest.mark.parametrize("frame, xyz, expected_enu", [
+    (guided.LOCAL_NED, (20.0, 10.0, -15.0), (10.0, 20.0, 15.0)),  # about home
+    (guided.LOCAL_OFFSET_NED, (20.0, 10.0, -5.0), (10.0, 20.0, 15.0)),  # about the vehicle (at 0, 0, 10)
+    (guided.BODY_OFFSET_NED, (20.0, 10.0, -5.0), (-20.0, 10.0, 15.0)),  # facing west: forward is -east
+    (guided.BODY_NED, (20.0, 10.0, 0.0), (-20.0, 10.0, 10.0)),
+])
+def test_a_position_setpoint_flies_to_the_point_its_frame_means(frame, xyz, expected_enu):
+    fleet, state, params, t = airborne(heading_deg=-90.0)
+    start = state.pos_m[0].copy()
+    target = local(frame, ONLY_POS, xyz=xyz, state=state)
+    assert fleet.setpoint(0, target)
+    state, _ = run(fleet, state, params, 60.0, t0=t)
+    expected = np.array(expected_enu) + (start * [1, 1, 0] if frame != guided.LOCAL_NED else 0)
+    assert state.pos_m[0] == pytest.approx(expected, abs=0.3)
+
+
+@pytest.mark.parametrize("frame, vel_ned, heading_deg, expected_dir_enu", [
+    (guided.LOCAL_NED, (2.0, 0.0, 0.0), 0.0, (0.0, 1.0)),  # north
+    (guided.LOCAL_OFFSET_NED, (0.0, 2.0, 0.0), 0.0, (1.0, 0.0)),  # east
+    (guided.BODY_NED, (2.0, 0.0, 0.0), 90.0, (1.0, 0.0)),  # forward while facing east
+    (guided.BODY_OFFSET_NED, (0.0, 2.0, 0.0), 90.0, (0.0, -1.0)),  # right while facing east: south
+])
+def test_a_velocity_only_setpoint_flies_that_way_at_that_speed_and_keeps_its_height(
+        frame, vel_ned, heading_deg, expected_dir_enu):
+    fleet, state, params, t = airborne(heading_deg)
+    start = state.pos_m[0].copy()
+    assert fleet.setpoint(0, local(frame, ONLY_VEL, vel=vel_ned, state=state))
+    state, t = run(fleet, state, params, 2.5, t0=t)  # inside the 3 s timeout
+    moved = state.pos_m[0] - start
+    assert moved[:2] / np.linalg.norm(moved[:2]) == pytest.approx(expected_dir_enu, abs=0.02)
+    assert np.hypot(*state.vel_mps[0, :2]) == pytest.approx(2.0, abs=0.1)
+    assert state.pos_m[0, 2] == pytest.approx(10.0, abs=0.2), "no descent toward z = 0"
+
+
+def test_velocity_control_stops_three_seconds_after_the_last_setpoint():
+    fleet, state, params, t = airborne()
+    fleet.setpoint(0, local(guided.LOCAL_NED, ONLY_VEL, vel=(3.0, 0.0, 0.0), state=state))
+    for _ in range(3):  # renewed every 2 s: keeps going
+        state, t = run(fleet, state, params, 2.0, t0=t)
+        assert np.hypot(*state.vel_mps[0, :2]) > 2.5
+        fleet.setpoint(0, local(guided.LOCAL_NED, ONLY_VEL, vel=(3.0, 0.0, 0.0), state=state))
+    state, t = run(fleet, state, params, 2.9, t0=t)
+    assert np.hypot(*state.vel_mps[0, :2]) > 2.5
+    state, t = run(fleet, state, params, 3.0, t0=t)
+    assert np.hypot(*state.vel_mps[0, :2]) < 0.2, "stopped after the timeout"
+    assert any("no velocity setpoint for 3 s" in str(v) for _, _, v in fleet.events)
+
+
+def test_acceleration_only_is_followed_from_the_current_velocity():
+    fleet, state, params, t = airborne()
+    fleet.setpoint(0, local(guided.LOCAL_NED, ONLY_ACC, acc=(0.0, 1.0, 0.0), state=state))
+    state, t = run(fleet, state, params, 2.0, t0=t)
+    assert state.vel_mps[0, 0] == pytest.approx(2.0, abs=0.4) and abs(state.vel_mps[0, 1]) < 0.1
+
+
+def test_climb_and_descent_by_velocity_obey_the_limits():
+    fleet, state, params, t = airborne()
+    fleet.setpoint(0, local(guided.LOCAL_NED, ONLY_VEL, vel=(0.0, 0.0, -10.0), state=state))  # up, 10 m/s asked
+    state, t = run(fleet, state, params, 2.0, t0=t)
+    assert state.vel_mps[0, 2] == pytest.approx(params.get(0, "WPNAV_SPEED_UP") / 100, abs=0.05)
+
+
+def test_position_and_velocity_together_go_to_the_position_and_all_ignored_stops():
+    fleet, state, params, t = airborne()
+    both = local(guided.LOCAL_NED, ACC_IGNORE | YAW_IGNORE | YAW_RATE_IGNORE,
+                 xyz=(0.0, 15.0, -10.0), vel=(0.0, 1.0, 0.0), state=state)
+    fleet.setpoint(0, both)
+    state, t = run(fleet, state, params, 5.0, t0=t)
+    assert state.vel_mps[0, 0] > 0.5
+    fleet.setpoint(0, local(guided.LOCAL_NED, NOTHING, state=state))
+    state, t = run(fleet, state, params, 8.0, t0=t)
+    assert np.linalg.norm(state.vel_mps[0]) < 0.1 and state.pos_m[0, 0] < 14.0, "stopped short of the target"
+
+
+@pytest.mark.parametrize("mask_extra, yaw, yaw_rate, expected_deg", [
+    (YAW_RATE_IGNORE, math.radians(135.0), 0.0, 135.0),
+    (YAW_IGNORE, 0.0, math.radians(-20.0), -60.0),  # 3 s at -20 deg/s
+])
+def test_yaw_and_yaw_rate_turn_the_vehicle(mask_extra, yaw, yaw_rate, expected_deg):
+    fleet, state, params, t = airborne()
+    mask = POS_IGNORE | VEL_IGNORE | ACC_IGNORE | mask_extra
+    fleet.setpoint(0, local(guided.LOCAL_NED, mask, yaw=yaw, yaw_rate=yaw_rate, state=state))
+    state, t = run(fleet, state, params, 3.0, t0=t)
+    assert math.degrees(state.yaw_rad[0]) == pytest.approx(expected_deg, abs=2.0)
+
+
+@pytest.mark.parametrize("frame, alt, relative_expected", [(6, 25.0, 25.0), (11, 25.0, 25.0), (5, 513.0, 25.0)])
+def test_global_frames_take_altitude_above_home_or_sea_level(frame, alt, relative_expected):
+    from sitl.vehicle.world import World
+
+    world = World([HOME])
+    pos = world.global_to_enu(0, HOME.lat_deg + 0.0002, HOME.lon_deg, alt,
+                              relative=frame in guided.GLOBAL_RELATIVE_FRAMES)
+    target = guided.global_setpoint(frame, ONLY_POS, pos, (0, 0, 0), (0, 0, 0), 0.0, 0.0)
+    assert target.pos_m[2] == pytest.approx(relative_expected) and target.pos_m[1] == pytest.approx(22.2, abs=0.2)
+    velocity = guided.global_setpoint(frame, ONLY_VEL, None, (1.0, -2.0, 0.5), (0, 0, 0), 0.0, 0.0)
+    assert velocity.is_velocity_control and list(velocity.vel_mps) == [-2.0, 1.0, -0.5]
+
+
+def test_setpoints_are_ignored_outside_guided_on_the_ground_in_other_frames_and_when_not_finite():
+    fleet, state, params = make()
+    fleet.set_mode(0, CopterMode.GUIDED)
+    fleet.arm(0, True)
+    assert not fleet.setpoint(0, local(guided.LOCAL_NED, ONLY_VEL, vel=(1, 0, 0), state=state)), "on the ground"
+    fleet, state, params, t = airborne()
+    fleet.set_mode(0, CopterMode.LOITER)
+    assert not fleet.setpoint(0, local(guided.LOCAL_NED, ONLY_VEL, vel=(1, 0, 0), state=state))
+    assert local(12, ONLY_POS, state=state) is None  # MAV_FRAME_LOCAL_ENU: not taken by ArduCopter
+    assert local(guided.LOCAL_NED, ONLY_POS, xyz=(math.nan, 0, 0), state=state) is None
+    assert guided.global_setpoint(1, ONLY_POS, np.zeros(3), (0, 0, 0), (0, 0, 0), 0, 0) is None
+
+
+def test_fleet_command_carries_the_setpoint_arrays():
+    fleet = Fleet([HOME], make()[2])
+    cmd = fleet.command()
+    assert cmd.velocity_mps.shape == (1, 3) and np.isnan(cmd.yaw_target_rad).all()
