@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
 import signal
 import sys
 import threading
@@ -46,7 +47,9 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="serve N simulated vehicles until interrupted")
     run.add_argument("--vehicles", type=int, default=1, help="number of vehicles (sysid 1..N)")
     run.add_argument("--speedup", type=float, default=1.0, help="simulated seconds per wall-clock second")
-    run.add_argument("--home", type=_home, default=Home(47.397742, 8.545594, 488.0), help="LAT,LON,ALT_M")
+    run.add_argument("--home", type=_home, default=Home(47.397742, 8.545594, 488.0), metavar="LAT,LON,ALT_M",
+                     help="the first vehicle's home (default: 47.397742,8.545594,488, PX4's Zurich field; "
+                          "south and west negative, e.g. --home -35.363261,149.165230,584)")
     run.add_argument("--spacing-m", type=float, default=5.0, help="vehicle i starts i*D metres east of home")
     run.add_argument("--seed", type=int, default=0, help="seed for GPS noise and injected packet loss")
     run.add_argument("--params", type=Path, help="parameter file (NAME VALUE per line) applied to every vehicle")
@@ -188,8 +191,23 @@ def experiment(args: argparse.Namespace, out=None) -> int:
     return result.outcome.exit_code
 
 
+COORDINATE_OPTIONS = ("--home", "--ground-station")
+
+
+def joined_coordinates(argv: list[str]) -> list[str]:
+    """`--home -35.36,149.16,584` as `--home=-35.36,...`: argparse takes a value starting with '-' that is not a
+    plain number for an option and refuses it; a southern or western home is a coordinate, not an option."""
+    out: list[str] = []
+    for arg in argv:
+        if out and out[-1] in COORDINATE_OPTIONS and re.match(r"-[\d.]", arg):
+            out[-1] = f"{out[-1]}={arg}"
+        else:
+            out.append(arg)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(joined_coordinates(sys.argv[1:] if argv is None else argv))
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if args.command == "experiment":

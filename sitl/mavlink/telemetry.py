@@ -31,6 +31,9 @@ DEFAULT_INTERVALS_S: dict[int, float] = {
     M.MAVLINK_MSG_ID_HOME_POSITION: 5.0,
 }
 STREAM_IDS = tuple(DEFAULT_INTERVALS_S)
+#: not in any of ArduPilot's REQUEST_DATA_STREAM groups: sent on change or on request, at their own rate
+NOT_DATA_STREAMS = frozenset({M.MAVLINK_MSG_ID_HEARTBEAT, M.MAVLINK_MSG_ID_HOME_POSITION,
+                              M.MAVLINK_MSG_ID_SYSTEM_TIME, M.MAVLINK_MSG_ID_MISSION_CURRENT})
 STREAM_COLUMN = {msgid: column for column, msgid in enumerate(STREAM_IDS)}
 MIN_STREAM_INTERVAL_S = 0.02  # 50 Hz per message, like ArduPilot's stream-rate ceiling
 SENSORS = (M.MAV_SYS_STATUS_SENSOR_3D_GYRO | M.MAV_SYS_STATUS_SENSOR_3D_ACCEL | M.MAV_SYS_STATUS_SENSOR_3D_MAG
@@ -53,6 +56,11 @@ class Streams:
         self.next_due_s[due] = np.maximum(self.next_due_s[due] + self.interval_s[due], t_s)
         rows, columns = np.nonzero(due)
         return [(vehicle, STREAM_IDS[column]) for vehicle, column in zip(rows.tolist(), columns.tolist(), strict=True)]
+
+    def reset(self, vehicle: int, t_s: float) -> None:
+        """Every stream of a vehicle back to its default (a restarted autopilot forgets what was asked)."""
+        self.interval_s[vehicle] = [DEFAULT_INTERVALS_S[m] for m in STREAM_IDS]
+        self.next_due_s[vehicle] = t_s
 
     def interval_of(self, vehicle: int, msgid: int) -> float | None:
         """Seconds between messages (inf when disabled), None for a message that is not streamed."""
@@ -80,7 +88,8 @@ class Telemetry:
     """Per-step snapshot of what the vehicles report, in MAVLink's integer units, computed once for all."""
 
     state: VehicleState
-    time_boot_ms: int
+    time_boot_ms: int  # of the simulation (the snapshot's key)
+    boot_ms: list  # of each vehicle's autopilot: a rebooted one starts again from 0
     time_usec: int
     lat_e7: list
     lon_e7: list
@@ -128,7 +137,8 @@ class TelemetrySource:
             return np.round(values).astype(np.int64).tolist()
 
         return Telemetry(
-            state=s, time_boot_ms=int(w.t_s * 1000), time_usec=int(self.unix_time_s() * 1e6),
+            state=s, time_boot_ms=int(w.t_s * 1000), boot_ms=ints(np.maximum(w.t_s - w.boot_t_s, 0.0) * 1000),
+            time_usec=int(self.unix_time_s() * 1e6),
             lat_e7=ints(fix.lat_deg * 1e7), lon_e7=ints(fix.lon_deg * 1e7), alt_mm=ints(fix.alt_m * 1000),
             rel_alt_mm=ints(fix.pos_m[:, 2] * 1000), vn_cms=ints(s.vel_mps[:, 1] * 100),
             ve_cms=ints(s.vel_mps[:, 0] * 100), vd_cms=ints(-s.vel_mps[:, 2] * 100), hdg_cdeg=ints(hdg * 100),
@@ -159,18 +169,18 @@ def _heartbeat(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
 
 
 def _global_position(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
-    return enc.fields(M.MAVLink_global_position_int_message, t.time_boot_ms, t.lat_e7[i], t.lon_e7[i],
+    return enc.fields(M.MAVLink_global_position_int_message, t.boot_ms[i], t.lat_e7[i], t.lon_e7[i],
                       t.alt_mm[i], t.rel_alt_mm[i], t.vn_cms[i], t.ve_cms[i], t.vd_cms[i], t.hdg_cdeg[i])
 
 
 def _local_position(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
     p, v = t.state.pos_m[i], t.state.vel_mps[i]
-    return enc.fields(M.MAVLink_local_position_ned_message, t.time_boot_ms, float(p[1]), float(p[0]),
+    return enc.fields(M.MAVLink_local_position_ned_message, t.boot_ms[i], float(p[1]), float(p[0]),
                       float(-p[2]), float(v[1]), float(v[0]), float(-v[2]))
 
 
 def _attitude(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
-    return enc.fields(M.MAVLink_attitude_message, t.time_boot_ms, float(t.roll[i]), float(t.pitch[i]),
+    return enc.fields(M.MAVLink_attitude_message, t.boot_ms[i], float(t.roll[i]), float(t.pitch[i]),
                       float(t.yaw[i]), 0.0, 0.0, 0.0)
 
 
@@ -239,7 +249,7 @@ def _home_position(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
 
 
 def _system_time(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
-    return enc.fields(M.MAVLink_system_time_message, t.time_usec, t.time_boot_ms)
+    return enc.fields(M.MAVLink_system_time_message, t.time_usec, t.boot_ms[i])
 
 
 BUILDERS = {

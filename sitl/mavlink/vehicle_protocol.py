@@ -17,9 +17,10 @@ from missions.model import MavCmd, MissionItem, MissionType
 from nac_onboard.mavlink.signing import SigningState
 from sitl.mavlink.codec import FrameEncoder, mavlink
 from sitl.mavlink.mission_protocol import Ack, Complete, MissionReceiver, Request
-from sitl.mavlink.telemetry import BUILDERS, Streams, TelemetrySource
+from sitl.mavlink.telemetry import BUILDERS, NOT_DATA_STREAMS, Streams, TelemetrySource
 from sitl.vehicle import guided
 from sitl.vehicle.flight import FORCE_DISARM_MAGIC, CommandOutcome, CopterMode, Event, Result, Severity, validate_item
+from sitl.vehicle.flight import OK as OK_OUTCOME
 from sitl.vehicle.params import PARAM_DEFS, ParamError
 from sitl.vehicle.world import World
 
@@ -35,6 +36,7 @@ CAPABILITIES = (
 )
 PARAM_TYPES = {"INT8": M.MAV_PARAM_TYPE_INT8, "INT16": M.MAV_PARAM_TYPE_INT16, "INT32": M.MAV_PARAM_TYPE_INT32,
                "REAL32": M.MAV_PARAM_TYPE_REAL32}
+RESTART_S = 3.0  # simulated seconds a rebooting autopilot is silent
 FLIGHT_SW_VERSION = (4 << 24) | (5 << 16) | (7 << 8) | 255  # 4.5.7 official: what an ArduCopter of today says
 
 
@@ -72,12 +74,15 @@ class VehicleProtocol:
         self._command_alt_amsl = False
         self._pending_transfer = None
         self._refused_frames: set[tuple[str, int]] = set()
+        self.silent_until_t_s = -math.inf  # restarting: nothing in or out until then (simulated seconds)
 
     def on_params_changed(self) -> None:
         self.receiver.item_timeout_s = self.world.params.get(self.i, "SIM_MIS_RETRY_MS") / 1000.0
 
     # ---- output -------------------------------------------------------------------------------------
     def send(self, frame: bytes, channel: Connection | None = None) -> None:
+        if self.world.t_s < self.silent_until_t_s:
+            return
         if channel is not None:
             channel.write(frame)
             return
@@ -94,7 +99,7 @@ class VehicleProtocol:
     def handle(self, msg, channel: Connection) -> None:
         kind = msg.get_type()
         handler = _HANDLERS.get(kind)
-        if handler is None:
+        if handler is None or self.world.t_s < self.silent_until_t_s:
             return
         target = getattr(msg, "target_system", None)
         if target is not None and target not in (0, self.sysid):
@@ -167,7 +172,50 @@ class VehicleProtocol:
             return CommandOutcome(Result.ACCEPTED)
         if command == M.MAV_CMD_DO_REPOSITION:
             return f.goto(i, self.world.global_to_enu(i, x, y, z, relative=not self._command_alt_amsl))
+        return self._command_more(command, p, x, y, z, channel)
+
+    def _command_more(self, command: int, p: list[float], x: float, y: float, z: float,
+                      channel: Connection) -> CommandOutcome:
+        """The commands a ground station uses beyond flying: yaw, region of interest, pause, servos, reboot,
+        home. REQUEST_PROTOCOL_VERSION stays UNSUPPORTED: its answer, PROTOCOL_VERSION (300), is in no dialect
+        pymavlink ships, so no pymavlink client could read it."""
+        f, i = self.fleet, self.i
+        if command == M.MAV_CMD_CONDITION_YAW:
+            return f.condition_yaw(i, p[0], p[1], p[2], p[3] >= 0.5)
+        if command == M.MAV_CMD_DO_SET_ROI_LOCATION or (command == M.MAV_CMD_DO_SET_ROI
+                                                         and int(p[0]) == M.MAV_ROI_LOCATION):
+            if not (math.isfinite(x) and math.isfinite(y) and -90 <= x <= 90 and -180 <= y <= 180):
+                return CommandOutcome(Result.DENIED, "ROI refused: no location")
+            return f.set_roi(i, self.world.global_to_enu(i, x, y, z if math.isfinite(z) else 0.0,
+                                                         relative=not self._command_alt_amsl))
+        if command in (M.MAV_CMD_DO_SET_ROI_NONE, M.MAV_CMD_DO_SET_ROI):
+            return f.set_roi(i, None)
+        if command == M.MAV_CMD_DO_PAUSE_CONTINUE:
+            return f.pause(i, int(p[0]) == 0)
+        if command == M.MAV_CMD_DO_SET_SERVO:
+            return f.set_servo(i, int(p[0]), int(p[1]))
+        if command == M.MAV_CMD_NAV_LOITER_UNLIM:
+            return f.set_mode(i, CopterMode.LOITER)
+        if command == M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
+            if int(p[0]) != 1:
+                return CommandOutcome(Result.UNSUPPORTED, "Only an autopilot reboot (param1 = 1) is simulated")
+            outcome = f.reboot(i)
+            if outcome.result == Result.ACCEPTED:
+                self._after_ack.append(self.restart)
+            return outcome
+        if command == M.MAV_CMD_GET_HOME_POSITION:
+            self._after_ack.append(lambda: self.send_one(M.MAVLINK_MSG_ID_HOME_POSITION, channel))
+            return OK_OUTCOME
         return CommandOutcome(Result.UNSUPPORTED)
+
+    def restart(self) -> None:
+        """The autopilot restarts after answering: silent for RESTART_S, then its boot clock starts again at 0
+        and its streams are back to their defaults (what the agent's reconnect logic sees on a Pixhawk)."""
+        back_t_s = self.world.t_s + RESTART_S
+        self.silent_until_t_s = back_t_s
+        self.world.boot_t_s[self.i] = back_t_s
+        self.streams.reset(self.i, back_t_s)
+        log.info("vehicle %d restarting (back at t = %.1f s)", self.sysid, back_t_s)
 
     def set_interval(self, msgid: int, interval_us: float) -> CommandOutcome:
         if not self.streams.set_interval(self.i, msgid, interval_us, self.world.t_s):
@@ -178,12 +226,13 @@ class VehicleProtocol:
         return msgid in BUILDERS or msgid in (M.MAVLINK_MSG_ID_AUTOPILOT_VERSION,)
 
     def _on_set_mode(self, msg, channel: Connection) -> None:
+        result = Result.DENIED
         if msg.base_mode & M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
             outcome = self.fleet.set_mode(self.i, msg.custom_mode)
+            result = outcome.result  # a mode this copter does not have is refused, not ACCEPTED and ignored
             if outcome.text:
                 self.statustext(Severity.WARNING, outcome.text)
         # ArduPilot answers the legacy message with a COMMAND_ACK for DO_SET_MODE as well.
-        result = Result.ACCEPTED if msg.base_mode & M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED else Result.DENIED
         self.send_msg(M.MAVLink_command_ack_message(MavCmd.DO_SET_MODE, int(result), 0, 0,
                                                     msg.get_srcSystem(), msg.get_srcComponent()), channel)
 
@@ -191,7 +240,7 @@ class VehicleProtocol:
         rate_hz = msg.req_message_rate
         stop = msg.start_stop == 0 or rate_hz == 0
         for msgid in BUILDERS:
-            if msgid != M.MAVLINK_MSG_ID_HEARTBEAT:
+            if msgid not in NOT_DATA_STREAMS:
                 self.set_interval(msgid, -1 if stop else 1e6 / rate_hz)
 
     def _on_position_target(self, msg, channel: Connection) -> None:

@@ -150,6 +150,10 @@ class Fleet:
         self.accel_mps2 = np.zeros((n, 3))  # ... and the acceleration that moves it
         self.yaw_target_rad = np.full(n, math.nan)  # commanded heading (NaN: face the direction of travel)
         self.yaw_rate_rps = np.full(n, math.nan)
+        self.roi_m = np.full((n, 3), math.nan)  # region of interest the nose points at (DO_SET_ROI*), ENU
+        self.idle_since_t_s = np.full(n, math.inf)  # armed, on the ground and not taking off, since
+        self.paused: list[tuple | None] = [None] * n  # DO_PAUSE_CONTINUE: what to resume
+        self.servo_pwm: list[dict[int, int]] = [{} for _ in range(n)]  # DO_SET_SERVO outputs (not simulated)
         self.t_s = 0.0
         self.state: VehicleState | None = None
 
@@ -165,6 +169,11 @@ class Fleet:
         if accelerating.any():
             self.velocity_mps[accelerating] += self.accel_mps2[accelerating] * max(0.0, t_s - self.t_s)
         self.state, self.t_s = state, t_s
+        looking = ~np.isnan(self.roi_m[:, 0])
+        if looking.any():
+            to_roi = self.roi_m[looking] - state.pos_m[looking]
+            far = np.hypot(to_roi[:, 0], to_roi[:, 1]) > 1.0  # overhead the bearing means nothing: keep heading
+            self.yaw_target_rad[np.flatnonzero(looking)[far]] = np.arctan2(to_roi[far, 0], to_roi[far, 1])
         check = self.check
         if not check.any() and not self.armed.any():
             return
@@ -175,11 +184,21 @@ class Fleet:
         done |= (check == Check.TIMER) & (t_s >= self.until_t_s)
         for i in np.flatnonzero(done):
             self._on_done(int(i))
+        self._auto_disarm(state, t_s)
         flying = self.armed & ~state.on_ground
         low_batt = flying & ~self.failsafe & (state.soc * 100.0 < self.params.column("BATT_LOW_PCT"))
         no_gps = flying & ~self.gps_ok & (self.mode != CopterMode.LAND)
         for i in np.flatnonzero(low_batt | no_gps):
             self._failsafe(int(i), bool(no_gps[i]))
+
+    def _auto_disarm(self, state: VehicleState, t_s: float) -> None:
+        """ArduCopter's DISARM_DELAY: a vehicle armed on the ground that does not take off disarms itself."""
+        idle = self.armed & state.on_ground & (self.motion == Motion.IDLE)
+        self.idle_since_t_s[~idle] = math.inf
+        self.idle_since_t_s[idle & np.isinf(self.idle_since_t_s)] = t_s
+        delay_s = self.params.column("DISARM_DELAY")
+        for i in np.flatnonzero(idle & (delay_s > 0) & (t_s - self.idle_since_t_s >= delay_s)):
+            self._disarm(int(i), f"Auto-disarmed: armed on the ground for {delay_s[i]:g} s")
 
     def _alt_tolerance_m(self) -> np.ndarray:
         return np.clip(0.1 * self.goal_m[:, 2], 0.1, 0.5)
@@ -396,6 +415,7 @@ class Fleet:
 
     def _disarm(self, i: int, text: str) -> None:
         self.armed[i] = False
+        self.idle_since_t_s[i] = math.inf
         self._set_goal(i, self._pos(i), Motion.IDLE, Check.NONE)
         if self.mode[i] == CopterMode.AUTO and self.mission_state[i] == MissionState.ACTIVE:
             self.mission_state[i] = MissionState.PAUSED
@@ -410,6 +430,8 @@ class Fleet:
         previous = self.mode[i]
         self.mode[i] = mode
         self.yaw_target_rad[i] = self.yaw_rate_rps[i] = math.nan
+        self.roi_m[i] = math.nan
+        self.paused[i] = None
         if mode in HOLD_MODES:
             self._hold(i)
         elif mode == CopterMode.AUTO:
@@ -522,6 +544,78 @@ class Fleet:
         self.yaw_target_rad[i] = math.nan if target.yaw_rad is None else target.yaw_rad
         self.yaw_rate_rps[i] = math.nan if target.yaw_rate_rps is None else target.yaw_rate_rps
         return True
+
+    def condition_yaw(self, i: int, angle_deg: float, speed_dps: float, direction: float,
+                      relative: bool) -> CommandOutcome:
+        """CONDITION_YAW: turn to a heading (relative: by an angle, -1 counter-clockwise, 1 clockwise) at a
+        rate (0: the vehicle's default)."""
+        if not (math.isfinite(angle_deg) and 0.0 <= angle_deg <= 360.0 and math.isfinite(speed_dps)):
+            return CommandOutcome(Result.DENIED, f"Yaw refused: angle {angle_deg} outside 0..360")
+        heading = float(self.state.yaw_rad[i]) if self.state is not None else 0.0
+        turn = math.radians(angle_deg)
+        self.yaw_target_rad[i] = heading + (-turn if direction < 0 else turn) if relative else turn
+        self.yaw_rate_rps[i] = math.radians(abs(speed_dps)) if speed_dps else math.nan
+        self.roi_m[i] = math.nan
+        return OK
+
+    def set_roi(self, i: int, roi_m) -> CommandOutcome:
+        """DO_SET_ROI_LOCATION / DO_SET_ROI: point the nose at a place (None: stop doing so)."""
+        if roi_m is None:
+            self.roi_m[i] = math.nan
+            self.yaw_target_rad[i] = math.nan
+        else:
+            self.roi_m[i] = roi_m
+        return OK
+
+    def pause(self, i: int, pause: bool) -> CommandOutcome:
+        """DO_PAUSE_CONTINUE in AUTO or GUIDED: stop where the vehicle is, then go on with what it was doing."""
+        if self.mode[i] not in (CopterMode.AUTO, CopterMode.GUIDED) or not self._flying(i):
+            return CommandOutcome(Result.DENIED, "Pause/continue: needs AUTO or GUIDED and flying")
+        if pause:
+            if self.paused[i] is None:
+                left_s = self.until_t_s[i] - self.t_s if self.check[i] == Check.TIMER else math.inf
+                self.paused[i] = (self.goal_m[i].copy(), int(self.motion[i]), int(self.check[i]),
+                                  float(self.radius_m[i]), self.phase[i], left_s, int(self.mission_state[i]))
+                self._set_goal(i, self._pos(i), Motion.GOTO, Check.NONE)
+                if self.mode[i] == CopterMode.AUTO:
+                    self.mission_state[i] = MissionState.PAUSED
+                self._text(i, "Paused")
+            return OK
+        saved, self.paused[i] = self.paused[i], None
+        if saved is None:
+            return OK
+        goal, motion, check, radius_m, phase, left_s, mission_state = saved
+        self._set_goal(i, goal, Motion(motion), Check(check), radius_m, phase)
+        if check == Check.TIMER:
+            self.until_t_s[i] = self.t_s + left_s
+        self.mission_state[i] = mission_state
+        self._text(i, "Resumed")
+        return OK
+
+    def set_servo(self, i: int, channel: int, pwm: int) -> CommandOutcome:
+        """DO_SET_SERVO: remembered (and acknowledged) as ArduCopter does; outputs 1-4 drive the motors."""
+        if not 1 <= channel <= 32 or not 0 <= pwm <= 65535:
+            return CommandOutcome(Result.DENIED, f"Servo {channel} PWM {pwm} out of range")
+        if channel <= 4:
+            return CommandOutcome(Result.FAILED, f"Servo {channel} is a motor output")
+        self.servo_pwm[i][channel] = pwm
+        return OK
+
+    def reboot(self, i: int) -> CommandOutcome:
+        """What a restart leaves: missions and parameters (stored), nothing in flight; disarmed only."""
+        if self.armed[i]:
+            return CommandOutcome(Result.FAILED, "Reboot refused: disarm first")
+        self.mode[i] = CopterMode.STABILIZE
+        self._set_goal(i, self._pos(i), Motion.IDLE, Check.NONE)
+        self.failsafe[i] = False
+        self.yaw_target_rad[i] = self.yaw_rate_rps[i] = math.nan
+        self.roi_m[i] = math.nan
+        self.paused[i] = None
+        self.speed_xy_mps[i] = self.params.get(i, "WPNAV_SPEED") / 100.0
+        if len(self.mission(i)) > 1:
+            self.current_seq[i] = 1
+            self.mission_state[i] = MissionState.NOT_STARTED
+        return OK
 
     def on_params_changed(self) -> None:
         """A new WPNAV_SPEED applies at once; a mission's DO_CHANGE_SPEED below it stays while in AUTO."""

@@ -129,10 +129,11 @@ def commanded_yaw_rad(yaw_rad, previous_rad, target_rad, rate_rps, dt_s: float) 
     """Heading where a yaw (turned to at YAW_RATE_MAX_RPS at most) or a yaw rate is commanded; else `yaw_rad`."""
     out = np.array(yaw_rad, dtype=float)
     has_target = ~np.isnan(target_rad)
-    if has_target.any():
+    if has_target.any():  # at the commanded rate when there is one (CONDITION_YAW's speed), else the fastest
         error = (target_rad[has_target] - previous_rad[has_target] + math.pi) % (2 * math.pi) - math.pi
-        turn = np.clip(error, -YAW_RATE_MAX_RPS * dt_s, YAW_RATE_MAX_RPS * dt_s)
-        out[has_target] = previous_rad[has_target] + turn
+        rate = rate_rps[has_target]
+        step = np.where(np.isnan(rate), YAW_RATE_MAX_RPS, np.minimum(np.abs(rate), YAW_RATE_MAX_RPS)) * dt_s
+        out[has_target] = previous_rad[has_target] + np.clip(error, -step, step)
     has_rate = ~has_target & ~np.isnan(rate_rps)
     if has_rate.any():
         out[has_rate] = previous_rad[has_rate] + np.clip(rate_rps[has_rate], -YAW_RATE_MAX_RPS,

@@ -58,6 +58,7 @@ class World:
         self.fleet.state = self.state
         self.rng = np.random.default_rng(seed)
         self.t_s = 0.0
+        self.boot_t_s = np.zeros(n)  # when each autopilot (re)started, simulated seconds
         self._last_fix_m = self.state.pos_m.copy()
         self.step_observers: list[Callable[[float, VehicleState], None]] = []  # (t_s, state) after every step
         self.param_listeners: list[Callable[[], None]] = []  # after every parameter change

@@ -130,7 +130,7 @@ def test_mavsdk_reads_integer_parameters_rtl_altitude_and_armable_health(start_s
     system = wait_for_system(mavsdk_client, 1, 10.0)
     assert system is not None
     param, action, telemetry = Param(system), Action(system), Telemetry(system)
-    assert param.get_param_int("RTL_ALT") == 1500 and param.get_param_int("DISARM_DELAY") == 2
+    assert param.get_param_int("RTL_ALT") == 1500 and param.get_param_int("DISARM_DELAY") == 10
     assert param.get_param_float("WPNAV_SPEED") == 500.0
     assert action.get_return_to_launch_altitude() == pytest.approx(15.0)
     param.set_param_int("RTL_ALT", 2500)

@@ -120,6 +120,60 @@ def test_commands_answer_with_the_right_result(start_sitl, gcs_for):
     assert gcs.recv("HEARTBEAT", 10.0, lambda m: not m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
 
 
+
+def test_commands_a_ground_station_uses_change_the_vehicle(start_sitl, gcs_for):
+    """MAVProxy's pause/resume (DO_PAUSE_CONTINUE) holds and then finishes a mission; CONDITION_YAW turns the
+    vehicle; a servo is acknowledged; GET_HOME_POSITION answers; SET_MODE to a mode ArduCopter lacks is refused;
+    REQUEST_DATA_STREAM(ALL) leaves HOME_POSITION at its own rate."""
+    from tests.integration.gcs import take_off
+
+    sim = start_sitl(speedup=10.0)
+    gcs = gcs_for(sim)
+    home = sim.homes[0]
+    items = waypoint_mission(home.lat_deg, home.lon_deg, [(0.0, 40.0)], alt_m=6.0, land=False)
+    assert gcs.upload(items) == M.MAV_MISSION_ACCEPTED
+    take_off(gcs, 6)
+    assert gcs.command(M.MAV_CMD_CONDITION_YAW, 90, 45, 1, 0) == M.MAV_RESULT_ACCEPTED
+    turned = gcs.recv("ATTITUDE", 20.0, lambda m: abs(math.degrees(m.yaw) - 90) < 1.0)
+    assert turned is not None and abs(math.degrees(sim.world.state.yaw_rad[0]) - 90) < 1.5
+    assert gcs.set_mode("AUTO") == M.MAV_RESULT_ACCEPTED
+    assert gcs.recv("LOCAL_POSITION_NED", 30.0, lambda m: m.x > 10.0) is not None
+    assert gcs.command(M.MAV_CMD_DO_PAUSE_CONTINUE, 0) == M.MAV_RESULT_ACCEPTED
+    assert gcs.recv("LOCAL_POSITION_NED", 30.0, lambda m: abs(m.vx) < 0.05) is not None
+    held = sim.truth(0)
+    assert held["mission_state"] == M.MISSION_STATE_PAUSED and held["pos_m"][1] < 35.0
+    assert gcs.command(M.MAV_CMD_DO_PAUSE_CONTINUE, 1) == M.MAV_RESULT_ACCEPTED
+    assert gcs.recv("MISSION_ITEM_REACHED", 30.0, lambda m: m.seq == 2) is not None
+    assert gcs.command(M.MAV_CMD_DO_SET_SERVO, 9, 1800) == M.MAV_RESULT_ACCEPTED
+    assert gcs.command(M.MAV_CMD_DO_SET_SERVO, 1, 1800) == M.MAV_RESULT_FAILED  # a motor
+    assert gcs.command(M.MAV_CMD_GET_HOME_POSITION) == M.MAV_RESULT_ACCEPTED
+    assert gcs.recv("HOME_POSITION", 2.0) is not None
+    gcs.conn.mav.set_mode_send(1, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 99)
+    ack = gcs.recv("COMMAND_ACK", 2.0, lambda m: m.command == MavCmd.DO_SET_MODE)
+    assert ack is not None and ack.result != M.MAV_RESULT_ACCEPTED and sim.truth(0)["mode"] == "AUTO"
+    gcs.conn.mav.request_data_stream_send(1, 1, M.MAV_DATA_STREAM_ALL, 10, 1)
+    assert gcs.recv("ATTITUDE", 2.0) is not None
+    t0 = sim.t_s
+    homes = 0
+    while sim.t_s - t0 < 3.0:
+        homes += gcs.recv("HOME_POSITION", 1.0) is not None
+    assert homes <= 2, "HOME_POSITION stays at one per 5 s, not 10 Hz"
+
+
+def test_a_reboot_silences_the_vehicle_then_it_comes_back_with_a_new_boot_clock(start_sitl, gcs_for):
+    sim = start_sitl(speedup=2.0)
+    gcs = gcs_for(sim)
+    assert gcs.command(MavCmd.COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+    assert gcs.command(M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1) == M.MAV_RESULT_FAILED  # armed
+    assert gcs.command(MavCmd.COMPONENT_ARM_DISARM, 0) == M.MAV_RESULT_ACCEPTED
+    assert gcs.recv("GLOBAL_POSITION_INT", 5.0, lambda m: m.time_boot_ms > 2000) is not None
+    assert gcs.command(M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1) == M.MAV_RESULT_ACCEPTED
+    rebooted_at = sim.t_s
+    first = gcs.recv("HEARTBEAT", 5.0)
+    assert first is not None and sim.t_s - rebooted_at >= 2.9, "silent while restarting"
+    after = gcs.recv("GLOBAL_POSITION_INT", 2.0)
+    assert after is not None and after.time_boot_ms < 1000 and sim.truth(0)["mode"] == "STABILIZE"
+
 def test_arm_is_refused_while_a_mission_is_uploading(start_sitl, gcs_for):
     sim = start_sitl(speedup=5.0)
     gcs = gcs_for(sim)

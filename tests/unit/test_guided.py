@@ -151,3 +151,80 @@ def test_fleet_command_carries_the_setpoint_arrays():
     fleet = Fleet([HOME], make()[2])
     cmd = fleet.command()
     assert cmd.velocity_mps.shape == (1, 3) and np.isnan(cmd.yaw_target_rad).all()
+
+
+def test_condition_yaw_turns_absolute_or_relative_at_the_asked_rate():
+    fleet, state, params, t = airborne()
+    assert fleet.condition_yaw(0, 90.0, 30.0, 1, relative=False).result == 0
+    state, t = run(fleet, state, params, 1.5, t0=t)
+    assert math.degrees(state.yaw_rad[0]) == pytest.approx(45.0, abs=2.0), "30 deg/s for 1.5 s"
+    state, t = run(fleet, state, params, 3.0, t0=t)
+    assert math.degrees(state.yaw_rad[0]) == pytest.approx(90.0, abs=1.0)
+    fleet.condition_yaw(0, 40.0, 0.0, -1, relative=True)
+    state, t = run(fleet, state, params, 2.0, t0=t)
+    assert math.degrees(state.yaw_rad[0]) == pytest.approx(50.0, abs=1.0)
+    assert fleet.condition_yaw(0, 400.0, 0.0, 1, relative=False).result != 0
+
+
+def test_a_region_of_interest_keeps_the_nose_on_it_while_flying_past():
+    fleet, state, params, t = airborne()
+    fleet.set_roi(0, np.array([0.0, 50.0, 0.0]))  # 50 m north
+    fleet.setpoint(0, local(guided.LOCAL_NED, ONLY_VEL, vel=(0.0, 3.0, 0.0), state=state))  # east
+    state, t = run(fleet, state, params, 2.5, t0=t)
+    bearing = math.degrees(math.atan2(0.0 - state.pos_m[0, 0], 50.0 - state.pos_m[0, 1]))
+    assert math.degrees(state.yaw_rad[0]) == pytest.approx(bearing, abs=3.0) and bearing < -5.0
+    fleet.set_roi(0, None)
+    assert math.isnan(fleet.roi_m[0, 0])
+
+
+def test_pause_stops_a_mission_where_it_is_and_continue_flies_on():
+    from missions.model import MavCmd, MissionItem
+    from sitl.vehicle.flight import MissionState
+    from tests.unit.test_flight import wp
+
+    fleet, state, params = make()
+    fleet.replace_mission(0, 0, [MissionItem(0, 16), MissionItem(1, MavCmd.NAV_TAKEOFF, alt_m=5),
+                                 wp(2, 0, 60, 5), MissionItem(3, MavCmd.NAV_LAND)])
+    fleet.arm(0, True)
+    fleet.mission_start(0, 0)
+    state, t = run(fleet, state, params, 60.0, until=lambda f, s: s.pos_m[0, 1] > 20.0)
+    paused_at = state.pos_m[0, 1]
+    assert fleet.pause(0, True).result == 0 and fleet.mission_state[0] == MissionState.PAUSED
+    state, t = run(fleet, state, params, 20.0, t0=t)
+    assert np.linalg.norm(state.vel_mps[0]) < 0.1 and abs(state.pos_m[0, 1] - paused_at) < 2.0
+    assert int(fleet.current_seq[0]) == 2
+    assert fleet.pause(0, False).result == 0 and fleet.mission_state[0] == MissionState.ACTIVE
+    state, t = run(fleet, state, params, 120.0, t0=t, until=lambda f, s: f.mission_state[0] == MissionState.COMPLETE)
+    assert fleet.mission_state[0] == MissionState.COMPLETE and state.pos_m[0, 1] == pytest.approx(60.0, abs=2.5)
+    fleet.set_mode(0, CopterMode.LOITER)
+    assert fleet.pause(0, True).result != 0, "only in AUTO or GUIDED"
+
+
+def test_servos_are_remembered_except_the_motors_and_reboot_needs_a_disarmed_vehicle():
+    fleet, state, params, t = airborne()
+    assert fleet.set_servo(0, 9, 1900).result == 0 and fleet.servo_pwm[0] == {9: 1900}
+    assert fleet.set_servo(0, 2, 1500).result != 0
+    assert fleet.reboot(0).result != 0 and fleet.armed[0], "armed: refused"
+    fleet, state, params = make()
+    fleet.set_mode(0, CopterMode.GUIDED)
+    assert fleet.reboot(0).result == 0 and fleet.mode[0] == CopterMode.STABILIZE
+
+
+def test_a_copter_armed_on_the_ground_disarms_itself_after_disarm_delay_unless_it_takes_off():
+    fleet, state, params = make()
+    fleet.arm(0, True)
+    state, t = run(fleet, state, params, 9.5)
+    assert fleet.armed[0]
+    state, t = run(fleet, state, params, 1.0, t0=t)
+    assert not fleet.armed[0] and any("Auto-disarmed" in str(v) for _, _, v in fleet.events)
+    fleet.arm(0, True)  # again: a fresh 10 s, and a takeoff within them keeps it armed
+    state, t = run(fleet, state, params, 5.0, t0=t)
+    fleet.set_mode(0, CopterMode.GUIDED)
+    fleet.takeoff(0, 5.0)
+    state, t = run(fleet, state, params, 20.0, t0=t)
+    assert fleet.armed[0] and state.pos_m[0, 2] > 4.0
+    fleet2, state2, params2 = make()
+    params2.set(0, "DISARM_DELAY", 0)
+    fleet2.arm(0, True)
+    state2, _ = run(fleet2, state2, params2, 30.0)
+    assert fleet2.armed[0], "0: never"

@@ -102,3 +102,14 @@ def test_iperf3_probes_need_the_kernel_network(tmp_path):
     result = Experiment(scenario, tmp_path / "run", 1.0, 14550, out=io.StringIO(), analyze=False,
                         network=("sleep", "asked for")).run()
     assert result.outcome is Outcome.BAD_INPUT and "needs the kernel network" in result.detail
+
+
+def test_a_southern_or_western_home_is_taken_as_typed():
+    from sitl.cli import build_parser, config_from_args, joined_coordinates
+
+    argv = joined_coordinates(["run", "--home", "-35.363261,149.165230,584", "--ground-station", "-35.36,-1.5,580"])
+    args = build_parser().parse_args(argv)
+    config = config_from_args(args)
+    assert (config.home.lat_deg, config.home.lon_deg, config.home.alt_m) == (-35.363261, 149.16523, 584.0)
+    assert args.ground_station.lon_deg == -1.5
+    assert joined_coordinates(["run", "--speedup", "-1"]) == ["run", "--speedup", "-1"], "only coordinates"
