@@ -19,8 +19,9 @@ from sitl.mavlink.codec import FrameEncoder, mavlink
 from sitl.mavlink.mission_protocol import Ack, Complete, MissionReceiver, Request
 from sitl.mavlink.telemetry import BUILDERS, NOT_DATA_STREAMS, Streams, TelemetrySource
 from sitl.vehicle import guided
-from sitl.vehicle.flight import FORCE_DISARM_MAGIC, CommandOutcome, CopterMode, Event, Result, Severity, validate_item
+from sitl.vehicle.flight import FORCE_DISARM_MAGIC, CommandOutcome, CopterMode, Event, Result, Severity
 from sitl.vehicle.flight import OK as OK_OUTCOME
+from sitl.vehicle.mission_items import validate_item
 from sitl.vehicle.params import PARAM_DEFS, ParamError
 from sitl.vehicle.world import World
 

@@ -14,7 +14,8 @@ from enum import Enum, IntEnum
 import numpy as np
 
 from missions.geo import Home, lla_to_enu
-from missions.model import AMSL_FRAMES, Frame, MavCmd, MissionItem, MissionType
+from missions.model import AMSL_FRAMES, MavCmd, MissionItem, MissionType
+from sitl.vehicle import mission_items as items_
 from sitl.vehicle.guided import VELOCITY_TIMEOUT_S, Setpoint
 from sitl.vehicle.params import ParamTable
 from sitl.vehicle.physics import Command, Motion, VehicleState
@@ -86,6 +87,9 @@ class Phase(Enum):
     LAND = "land"
     DISARM_WAIT = "disarm_wait"
     VELOCITY = "velocity"  # GUIDED velocity control: the timer is the setpoint's timeout
+    TURNS_ENTER = "turns_enter"  # NAV_LOITER_TURNS: flying to the circle
+    TURNS = "turns"  # ... going round it (velocity control, no timeout)
+    LOITER_UNLIM = "loiter_unlim"  # NAV_LOITER_UNLIM: at its place until the mode or the item changes
 
 
 class Check(IntEnum):
@@ -96,17 +100,6 @@ class Check(IntEnum):
     TIMER = 4  # sim time reached until_t
 
 
-EXECUTABLE_COMMANDS = frozenset({
-    MavCmd.NAV_WAYPOINT, MavCmd.NAV_TAKEOFF, MavCmd.NAV_LAND, MavCmd.NAV_RETURN_TO_LAUNCH,
-    MavCmd.NAV_LOITER_TIME, MavCmd.DO_CHANGE_SPEED, MavCmd.DO_JUMP,
-})
-FENCE_COMMANDS = frozenset({
-    MavCmd.NAV_FENCE_RETURN_POINT, MavCmd.NAV_FENCE_POLYGON_VERTEX_INCLUSION,
-    MavCmd.NAV_FENCE_POLYGON_VERTEX_EXCLUSION, MavCmd.NAV_FENCE_CIRCLE_INCLUSION, MavCmd.NAV_FENCE_CIRCLE_EXCLUSION,
-})
-RALLY_COMMANDS = frozenset({MavCmd.NAV_RALLY_POINT})
-SUPPORTED_FRAMES = frozenset({Frame.GLOBAL, Frame.GLOBAL_RELATIVE_ALT, Frame.GLOBAL_INT, Frame.GLOBAL_RELATIVE_ALT_INT,
-                              Frame.GLOBAL_TERRAIN_ALT, Frame.GLOBAL_TERRAIN_ALT_INT, Frame.MISSION})
 HOLD_MODES = frozenset({CopterMode.STABILIZE, CopterMode.ALT_HOLD, CopterMode.LOITER, CopterMode.POSHOLD,
                         CopterMode.BRAKE, CopterMode.GUIDED})
 FORCE_DISARM_MAGIC = 21196  # COMPONENT_ARM_DISARM param 2: disarm even in flight (ArduPilot)
@@ -151,6 +144,7 @@ class Fleet:
         self.yaw_target_rad = np.full(n, math.nan)  # commanded heading (NaN: face the direction of travel)
         self.yaw_rate_rps = np.full(n, math.nan)
         self.roi_m = np.full((n, 3), math.nan)  # region of interest the nose points at (DO_SET_ROI*), ENU
+        self.circling: dict[int, list] = {}  # NAV_LOITER_TURNS: [centre, radius, turns left (rad), last bearing]
         self.idle_since_t_s = np.full(n, math.inf)  # armed, on the ground and not taking off, since
         self.paused: list[tuple | None] = [None] * n  # DO_PAUSE_CONTINUE: what to resume
         self.servo_pwm: list[dict[int, int]] = [{} for _ in range(n)]  # DO_SET_SERVO outputs (not simulated)
@@ -169,6 +163,8 @@ class Fleet:
         if accelerating.any():
             self.velocity_mps[accelerating] += self.accel_mps2[accelerating] * max(0.0, t_s - self.t_s)
         self.state, self.t_s = state, t_s
+        if self.circling:
+            self._circle(state)
         looking = ~np.isnan(self.roi_m[:, 0])
         if looking.any():
             to_roi = self.roi_m[looking] - state.pos_m[looking]
@@ -217,6 +213,7 @@ class Fleet:
         return bool(self.armed[i] and self.state is not None and not self.state.on_ground[i])
 
     def _set_goal(self, i: int, goal_m, motion: Motion, check: Check, radius_m: float = 0.0, phase: Phase = Phase.NONE):
+        self.circling.pop(i, None)
         self.goal_m[i] = goal_m
         self.motion[i] = motion
         self.check[i] = check
@@ -244,7 +241,9 @@ class Fleet:
             self._item_reached(i)
         elif phase == Phase.MISSION_HOLD:  # reached a waypoint with a hold time / NAV_LOITER_TIME
             item = self.missions[i][MissionType.MISSION][self.current_seq[i]]
-            self._timer(i, max(0.0, item.p1), Phase.MISSION)
+            self._timer(i, items_.holds_s(item), Phase.MISSION)
+        elif phase == Phase.TURNS_ENTER:
+            self._start_circle(i)
         elif phase == Phase.RTL_CLIMB:
             home_xy = np.array([0.0, 0.0, self.goal_m[i, 2]])
             self._set_goal(i, home_xy, Motion.GOTO, Check.REACH, self._wp_radius_m(i), Phase.RTL_RETURN)
@@ -332,42 +331,104 @@ class Fleet:
                 self._emit(i, Event.MISSION_CURRENT, seq)
             self.mission_state[i] = MissionState.ACTIVE
             cmd = item.command
-            if cmd == MavCmd.DO_CHANGE_SPEED:
-                if item.p2 > 0:
-                    self.speed_xy_mps[i] = item.p2
+            if cmd in (MavCmd.DO_JUMP, items_.DO_JUMP_TAG):
+                seq = self._jump(i, seq, item)
+                continue
+            if cmd in items_.DO_ACTED or cmd in items_.DO_NO_EFFECT:
+                self._do(i, item)
                 self._emit(i, Event.ITEM_REACHED, seq)
                 seq += 1
-                continue
-            if cmd == MavCmd.DO_JUMP:
-                left = self.jumps_left[i].setdefault(seq, int(item.p2))
-                target = int(item.p1)
-                if left != 0 and 1 <= target < len(items):
-                    if left > 0:
-                        self.jumps_left[i][seq] = left - 1
-                    seq = target
-                else:
-                    seq += 1
                 continue
             self._start_nav_item(i, item)
             return
         self._text(i, "Mission: DO_JUMP loop without a navigation command, stopping", Severity.ERROR)
         self._mission_complete(i)
 
+    def _jump(self, i: int, seq: int, item: MissionItem) -> int:
+        """The item after a DO_JUMP (to a seq) or DO_JUMP_TAG (to the JUMP_TAG with that number), counting its
+        repeats (-1: for ever)."""
+        items = self.mission(i)
+        if item.command == MavCmd.DO_JUMP:
+            target = int(item.p1)
+        else:
+            target = next((k for k, it in enumerate(items) if it.command == items_.JUMP_TAG and it.p1 == item.p1), -1)
+        left = self.jumps_left[i].setdefault(seq, int(item.p2))
+        if left == 0 or not 1 <= target < len(items):
+            return seq + 1
+        if left > 0:
+            self.jumps_left[i][seq] = left - 1
+        return target
+
+    def _do(self, i: int, item: MissionItem) -> None:
+        """A DO or CONDITION item of a running mission (those with no effect here are passed over)."""
+        cmd = item.command
+        if cmd == MavCmd.DO_CHANGE_SPEED:
+            if item.p2 > 0:
+                self.speed_xy_mps[i] = item.p2
+        elif cmd == MavCmd.CONDITION_YAW:
+            self.condition_yaw(i, item.p1, item.p2, item.p3, item.p4 >= 0.5)
+        elif cmd == items_.DO_SET_ROI_NONE or (cmd == items_.DO_SET_ROI and item.lat_deg == item.lon_deg == 0.0):
+            self.set_roi(i, None)
+        elif cmd in (items_.DO_SET_ROI, items_.DO_SET_ROI_LOCATION):
+            self.set_roi(i, self.item_goal_m(i, item))
+        elif cmd == items_.DO_SET_SERVO:
+            self.set_servo(i, int(item.p1), int(item.p2))
+
     def _start_nav_item(self, i: int, item: MissionItem) -> None:
         cmd = item.command
         goal = self.item_goal_m(i, item)
-        if cmd == MavCmd.NAV_TAKEOFF:
-            here = self._pos(i)
+        here = self._pos(i)
+        if cmd in items_.TAKEOFFS:
             self._set_goal(i, [here[0], here[1], max(goal[2], here[2])], Motion.GOTO, Check.ALTITUDE,
                            phase=Phase.MISSION)
-        elif cmd == MavCmd.NAV_LAND:
+        elif cmd in items_.LANDINGS:
             self._set_goal(i, [goal[0], goal[1], 0.0], Motion.LAND, Check.LANDED, phase=Phase.LAND)
         elif cmd == MavCmd.NAV_RETURN_TO_LAUNCH:
             self._begin_rtl(i)
+        elif cmd == items_.NAV_DELAY:
+            self._set_goal(i, here, Motion.GOTO if self._flying(i) else Motion.IDLE, Check.NONE)
+            if item.p1 < 0:
+                self._text(i, "NAV_DELAY until a time of day is not simulated: not waiting", Severity.WARNING)
+            self._timer(i, max(0.0, item.p1) if math.isfinite(item.p1) else 0.0, Phase.MISSION)
+        elif cmd == MavCmd.NAV_LOITER_TURNS:
+            count, radius_m = items_.turns(item)
+            outward = here[:2] - goal[:2]
+            norm = float(np.hypot(*outward))
+            edge = goal[:2] + (outward / norm if norm > 1e-6 else np.array([0.0, 1.0])) * abs(radius_m)
+            self._set_goal(i, [edge[0], edge[1], goal[2]], Motion.GOTO, Check.REACH, self._wp_radius_m(i),
+                           Phase.TURNS_ENTER)
+        elif cmd == MavCmd.NAV_LOITER_UNLIM:
+            self._set_goal(i, goal, Motion.GOTO, Check.NONE, phase=Phase.LOITER_UNLIM)
         else:
             radius = item.p2 if cmd == MavCmd.NAV_WAYPOINT and item.p2 > 0 else self._wp_radius_m(i)
-            holds = cmd == MavCmd.NAV_LOITER_TIME or item.p1 > 0
+            holds = cmd == MavCmd.NAV_LOITER_TIME or items_.holds_s(item) > 0
             self._set_goal(i, goal, Motion.GOTO, Check.REACH, radius, Phase.MISSION_HOLD if holds else Phase.MISSION)
+
+    def _start_circle(self, i: int) -> None:
+        item = self.mission(i)[self.current_seq[i]]
+        count, radius_m = items_.turns(item)
+        center = self.item_goal_m(i, item)
+        self._set_goal(i, self._pos(i), Motion.VELOCITY, Check.NONE, phase=Phase.TURNS)
+        self.circling[i] = [center, radius_m, 2 * math.pi * count, items_.angle_about(self._pos(i), center)]
+        if count == 0:
+            self.circling.pop(i)
+            self._item_reached(i)
+
+    def _circle(self, state: VehicleState) -> None:
+        """Loiter turns: steer each circling vehicle round its circle, count the angle it has gone round."""
+        k_xy, k_z = self.params.column("NAC_KP_XY"), self.params.column("NAC_KP_Z")
+        for i, circle in list(self.circling.items()):
+            center, radius_m, left_rad, last = circle
+            bearing = items_.angle_about(state.pos_m[i], center)
+            turned = (bearing - last + math.pi) % (2 * math.pi) - math.pi
+            circle[2] = left_rad - (turned if radius_m > 0 else -turned)
+            circle[3] = bearing
+            if circle[2] <= 0:
+                del self.circling[i]
+                self._item_reached(i)
+                continue
+            self.velocity_mps[i] = items_.circle_velocity_mps(state.pos_m[i], center, radius_m,
+                                                              max(float(k_xy[i]), 0.5), float(k_z[i]))
 
     def _mission_complete(self, i: int) -> None:
         self.mission_state[i] = MissionState.COMPLETE
@@ -623,25 +684,3 @@ class Fleet:
         in_auto = self.mode == CopterMode.AUTO
         self.speed_xy_mps = np.where(in_auto, np.minimum(self.speed_xy_mps, limits), limits)
 
-
-def validate_item(item: MissionItem, mission_type: int) -> str | None:
-    """Return the MAV_MISSION_RESULT name for a bad item, None when acceptable."""
-    if mission_type == MissionType.FENCE:
-        return None if item.command in FENCE_COMMANDS else "MAV_MISSION_UNSUPPORTED"
-    if mission_type == MissionType.RALLY:
-        return None if item.command in RALLY_COMMANDS else "MAV_MISSION_UNSUPPORTED"
-    if item.seq == 0:
-        return None  # home slot: ArduPilot ignores what is uploaded there
-    if item.command not in EXECUTABLE_COMMANDS:
-        return "MAV_MISSION_UNSUPPORTED"
-    if item.command in (MavCmd.DO_CHANGE_SPEED, MavCmd.DO_JUMP):
-        return None
-    if item.frame not in SUPPORTED_FRAMES:
-        return "MAV_MISSION_UNSUPPORTED_FRAME"
-    if not (math.isfinite(item.lat_deg) and -90 <= item.lat_deg <= 90):
-        return "MAV_MISSION_INVALID_PARAM5_X"
-    if not (math.isfinite(item.lon_deg) and -180 <= item.lon_deg <= 180):
-        return "MAV_MISSION_INVALID_PARAM6_Y"
-    if not math.isfinite(item.alt_m):
-        return "MAV_MISSION_INVALID_PARAM7"
-    return None
