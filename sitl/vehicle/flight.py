@@ -159,20 +159,12 @@ class Fleet:
 
     def update(self, state: VehicleState, t_s: float) -> None:
         """Run completion checks and failsafes after a physics step."""
-        accelerating = (self.motion == Motion.VELOCITY) & self.accel_mps2.any(axis=1)
-        if accelerating.any():
-            self.velocity_mps[accelerating] += self.accel_mps2[accelerating] * max(0.0, t_s - self.t_s)
+        dt_s = max(0.0, t_s - self.t_s)
         self.state, self.t_s = state, t_s
-        if self.circling:
-            self._circle(state)
-        looking = ~np.isnan(self.roi_m[:, 0])
-        if looking.any():
-            to_roi = self.roi_m[looking] - state.pos_m[looking]
-            far = np.hypot(to_roi[:, 0], to_roi[:, 1]) > 1.0  # overhead the bearing means nothing: keep heading
-            self.yaw_target_rad[np.flatnonzero(looking)[far]] = np.arctan2(to_roi[far, 0], to_roi[far, 1])
         check = self.check
         if not check.any() and not self.armed.any():
             return
+        self._steer(state, dt_s)
         pos = state.pos_m
         done = (check == Check.REACH) & (np.linalg.norm(pos - self.goal_m, axis=1) <= self.radius_m)
         done |= (check == Check.ALTITUDE) & (pos[:, 2] >= self.goal_m[:, 2] - self._alt_tolerance_m())
@@ -186,6 +178,20 @@ class Fleet:
         no_gps = flying & ~self.gps_ok & (self.mode != CopterMode.LAND)
         for i in np.flatnonzero(low_batt | no_gps):
             self._failsafe(int(i), bool(no_gps[i]))
+
+    def _steer(self, state: VehicleState, dt_s: float) -> None:
+        """Targets that move every step: velocity by commanded acceleration, loiter turns, the nose on an ROI."""
+        velocity_control = self.motion == Motion.VELOCITY
+        if velocity_control.any():
+            accelerating = velocity_control & self.accel_mps2.any(axis=1)
+            self.velocity_mps[accelerating] += self.accel_mps2[accelerating] * dt_s
+        if self.circling:
+            self._circle(state)
+        looking = ~np.isnan(self.roi_m[:, 0])
+        if looking.any():
+            to_roi = self.roi_m[looking] - state.pos_m[looking]
+            far = np.hypot(to_roi[:, 0], to_roi[:, 1]) > 1.0  # overhead the bearing means nothing: keep heading
+            self.yaw_target_rad[np.flatnonzero(looking)[far]] = np.arctan2(to_roi[far, 0], to_roi[far, 1])
 
     def _auto_disarm(self, state: VehicleState, t_s: float) -> None:
         """ArduCopter's DISARM_DELAY: a vehicle armed on the ground that does not take off disarms itself."""

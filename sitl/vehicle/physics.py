@@ -169,7 +169,7 @@ def step(state: VehicleState, cmd: Command, params: PhysicsParams, dt_s: float) 
     speed_xy = np.hypot(vel[:, 0], vel[:, 1])
     moving = speed_xy > 0.3
     yaw = np.where(moving, np.arctan2(vel[:, 0], vel[:, 1]), state.yaw_rad)
-    if cmd.yaw_target_rad is not None:
+    if cmd.yaw_target_rad is not None and not (np.isnan(cmd.yaw_target_rad).all() and np.isnan(cmd.yaw_rate_rps).all()):
         yaw = commanded_yaw_rad(yaw, state.yaw_rad, cmd.yaw_target_rad, cmd.yaw_rate_rps, dt_s)
 
     flying = cmd.armed & ~on_ground
