@@ -14,6 +14,8 @@ $(BIN)/python:
 $(STAMP): pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -e '.[test]'
+	$(BIN)/python -m pip install -q --no-deps $$($(BIN)/python -c "import sys; toml = __import__('tomllib' if \
+	    sys.version_info >= (3, 11) else 'tomli'); print(' '.join(toml.load(open('pyproject.toml', 'rb'))['tool']['nac']['test-no-deps']))")
 	touch $(STAMP)
 
 demo: $(STAMP)

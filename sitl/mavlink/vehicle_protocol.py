@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
+import struct
 import time
 from collections.abc import Callable
 from typing import Protocol
@@ -37,6 +38,9 @@ CAPABILITIES = (
 )
 PARAM_TYPES = {"INT8": M.MAV_PARAM_TYPE_INT8, "INT16": M.MAV_PARAM_TYPE_INT16, "INT32": M.MAV_PARAM_TYPE_INT32,
                "REAL32": M.MAV_PARAM_TYPE_REAL32}
+FTP_HEADER = struct.Struct("<HBBBBBBI")  # seq, session, opcode, size, req_opcode, burst_complete, padding, offset
+FTP_TERMINATE_SESSION, FTP_RESET_SESSIONS, FTP_ACK, FTP_NAK = 1, 2, 128, 129
+FTP_ERR_FILE_NOT_FOUND = 10
 RESTART_S = 3.0  # simulated seconds a rebooting autopilot is silent
 FLIGHT_SW_VERSION = (4 << 24) | (5 << 16) | (7 << 8) | 255  # 4.5.7 official: what an ArduCopter of today says
 
@@ -268,6 +272,22 @@ class VehicleProtocol:
             return
         self.fleet.setpoint(self.i, target)
 
+    def _on_file_transfer(self, msg, channel: Connection) -> None:
+        """MAVFTP: no files here. Every request is answered at once with a NAK (FileNotFound; a session reset or
+        end with an ACK), so a ground station falls back to the parameter protocol without waiting out its FTP
+        timeout (MAVProxy waited about 1.5 s on every fetch)."""
+        payload = bytes(msg.payload)
+        if len(payload) < FTP_HEADER.size:
+            return
+        seq, session, opcode, _size, _req, _burst, _pad, _offset = FTP_HEADER.unpack_from(payload)
+        if opcode in (FTP_ACK, FTP_NAK):
+            return
+        done = opcode in (FTP_TERMINATE_SESSION, FTP_RESET_SESSIONS)
+        reply = FTP_HEADER.pack((seq + 1) & 0xFFFF, session, FTP_ACK if done else FTP_NAK, 0 if done else 1, opcode,
+                                0, 0, 0) + (b"" if done else bytes([FTP_ERR_FILE_NOT_FOUND]))
+        self.send_msg(M.MAVLink_file_transfer_protocol_message(
+            0, msg.get_srcSystem(), msg.get_srcComponent(), list(reply.ljust(251, b"\0"))), channel)
+
     def _on_timesync(self, msg, channel: Connection) -> None:
         if msg.tc1 == 0:
             now_ns = int(self.telemetry.unix_time_s() * 1e9)
@@ -432,6 +452,7 @@ _HANDLERS = {
     "SET_POSITION_TARGET_GLOBAL_INT": VehicleProtocol._on_position_target,
     "SET_POSITION_TARGET_LOCAL_NED": VehicleProtocol._on_position_target,
     "TIMESYNC": VehicleProtocol._on_timesync,
+    "FILE_TRANSFER_PROTOCOL": VehicleProtocol._on_file_transfer,
     "PARAM_REQUEST_LIST": VehicleProtocol._on_param_request_list,
     "PARAM_REQUEST_READ": VehicleProtocol._on_param_request_read,
     "PARAM_SET": VehicleProtocol._on_param_set,

@@ -1,0 +1,150 @@
+"""MAVProxy (its core, installed without its GUI dependencies) drives the SITL as a user at its prompt would:
+parameters over the parameter protocol once MAVFTP is refused at once, GUIDED velocity and position commands,
+an ArduPilot WPL mission loaded and flown in AUTO with pause and resume. Each checks the simulator's truth."""
+
+import queue
+import re
+import shutil
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from missions.geo import offset_home
+
+MAVPROXY = shutil.which("mavproxy.py") or str(Path(__file__).resolve().parents[2] / ".venv" / "bin" / "mavproxy.py")
+pytestmark = pytest.mark.skipif(not Path(MAVPROXY).exists(), reason="MAVProxy is not installed (make test installs it)")
+
+
+class MavProxy:
+    """MAVProxy at its prompt: commands in on stdin, every output line collected for expect()."""
+
+    def __init__(self, port: int, state_dir: Path):
+        self.proc = subprocess.Popen([MAVPROXY, f"--master=udpin:127.0.0.1:{port}", f"--state-basedir={state_dir}"],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                     text=True, cwd=state_dir)
+        self.lines: queue.Queue[str] = queue.Queue()
+        self.seen: list[str] = []
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            self.lines.put(line.rstrip())
+
+    def send(self, command: str) -> None:
+        self.proc.stdin.write(command + "\n")
+        self.proc.stdin.flush()
+
+    def expect(self, pattern: str, timeout_s: float = 15.0) -> re.Match:
+        """The first output line from now on that matches, or fail naming what was seen."""
+        deadline = time.monotonic() + timeout_s
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                line = self.lines.get(timeout=left)
+            except queue.Empty:
+                break
+            self.seen.append(line)
+            match = re.search(pattern, line)
+            if match:
+                return match
+        raise AssertionError(f"MAVProxy never printed /{pattern}/ within {timeout_s} s; last lines: {self.seen[-15:]}")
+
+    def close(self) -> None:
+        self.proc.kill()  # MAVProxy's module threads ignore SIGTERM
+        self.proc.wait(10)
+
+
+@pytest.fixture
+def mavproxy(tmp_path):
+    started: list[MavProxy] = []
+
+    def start(sim) -> MavProxy:
+        proxy = MavProxy(sim.config.gcs_base_port, tmp_path)
+        started.append(proxy)
+        proxy.expect(r"online system 1")
+        return proxy
+
+    yield start
+    for proxy in started:
+        proxy.close()
+
+
+def until(condition, timeout_s: float, what: str) -> None:
+    """Poll the simulator's truth (it has no events to await) until condition holds."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.02)
+
+
+def take_off(proxy: MavProxy, alt_m: float) -> None:
+    proxy.send("mode guided")
+    proxy.expect(r"DO_SET_MODE: ACCEPTED")
+    proxy.send("arm throttle")
+    proxy.expect(r"COMPONENT_ARM_DISARM: ACCEPTED")
+    proxy.send(f"takeoff {alt_m:g}")
+    proxy.expect(r"Takeoff complete", 30.0)
+
+
+def test_parameters_fetch_without_an_ftp_wait_and_an_integer_parameter_is_set(start_sitl, mavproxy):
+    sim = start_sitl(speedup=4.0)
+    proxy = mavproxy(sim)
+    proxy.expect(r"Received \d+ parameters", 10.0)
+    assert not any("FTP: request timed out" in line for line in proxy.seen), "MAVFTP answered at once"
+    proxy.send("param set DISARM_DELAY 5")
+    proxy.send("param show DISARM_DELAY")
+    proxy.expect(r"DISARM_DELAY\s+5")
+    assert sim.world.params.get(0, "DISARM_DELAY") == 5
+    proxy.send("param show FENCE_ENABLE")
+    proxy.expect(r"FENCE_ENABLE\s+0")
+    assert not any("fence breach" in line.lower() for line in proxy.seen)
+
+
+def test_guided_velocity_and_position_commands_move_the_vehicle(start_sitl, mavproxy):
+    """MAVProxy's `velocity` and `position` are BODY_NED setpoints: forward means where the nose points."""
+    sim = start_sitl(speedup=5.0)
+    proxy = mavproxy(sim)
+    take_off(proxy, 10)
+    proxy.send("setyaw 90 0 0")  # CONDITION_YAW: face east
+    until(lambda: abs(np.degrees(sim.world.state.yaw_rad[0]) - 90) < 1.0, 15.0, "turned east")
+    proxy.send("velocity 2 0 0")
+    until(lambda: sim.truth(0)["pos_m"][0] > 3.0, 15.0, "flew forward, that is east")
+    truth = sim.truth(0)
+    assert abs(truth["pos_m"][1]) < 0.5 and abs(truth["pos_m"][2] - 10.0) < 0.5, "not north, not down"
+    proxy.expect(r"no velocity setpoint for 3 s, stopping", 15.0)
+    until(lambda: np.hypot(*sim.truth(0)["vel_mps"][:2]) < 0.1, 15.0, "stopped after 3 s")
+    start = sim.truth(0)["pos_m"]
+    proxy.send("position 0 5 -2")  # 5 m to the right of an east-facing copter (south), 2 m up
+    until(lambda: np.linalg.norm(sim.truth(0)["pos_m"] - (start + [0.0, -5.0, 2.0])) < 0.3, 30.0,
+          "went to the body-frame offset")
+
+
+def test_a_wpl_mission_flies_in_auto_and_pauses_and_resumes(start_sitl, mavproxy, tmp_path):
+    sim = start_sitl(speedup=5.0)
+    proxy = mavproxy(sim)
+    home = sim.homes[0]
+    far = offset_home(home, 0.0, 60.0)
+    rows = [(0, 1, 0, 16, 0, 0, 0, 0, home.lat_deg, home.lon_deg, home.alt_m),
+            (1, 0, 3, 22, 0, 0, 0, 0, 0, 0, 10),
+            (2, 0, 3, 16, 0, 0, 0, 0, far.lat_deg, far.lon_deg, 10),
+            (3, 0, 3, 20, 0, 0, 0, 0, 0, 0, 0)]
+    mission = tmp_path / "out-and-back.waypoints"
+    mission.write_text("QGC WPL 110\n" + "".join("\t".join(str(v) for v in r) + "\t1\n" for r in rows))
+    proxy.send(f"wp load {mission}")
+    proxy.expect(r"Sent all \d+ waypoints|Loaded \d+ waypoints", 15.0)
+    until(lambda: len(sim.world.fleet.mission(0)) == 4, 10.0, "the mission is on the vehicle")
+    take_off(proxy, 10)
+    proxy.send("mode auto")
+    until(lambda: sim.truth(0)["pos_m"][1] > 15.0, 30.0, "flying the mission")
+    proxy.send("pause")
+    until(lambda: sim.truth(0)["mission_state"] == 4 and np.hypot(*sim.truth(0)["vel_mps"][:2]) < 0.05, 30.0,
+          "paused and holding")
+    held = sim.truth(0)["pos_m"][1]
+    assert held < 55.0
+    proxy.send("resume")
+    until(lambda: sim.truth(0)["pos_m"][1] > 58.0, 60.0, "went on to the far waypoint")
+    until(lambda: not sim.truth(0)["armed"], 120.0, "returned, landed and disarmed")
+    assert np.hypot(*sim.truth(0)["pos_m"][:2]) < 1.0
