@@ -193,11 +193,13 @@ def _vfr_hud(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
 
 
 def _sys_status(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
-    """As ArduCopter fills it: the geofence is present and healthy (nothing breached: fences are not enforced),
-    enabled by FENCE_ENABLE; PREARM_CHECK is healthy while the pre-arm checks pass (MAVSDK's is_armable)."""
+    """As ArduCopter fills it: the geofence is present, enabled by FENCE_ENABLE, healthy unless breached;
+    PREARM_CHECK is healthy while the pre-arm checks pass (MAVSDK's is_armable)."""
     present = SENSORS | M.MAV_SYS_STATUS_GEOFENCE | M.MAV_SYS_STATUS_PREARM_CHECK
     enabled = present if w.params.get(i, "FENCE_ENABLE") else present & ~M.MAV_SYS_STATUS_GEOFENCE
     health = present if w.fleet.gps_ok[i] else present & ~M.MAV_SYS_STATUS_SENSOR_GPS
+    if w.fleet.fence_breach[i] is not None:
+        health &= ~M.MAV_SYS_STATUS_GEOFENCE
     if w.fleet.prearm_failure(i):
         health &= ~M.MAV_SYS_STATUS_PREARM_CHECK
     return enc.fields(

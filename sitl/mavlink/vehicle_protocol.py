@@ -199,6 +199,8 @@ class VehicleProtocol:
             return f.pause(i, int(p[0]) == 0)
         if command == M.MAV_CMD_DO_SET_SERVO:
             return f.set_servo(i, int(p[0]), int(p[1]))
+        if command == M.MAV_CMD_DO_FENCE_ENABLE:
+            return f.enable_fence(i, p[0])
         if command == M.MAV_CMD_NAV_LOITER_UNLIM:
             return f.set_mode(i, CopterMode.LOITER)
         if command == M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:

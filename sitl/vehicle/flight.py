@@ -15,6 +15,7 @@ import numpy as np
 
 from missions.geo import Home, lla_to_enu
 from missions.model import AMSL_FRAMES, MavCmd, MissionItem, MissionType
+from sitl.vehicle import fence as fence_
 from sitl.vehicle import mission_items as items_
 from sitl.vehicle.guided import VELOCITY_TIMEOUT_S, Setpoint
 from sitl.vehicle.params import ParamTable
@@ -145,6 +146,9 @@ class Fleet:
         self.yaw_rate_rps = np.full(n, math.nan)
         self.roi_m = np.full((n, 3), math.nan)  # region of interest the nose points at (DO_SET_ROI*), ENU
         self.circling: dict[int, list] = {}  # NAV_LOITER_TURNS: [centre, radius, turns left (rad), last bearing]
+        self.rtl_target_m = np.zeros((n, 3))  # where RTL goes: home or the nearest rally point
+        self.fences: list[fence_.Fence | None] = [None] * n  # built from the fence list when first needed
+        self.fence_breach: list[str | None] = [None] * n
         self.idle_since_t_s = np.full(n, math.inf)  # armed, on the ground and not taking off, since
         self.paused: list[tuple | None] = [None] * n  # DO_PAUSE_CONTINUE: what to resume
         self.servo_pwm: list[dict[int, int]] = [{} for _ in range(n)]  # DO_SET_SERVO outputs (not simulated)
@@ -173,6 +177,7 @@ class Fleet:
         for i in np.flatnonzero(done):
             self._on_done(int(i))
         self._auto_disarm(state, t_s)
+        self._check_fences(state)
         flying = self.armed & ~state.on_ground
         low_batt = flying & ~self.failsafe & (state.soc * 100.0 < self.params.column("BATT_LOW_PCT"))
         no_gps = flying & ~self.gps_ok & (self.mode != CopterMode.LAND)
@@ -192,6 +197,42 @@ class Fleet:
             to_roi = self.roi_m[looking] - state.pos_m[looking]
             far = np.hypot(to_roi[:, 0], to_roi[:, 1]) > 1.0  # overhead the bearing means nothing: keep heading
             self.yaw_target_rad[np.flatnonzero(looking)[far]] = np.arctan2(to_roi[far, 0], to_roi[far, 1])
+
+    def _check_fences(self, state: VehicleState) -> None:
+        """FENCE_ENABLE: a flying vehicle that leaves the fence says so and takes FENCE_ACTION (0 report only,
+        2 land, 4 brake, otherwise RTL); coming back inside clears the breach."""
+        watched = self.armed & ~state.on_ground & (self.params.column("FENCE_ENABLE") > 0)
+        for i in np.flatnonzero(watched | np.array([b is not None for b in self.fence_breach])):
+            i = int(i)
+            reason = fence_.breach(self._fence(i), state.pos_m[i], int(self.params.get(i, "FENCE_TYPE")),
+                                   self.params.get(i, "FENCE_ALT_MAX"), self.params.get(i, "FENCE_RADIUS")) \
+                if watched[i] else None
+            if reason is None:
+                if self.fence_breach[i] is not None:
+                    self.fence_breach[i] = None
+                    self._text(i, "Fence breach cleared")
+                continue
+            if self.fence_breach[i] is not None:
+                continue
+            self.fence_breach[i] = reason
+            self._text(i, f"Fence breached: {reason}", Severity.CRITICAL)
+            action = int(self.params.get(i, "FENCE_ACTION"))
+            if action == 0 or self.mode[i] in (CopterMode.RTL, CopterMode.LAND):
+                continue
+            self.set_mode(i, {2: CopterMode.LAND, 4: CopterMode.BRAKE}.get(action, CopterMode.RTL))
+
+    def _fence(self, i: int) -> fence_.Fence:
+        if self.fences[i] is None:
+            self.fences[i] = fence_.fence_from_items(self.mission(i, MissionType.FENCE), self.homes[i])
+        return self.fences[i]
+
+    def enable_fence(self, i: int, enable: float) -> CommandOutcome:
+        """DO_FENCE_ENABLE: 0 off, 1 on (2, floor only, is a plane's)."""
+        if enable not in (0, 1):
+            return CommandOutcome(Result.DENIED, f"Fence enable {enable}: 0 or 1")
+        self.params.set(i, "FENCE_ENABLE", enable)
+        self._text(i, "Fence enabled" if enable else "Fence disabled")
+        return OK
 
     def _auto_disarm(self, state: VehicleState, t_s: float) -> None:
         """ArduCopter's DISARM_DELAY: a vehicle armed on the ground that does not take off disarms itself."""
@@ -251,10 +292,12 @@ class Fleet:
         elif phase == Phase.TURNS_ENTER:
             self._start_circle(i)
         elif phase == Phase.RTL_CLIMB:
-            home_xy = np.array([0.0, 0.0, self.goal_m[i, 2]])
-            self._set_goal(i, home_xy, Motion.GOTO, Check.REACH, self._wp_radius_m(i), Phase.RTL_RETURN)
+            east, north = self.rtl_target_m[i][:2]
+            self._set_goal(i, [east, north, self.goal_m[i, 2]], Motion.GOTO, Check.REACH, self._wp_radius_m(i),
+                           Phase.RTL_RETURN)
         elif phase == Phase.RTL_RETURN:
-            self._set_goal(i, [0.0, 0.0, 0.0], Motion.LAND, Check.LANDED, phase=Phase.LAND)
+            east, north = self.rtl_target_m[i][:2]
+            self._set_goal(i, [east, north, 0.0], Motion.LAND, Check.LANDED, phase=Phase.LAND)
         elif phase == Phase.LAND:
             if self.mode[i] == CopterMode.AUTO:
                 self._item_reached(i)
@@ -287,6 +330,8 @@ class Fleet:
     def replace_mission(self, i: int, mission_type: int, items: list[MissionItem]) -> None:
         """Install a complete, validated list (seq 0..n-1); only called once a transfer has succeeded."""
         self.missions[i][MissionType(mission_type)] = items
+        if mission_type == MissionType.FENCE:
+            self.fences[i] = None
         if mission_type != MissionType.MISSION:
             return
         self.jumps_left[i] = {}
@@ -379,6 +424,8 @@ class Fleet:
             self.set_roi(i, self.item_goal_m(i, item))
         elif cmd == items_.DO_SET_SERVO:
             self.set_servo(i, int(item.p1), int(item.p2))
+        elif cmd == items_.DO_FENCE_ENABLE:
+            self.enable_fence(i, item.p1)
 
     def _start_nav_item(self, i: int, item: MissionItem) -> None:
         cmd = item.command
@@ -525,7 +572,13 @@ class Fleet:
         return OK
 
     def _begin_rtl(self, i: int) -> None:
+        """Climb to RTL_ALT, fly to the nearest rally point (or home), land there."""
         here = self._pos(i)
+        rally = fence_.rally_target(self.mission(i, MissionType.RALLY), self.homes[i], here,
+                                    self.params.get(i, "RALLY_INCL_HOME") > 0, self.params.get(i, "RALLY_LIMIT_KM"))
+        self.rtl_target_m[i] = np.zeros(3) if rally is None else rally
+        if rally is not None:
+            self._text(i, f"RTL: to the rally point {np.hypot(*(rally[:2] - here[:2])):.0f} m away")
         rtl_alt = max(here[2], self.params.get(i, "RTL_ALT") / 100.0)
         self._set_goal(i, [here[0], here[1], rtl_alt], Motion.GOTO, Check.ALTITUDE, phase=Phase.RTL_CLIMB)
 

@@ -23,16 +23,16 @@ LANDINGS = frozenset({MavCmd.NAV_LAND, NAV_VTOL_LAND})
 NAV_FLOWN = WAYPOINTS | TAKEOFFS | LANDINGS | frozenset({
     MavCmd.NAV_LOITER_UNLIM, MavCmd.NAV_LOITER_TURNS, MavCmd.NAV_LOITER_TIME, MavCmd.NAV_RETURN_TO_LAUNCH,
     NAV_DELAY})
-DO_SET_SERVO, DO_SET_ROI_LOCATION, DO_SET_ROI_NONE, DO_SET_ROI = 183, 195, 197, 201
+DO_SET_SERVO, DO_SET_ROI_LOCATION, DO_SET_ROI_NONE, DO_SET_ROI, DO_FENCE_ENABLE = 183, 195, 197, 201, 207
 JUMP_TAG, DO_JUMP_TAG = 600, 601
 #: DO and CONDITION items that change what the simulated copter does
 DO_ACTED = frozenset({MavCmd.DO_CHANGE_SPEED, MavCmd.DO_JUMP, DO_JUMP_TAG, JUMP_TAG, MavCmd.CONDITION_YAW,
-                      DO_SET_ROI, DO_SET_ROI_LOCATION, DO_SET_ROI_NONE, DO_SET_SERVO})
+                      DO_SET_ROI, DO_SET_ROI_LOCATION, DO_SET_ROI_NONE, DO_SET_SERVO, DO_FENCE_ENABLE})
 #: accepted and passed over: their hardware or timing has no counterpart here
 DO_NO_EFFECT = frozenset({
     112, 114,  # CONDITION_DELAY, CONDITION_DISTANCE (they delay DO items, which change nothing here)
     179, 181, 182, 184, 188, 189,  # SET_HOME, SET_RELAY, REPEAT_RELAY, REPEAT_SERVO, RETURN_PATH_START, LAND_START
-    202, 203, 204, 205, 206, 207, 208, 211, 212, 215, 216, 217, 218, 222, 223,  # cameras, mount, fence, parachute..
+    202, 203, 204, 205, 206, 208, 211, 212, 215, 216, 217, 218, 222, 223,  # cameras, mount, fence, parachute..
     1000, 2000, 2001, 2500, 2501, 42600,  # gimbal manager, image and video capture, winch
 })
 LOCATION_FREE = frozenset({MavCmd.NAV_RETURN_TO_LAUNCH, NAV_DELAY}) | DO_ACTED | DO_NO_EFFECT

@@ -95,9 +95,13 @@ def test_parameters_fetch_without_an_ftp_wait_and_an_integer_parameter_is_set(st
     proxy.expect(r"Received \d+ parameters", 10.0)
     assert not any("FTP: request timed out" in line for line in proxy.seen), "MAVFTP answered at once"
     proxy.send("param set DISARM_DELAY 5")
-    proxy.send("param show DISARM_DELAY")
-    proxy.expect(r"DISARM_DELAY\s+5")
-    assert sim.world.params.get(0, "DISARM_DELAY") == 5
+    until(lambda: sim.world.params.get(0, "DISARM_DELAY") == 5, 10.0, "the vehicle took the value")
+    for _ in range(20):  # MAVProxy's own copy follows the vehicle's echo a moment later
+        proxy.send("param show DISARM_DELAY")
+        if float(proxy.expect(r"DISARM_DELAY\s+(\S+)").group(1)) == 5:
+            break
+    else:
+        raise AssertionError("MAVProxy never showed DISARM_DELAY 5")
     proxy.send("param show FENCE_ENABLE")
     proxy.expect(r"FENCE_ENABLE\s+0")
     assert not any("fence breach" in line.lower() for line in proxy.seen)
@@ -148,3 +152,33 @@ def test_a_wpl_mission_flies_in_auto_and_pauses_and_resumes(start_sitl, mavproxy
     until(lambda: sim.truth(0)["pos_m"][1] > 58.0, 60.0, "went on to the far waypoint")
     until(lambda: not sim.truth(0)["armed"], 120.0, "returned, landed and disarmed")
     assert np.hypot(*sim.truth(0)["pos_m"][:2]) < 1.0
+
+
+def test_a_fence_breach_sends_the_copter_to_the_rally_point(start_sitl, mavproxy, tmp_path):
+    """Fence and rally loaded by MAVProxy from WPL files, FENCE_ENABLE set at its prompt: flying out of the
+    inclusion square, the copter says so, switches to RTL and lands at the rally point, nearer than home."""
+    sim = start_sitl(speedup=5.0)
+    proxy = mavproxy(sim)
+    home = sim.homes[0]
+
+    def wpl(rows) -> str:
+        return "QGC WPL 110\n" + "".join("\t".join(str(v) for v in r) + "\t1\n" for r in rows)
+
+    corners = [offset_home(home, e, n) for e, n in ((-40, -40), (40, -40), (40, 40), (-40, 40))]
+    fence_file, rally_file = tmp_path / "fence.txt", tmp_path / "rally.txt"
+    fence_file.write_text(wpl([(k, 0, 0, 5001, 4, 0, 0, 0, c.lat_deg, c.lon_deg, 0) for k, c in enumerate(corners)]))
+    rally = offset_home(home, 15.0, 45.0)
+    rally_file.write_text(wpl([(0, 0, 3, 5100, 0, 0, 0, 0, rally.lat_deg, rally.lon_deg, 8)]))
+    proxy.send(f"fence load {fence_file}")
+    until(lambda: len(sim.world.fleet.mission(0, 1)) == 4, 15.0, "the fence is on the vehicle")
+    proxy.send(f"rally load {rally_file}")
+    until(lambda: len(sim.world.fleet.mission(0, 2)) == 1, 15.0, "the rally point is on the vehicle")
+    proxy.expect(r"Received \d+ parameters", 15.0)
+    proxy.send("param set FENCE_ENABLE 1")
+    until(lambda: sim.world.params.get(0, "FENCE_ENABLE") == 1, 10.0, "fence enabled")
+    take_off(proxy, 10)
+    proxy.send("position 60 0 0")  # 60 m forward (north)
+    proxy.expect(r"Fence breached: outside an inclusion zone", 60.0)
+    proxy.expect(r"RTL>|Mode RTL", 15.0)
+    until(lambda: not sim.truth(0)["armed"], 120.0, "landed and disarmed")
+    assert np.hypot(*(sim.truth(0)["pos_m"][:2] - [15.0, 45.0])) < 1.5, "at the rally point, not home"
