@@ -144,3 +144,57 @@ def test_mavsdk_reads_integer_parameters_rtl_altitude_and_armable_health(start_s
     while telemetry.health().is_armable and time.monotonic() < deadline:
         time.sleep(0.05)
     assert not telemetry.health().is_armable and not sim.truth(0)["armed"]
+
+
+def _until(condition, timeout_s: float, what: str) -> None:
+    """Poll the simulator's truth (it has no events to await) until condition holds."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.02)
+
+
+def test_mavsdk_offboard_velocity_and_position_then_a_mission_with_loiter_time(start_sitl, mavsdk_client):
+    """Offboard (GUIDED on ArduPilot) velocity and position setpoints fly where they say; the Mission plugin's
+    plan with loiter_time_s (which it sends as NAV_DELAY) is taken, and the copter waits there."""
+    from mavsdk.plugins.mission import Mission, MissionPlan
+    from mavsdk.plugins.mission import MissionItem as PlanItem
+    from mavsdk.plugins.offboard import Offboard, PositionNedYaw, VelocityNedYaw
+
+    sim = start_sitl(speedup=4.0)
+    assert mavsdk_client.add_any_connection(f"udpin://0.0.0.0:{sim.config.companion_base_port}") == \
+        ConnectionResult.SUCCESS
+    system = wait_for_system(mavsdk_client, 1, 10.0)
+    assert system is not None
+    action, offboard, mission, telemetry = Action(system), Offboard(system), Mission(system), Telemetry(system)
+    _until(lambda: telemetry.health().is_armable, 10.0, "armable")
+    action.set_takeoff_altitude(8.0)
+    action.arm()
+    action.takeoff()
+    _until(lambda: sim.truth(0)["rel_alt_m"] > 7.5, 30.0, "took off")
+    offboard.set_velocity_ned(VelocityNedYaw(2.0, 0.0, 0.0, 0.0))
+    offboard.start()
+    _until(lambda: sim.truth(0)["pos_m"][1] > 6.0, 20.0, "flew north")
+    truth = sim.truth(0)
+    assert truth["vel_mps"][1] == pytest.approx(2.0, abs=0.2) and abs(truth["pos_m"][0]) < 0.5
+    assert truth["rel_alt_m"] == pytest.approx(8.0, abs=0.5), "velocity control keeps the height"
+    offboard.set_position_ned(PositionNedYaw(-10.0, 10.0, -8.0, 90.0))
+    _until(lambda: np.linalg.norm(sim.truth(0)["pos_m"] - [10.0, -10.0, 8.0]) < 0.3, 40.0, "at the NED position")
+    offboard.stop()
+
+    home = sim.homes[0]
+    first, second = (enu_to_lla(np.array(p), home) for p in ([0.0, 15.0, 8.0], [15.0, 15.0, 8.0]))
+    plan = MissionPlan([PlanItem(float(first[0]), float(first[1]), 8.0, 5.0, False, float("nan"), float("nan"), 0, 4.0),
+                        PlanItem(float(second[0]), float(second[1]), 8.0, 5.0, False, float("nan"), float("nan"), 0,
+                                 float("nan"))])
+    mission.upload_mission(plan)
+    assert [it.command for it in sim.world.fleet.mission(0)].count(93) == 1, "loiter_time_s arrives as NAV_DELAY"
+    mission.start_mission()
+    # MAVSDK sends no home slot: ArduCopter takes item 0 as home and flies from item 1 (DO_CHANGE_SPEED), then the
+    # NAV_DELAY of loiter_time_s where the copter is, then the second waypoint
+    _until(lambda: sim.truth(0)["mission_seq"] == 2, 20.0, "at the delay")
+    started_s, where = sim.t_s, sim.truth(0)["pos_m"]
+    _until(lambda: sim.truth(0)["mission_seq"] == 3, 20.0, "the delay ended")
+    assert sim.t_s - started_s == pytest.approx(4.0, abs=0.3) and np.linalg.norm(sim.truth(0)["pos_m"] - where) < 0.5
+    _until(lambda: np.hypot(*(sim.truth(0)["pos_m"][:2] - [15.0, 15.0])) < 2.0, 40.0, "at the second item")
+    _until(lambda: mission.is_mission_finished(), 60.0, "the mission finished")
