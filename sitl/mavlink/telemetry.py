@@ -29,6 +29,9 @@ DEFAULT_INTERVALS_S: dict[int, float] = {
     M.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 1.0,
     M.MAVLINK_MSG_ID_MISSION_CURRENT: 1.0,
     M.MAVLINK_MSG_ID_HOME_POSITION: 5.0,
+    M.MAVLINK_MSG_ID_RC_CHANNELS: 1.0,
+    M.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW: 1.0,
+    M.MAVLINK_MSG_ID_EKF_STATUS_REPORT: 1.0,
 }
 STREAM_IDS = tuple(DEFAULT_INTERVALS_S)
 #: not in any of ArduPilot's REQUEST_DATA_STREAM groups: sent on change or on request, at their own rate
@@ -36,6 +39,9 @@ NOT_DATA_STREAMS = frozenset({M.MAVLINK_MSG_ID_HEARTBEAT, M.MAVLINK_MSG_ID_HOME_
                               M.MAVLINK_MSG_ID_SYSTEM_TIME, M.MAVLINK_MSG_ID_MISSION_CURRENT})
 STREAM_COLUMN = {msgid: column for column, msgid in enumerate(STREAM_IDS)}
 MIN_STREAM_INTERVAL_S = 0.02  # 50 Hz per message, like ArduPilot's stream-rate ceiling
+EKF_WITHOUT_GPS = M.EKF_ATTITUDE | M.EKF_VELOCITY_VERT | M.EKF_POS_VERT_ABS
+EKF_WITH_GPS = EKF_WITHOUT_GPS | M.EKF_VELOCITY_HORIZ | M.EKF_POS_HORIZ_REL | M.EKF_POS_HORIZ_ABS \
+    | M.EKF_PRED_POS_HORIZ_REL | M.EKF_PRED_POS_HORIZ_ABS
 SENSORS = (M.MAV_SYS_STATUS_SENSOR_3D_GYRO | M.MAV_SYS_STATUS_SENSOR_3D_ACCEL | M.MAV_SYS_STATUS_SENSOR_3D_MAG
            | M.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE | M.MAV_SYS_STATUS_SENSOR_GPS
            | M.MAV_SYS_STATUS_SENSOR_BATTERY)
@@ -250,6 +256,27 @@ def _home_position(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
     return enc.message(msg)
 
 
+def _rc_channels(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
+    channels = [int(v) for v in w.fleet.rc_us[i]]
+    return enc.fields(M.MAVLink_rc_channels_message, t.boot_ms[i], 16, *channels, 0, 0, 255)
+
+
+def _servo_output_raw(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
+    """Motors 1-4 as an ESC sees them (stopped, spinning armed, about hover in flight), then DO_SET_SERVO's."""
+    f = w.fleet
+    motor = 1000 if not f.armed[i] else (1100 if t.state.on_ground[i] else 1500)
+    servos = [f.servo_pwm[i].get(k, 0) for k in range(5, 17)]
+    return enc.fields(M.MAVLink_servo_output_raw_message, t.time_usec & 0xFFFFFFFF, 0, motor, motor, motor, motor,
+                      *servos)
+
+
+def _ekf_status(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
+    """A healthy EKF with GPS; without it, attitude and height only (what makes ArduCopter's EKF failsafe)."""
+    flags = EKF_WITH_GPS if w.fleet.gps_ok[i] else EKF_WITHOUT_GPS
+    horizontal = 0.02 if w.fleet.gps_ok[i] else 1.0
+    return enc.fields(M.MAVLink_ekf_status_report_message, flags, 0.02, horizontal, 0.02, 0.02, 0.0, 0.0)
+
+
 def _system_time(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
     return enc.fields(M.MAVLink_system_time_message, t.time_usec, t.boot_ms[i])
 
@@ -267,4 +294,7 @@ BUILDERS = {
     M.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: _extended_sys_state,
     M.MAVLINK_MSG_ID_MISSION_CURRENT: _mission_current,
     M.MAVLINK_MSG_ID_HOME_POSITION: _home_position,
+    M.MAVLINK_MSG_ID_RC_CHANNELS: _rc_channels,
+    M.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW: _servo_output_raw,
+    M.MAVLINK_MSG_ID_EKF_STATUS_REPORT: _ekf_status,
 }

@@ -41,6 +41,7 @@ PARAM_TYPES = {"INT8": M.MAV_PARAM_TYPE_INT8, "INT16": M.MAV_PARAM_TYPE_INT16, "
 FTP_HEADER = struct.Struct("<HBBBBBBI")  # seq, session, opcode, size, req_opcode, burst_complete, padding, offset
 FTP_TERMINATE_SESSION, FTP_RESET_SESSIONS, FTP_ACK, FTP_NAK = 1, 2, 128, 129
 FTP_ERR_FILE_NOT_FOUND = 10
+IGNORE_CHANNEL = 65535  # RC_CHANNELS_OVERRIDE: leave the channel as it is (MAVLink 1 senders lack 9-18)
 RESTART_S = 3.0  # simulated seconds a rebooting autopilot is silent
 FLIGHT_SW_VERSION = (4 << 24) | (5 << 16) | (7 << 8) | 255  # 4.5.7 official: what an ArduCopter of today says
 
@@ -290,6 +291,9 @@ class VehicleProtocol:
         self.send_msg(M.MAVLink_file_transfer_protocol_message(
             0, msg.get_srcSystem(), msg.get_srcComponent(), list(reply.ljust(251, b"\0"))), channel)
 
+    def _on_rc_override(self, msg, channel: Connection) -> None:
+        self.fleet.rc_override(self.i, [getattr(msg, f"chan{k}_raw", IGNORE_CHANNEL) for k in range(1, 17)])
+
     def _on_timesync(self, msg, channel: Connection) -> None:
         if msg.tc1 == 0:
             now_ns = int(self.telemetry.unix_time_s() * 1e9)
@@ -454,6 +458,7 @@ _HANDLERS = {
     "SET_POSITION_TARGET_GLOBAL_INT": VehicleProtocol._on_position_target,
     "SET_POSITION_TARGET_LOCAL_NED": VehicleProtocol._on_position_target,
     "TIMESYNC": VehicleProtocol._on_timesync,
+    "RC_CHANNELS_OVERRIDE": VehicleProtocol._on_rc_override,
     "FILE_TRANSFER_PROTOCOL": VehicleProtocol._on_file_transfer,
     "PARAM_REQUEST_LIST": VehicleProtocol._on_param_request_list,
     "PARAM_REQUEST_READ": VehicleProtocol._on_param_request_read,

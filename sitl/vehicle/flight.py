@@ -17,6 +17,7 @@ from missions.geo import Home, lla_to_enu
 from missions.model import AMSL_FRAMES, MavCmd, MissionItem, MissionType
 from sitl.vehicle import fence as fence_
 from sitl.vehicle import mission_items as items_
+from sitl.vehicle import pilot
 from sitl.vehicle.guided import VELOCITY_TIMEOUT_S, Setpoint
 from sitl.vehicle.params import ParamTable
 from sitl.vehicle.physics import Command, Motion, VehicleState
@@ -101,6 +102,7 @@ class Check(IntEnum):
     TIMER = 4  # sim time reached until_t
 
 
+PILOT_MODES = frozenset({CopterMode.LOITER, CopterMode.POSHOLD, CopterMode.ALT_HOLD})
 HOLD_MODES = frozenset({CopterMode.STABILIZE, CopterMode.ALT_HOLD, CopterMode.LOITER, CopterMode.POSHOLD,
                         CopterMode.BRAKE, CopterMode.GUIDED})
 FORCE_DISARM_MAGIC = 21196  # COMPONENT_ARM_DISARM param 2: disarm even in flight (ArduPilot)
@@ -149,6 +151,10 @@ class Fleet:
         self.rtl_target_m = np.zeros((n, 3))  # where RTL goes: home or the nearest rally point
         self.fences: list[fence_.Fence | None] = [None] * n  # built from the fence list when first needed
         self.fence_breach: list[str | None] = [None] * n
+        self.rc_us = np.tile(pilot.idle_channels(), (n, 1))  # RC_CHANNELS_OVERRIDE, else the idle receiver
+        self.rc_overridden = np.zeros((n, pilot.CHANNELS), dtype=bool)
+        self.rc_until_t_s = np.full(n, -math.inf)
+        self.piloted = np.zeros(n, dtype=bool)  # flying on the sticks in a pilot mode
         self.idle_since_t_s = np.full(n, math.inf)  # armed, on the ground and not taking off, since
         self.paused: list[tuple | None] = [None] * n  # DO_PAUSE_CONTINUE: what to resume
         self.servo_pwm: list[dict[int, int]] = [{} for _ in range(n)]  # DO_SET_SERVO outputs (not simulated)
@@ -192,6 +198,8 @@ class Fleet:
             self.velocity_mps[accelerating] += self.accel_mps2[accelerating] * dt_s
         if self.circling:
             self._circle(state)
+        if self.rc_overridden.any():
+            self._fly_sticks(state)
         looking = ~np.isnan(self.roi_m[:, 0])
         if looking.any():
             to_roi = self.roi_m[looking] - state.pos_m[looking]
@@ -467,6 +475,40 @@ class Fleet:
             self.circling.pop(i)
             self._item_reached(i)
 
+    def rc_override(self, i: int, values: list[int]) -> None:
+        """RC_CHANNELS_OVERRIDE: the channels it sets hold for RC_OVERRIDE_TIME."""
+        pilot.apply_override(self.rc_us[i], self.rc_overridden[i], values)
+        self.rc_until_t_s[i] = self.t_s + pilot.OVERRIDE_TIMEOUT_S
+
+    def _fly_sticks(self, state: VehicleState) -> None:
+        """Pilot modes follow the sticks as velocity and yaw-rate commands; an override that times out is
+        released and the copter holds where it is."""
+        for i in np.flatnonzero(self.rc_overridden.any(axis=1)):
+            i = int(i)
+            if self.t_s >= self.rc_until_t_s[i]:
+                self.rc_us[i], self.rc_overridden[i] = pilot.idle_channels(), False
+                if self.piloted[i]:
+                    self._text(i, "RC override timed out: holding", Severity.WARNING)
+                    self.piloted[i] = False
+                    self._hold(i)
+                continue
+            if not (self.armed[i] and self.mode[i] in PILOT_MODES):
+                continue
+            velocity, yaw_rate = pilot.stick_command(
+                self.rc_us[i], bool(self.rc_overridden[i, 2]), float(state.yaw_rad[i]),
+                self.params.get(i, "LOIT_SPEED") / 100.0, self.params.get(i, "PILOT_SPEED_UP") / 100.0,
+                self.params.get(i, "PILOT_SPEED_DN") / 100.0)
+            grounded = bool(state.on_ground[i]) and velocity[2] <= 0
+            self.circling.pop(i, None)
+            self.goal_m[i], self.check[i], self.phase[i] = state.pos_m[i], Check.NONE, Phase.NONE
+            self.motion[i] = Motion.IDLE if grounded else Motion.VELOCITY
+            self.velocity_mps[i], self.accel_mps2[i] = velocity, 0.0
+            if yaw_rate:
+                self.yaw_target_rad[i], self.yaw_rate_rps[i] = math.nan, yaw_rate
+            elif math.isnan(self.yaw_target_rad[i]):  # the nose stays where the pilot left it
+                self.yaw_target_rad[i], self.yaw_rate_rps[i] = float(state.yaw_rad[i]), math.nan
+            self.piloted[i] = not grounded
+
     def _circle(self, state: VehicleState) -> None:
         """Loiter turns: steer each circling vehicle round its circle, count the angle it has gone round."""
         k_xy, k_z = self.params.column("NAC_KP_XY"), self.params.column("NAC_KP_Z")
@@ -546,6 +588,7 @@ class Fleet:
         self.yaw_target_rad[i] = self.yaw_rate_rps[i] = math.nan
         self.roi_m[i] = math.nan
         self.paused[i] = None
+        self.piloted[i] = False
         if mode in HOLD_MODES:
             self._hold(i)
         elif mode == CopterMode.AUTO:

@@ -3,6 +3,7 @@
 import math
 import time
 
+import numpy as np
 import pytest
 
 from missions.builder import waypoint_mission
@@ -173,6 +174,32 @@ def test_a_reboot_silences_the_vehicle_then_it_comes_back_with_a_new_boot_clock(
     assert first is not None and sim.t_s - rebooted_at >= 2.9, "silent while restarting"
     after = gcs.recv("GLOBAL_POSITION_INT", 2.0)
     assert after is not None and after.time_boot_ms < 1000 and sim.truth(0)["mode"] == "STABILIZE"
+
+
+def test_rc_override_flies_loiter_and_the_rc_servo_and_ekf_messages_say_so(start_sitl, gcs_for):
+    from tests.integration.gcs import take_off
+
+    sim = start_sitl(speedup=10.0)
+    gcs = gcs_for(sim)
+    ekf = gcs.recv("EKF_STATUS_REPORT", 5.0)
+    assert ekf is not None and ekf.flags & M.EKF_POS_HORIZ_ABS
+    assert gcs.recv("SERVO_OUTPUT_RAW", 5.0, lambda m: m.servo1_raw == 1000) is not None, "disarmed: stopped"
+    take_off(gcs, 8)
+    assert gcs.set_mode("LOITER") == M.MAV_RESULT_ACCEPTED
+    release = [65535] * 14
+    for _ in range(30):  # a joystick app's stream: right stick full
+        gcs.conn.mav.rc_channels_override_send(1, 1, 2000, 1500, 1500, 1500, *release[:4], *release[4:])
+        position = gcs.recv("LOCAL_POSITION_NED", 1.0)
+        if position is not None and position.y > 10.0:
+            break
+    assert position is not None and position.y > 10.0 and abs(position.x) < 1.0, "flew right, that is east"
+    rc = gcs.recv("RC_CHANNELS", 5.0, lambda m: m.chan1_raw == 2000)
+    assert rc is not None and rc.chan3_raw == 1500
+    servo = gcs.recv("SERVO_OUTPUT_RAW", 5.0)
+    assert servo is not None and servo.servo1_raw > 1000
+    assert gcs.recv("STATUSTEXT", 20.0, lambda m: "RC override timed out" in m.text) is not None
+    assert gcs.recv("LOCAL_POSITION_NED", 20.0, lambda m: np.hypot(m.vx, m.vy) < 0.1) is not None, "holds"
+    assert sim.truth(0)["mode"] == "LOITER"
 
 def test_arm_is_refused_while_a_mission_is_uploading(start_sitl, gcs_for):
     sim = start_sitl(speedup=5.0)

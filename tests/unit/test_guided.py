@@ -228,3 +228,39 @@ def test_a_copter_armed_on_the_ground_disarms_itself_after_disarm_delay_unless_i
     fleet2.arm(0, True)
     state2, _ = run(fleet2, state2, params2, 30.0)
     assert fleet2.armed[0], "0: never"
+
+
+def test_rc_override_flies_a_pilot_mode_by_the_sticks_and_times_out_into_a_hold():
+    from sitl.vehicle import pilot
+
+    fleet, state, params, t = airborne()
+    fleet.set_mode(0, CopterMode.LOITER)
+    sticks = [1500, 1300, 1500, 1500] + [pilot.IGNORE] * 12  # pitch forward: fly north
+    fleet.rc_override(0, sticks)
+    for _ in range(4):  # renewed every 2 s, as a joystick app sends
+        state, t = run(fleet, state, params, 2.0, t0=t)
+        fleet.rc_override(0, sticks)
+    assert state.vel_mps[0, 1] > 3.0 and abs(state.vel_mps[0, 0]) < 0.2 and fleet.piloted[0]
+    fleet.rc_override(0, [1500, 1500, 1900, 1700] + [pilot.IGNORE] * 12)  # climb and turn clockwise
+    state, t = run(fleet, state, params, 2.0, t0=t)
+    assert state.vel_mps[0, 2] > 1.0 and 30.0 < math.degrees(state.yaw_rad[0]) < 90.0
+    state, t = run(fleet, state, params, 4.0, t0=t)  # no renewal: released after 3 s, holds
+    assert not fleet.rc_overridden[0].any() and not fleet.piloted[0]
+    assert np.linalg.norm(state.vel_mps[0]) < 0.5
+    assert any("RC override timed out" in str(v) for _, _, v in fleet.events)
+    fleet.set_mode(0, CopterMode.GUIDED)
+    fleet.rc_override(0, sticks)
+    state, t = run(fleet, state, params, 2.0, t0=t)
+    assert not fleet.piloted[0], "GUIDED is not flown by the sticks"
+
+
+def test_stick_mapping_dead_zones_and_release():
+    from sitl.vehicle import pilot
+
+    channels, overridden = pilot.idle_channels(), np.zeros(pilot.CHANNELS, dtype=bool)
+    pilot.apply_override(channels, overridden, [1510, 2000, 1540, 0] + [pilot.IGNORE] * 12)
+    assert list(channels[:4]) == [1510, 2000, 1540, 1500] and list(overridden[:4]) == [True, True, True, False]
+    velocity, yaw_rate = pilot.stick_command(channels, True, 0.0, 10.0, 2.5, 1.5)
+    assert velocity[0] == 0.0 and velocity[1] == pytest.approx(-10.0) and velocity[2] == 0.0 and yaw_rate == 0.0
+    velocity, _ = pilot.stick_command(pilot.idle_channels(), False, 0.0, 10.0, 2.5, 1.5)
+    assert not velocity.any(), "no pilot: hold"
