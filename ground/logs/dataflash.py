@@ -67,6 +67,8 @@ def _format(body: bytes) -> tuple[int, Format | None] | None:
     names = columns.rstrip(b"\0").decode("ascii", "replace").split(",") if columns.strip(b"\0") else []
     if any(c not in CODES for c in chars) or len(names) != len(chars) or len(set(names)) != len(names):
         return None
+    if not all(n.isascii() and n.replace("_", "a").isalnum() for n in names):
+        return None  # damage in the column names: DFReader's to judge
     dtype = np.dtype([(n, CODES[c][0]) for n, c in zip(names, chars, strict=True)])
     if dtype.itemsize + 3 != length:
         return None

@@ -208,7 +208,7 @@ class Experiment:
         if self.network == "kernel":
             self._start_air()
         config = SitlConfig(vehicles=len(s.vehicles), speedup=self.speedup,
-                            vehicle_homes=tuple(v.home for v in s.vehicles),
+                            vehicle_homes=tuple(v.home for v in s.vehicles), params=dict(s.params),
                             gcs_base_port=self.ports.gcs(0), companion_base_port=self.ports.companion(0),
                             tcp_base_port=0, port_step=PORTS_PER_VEHICLE,
                             companion_netns=tuple(st.netns for st in self.air.stations) if self.air else ())

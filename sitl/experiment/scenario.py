@@ -29,6 +29,7 @@ from nac_onboard.errors import BadInput
 from nac_onboard.link.channel import ChannelError, ChannelModel, load_channel
 from nac_onboard.tomlfile import get_value, read_toml, to_dataclass
 from sitl.experiment.faults import Fault, FaultKind
+from sitl.vehicle.params import PARAMS_BY_NAME
 
 SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
 
@@ -86,6 +87,7 @@ class Scenario:
     max_speedup: float = 1.0
     default_speedup: float = 1.0
     notes: tuple[str, ...] = field(default_factory=tuple)
+    params: tuple[tuple[str, float], ...] = ()  # autopilot parameters of every vehicle ([params])
 
     @property
     def master(self) -> VehiclePlan:
@@ -145,7 +147,7 @@ def load_scenario(name_or_path: str) -> Scenario:
         faults=tuple(_fault(f, ids, f"{where}: fault {k + 1}") for k, f in enumerate(data.get("fault", []))),
         network=_network(data.get("network", {}), f"{where}: [network]"),
         max_speedup=float(speedup), default_speedup=float(data.get("default_speedup", 1.0)),
-        notes=tuple(data.get("notes", [])))
+        notes=tuple(data.get("notes", [])), params=_params(data.get("params", {}), f"{where}: [params]"))
     for k, fault in enumerate(scenario.faults):
         if fault.kind is FaultKind.KILL_WORKER and (scenario.compute is None or fault.vehicle not in
                                             [w.id for w in scenario.workers]):
@@ -154,6 +156,23 @@ def load_scenario(name_or_path: str) -> Scenario:
     if not 0 < scenario.default_speedup <= scenario.max_speedup:
         raise ScenarioError(f"{where}: default_speedup must be within (0, max_speedup]")
     return scenario
+
+
+def _params(table: dict, where: str) -> tuple[tuple[str, float], ...]:
+    """[params]: NAME = number for every simulated autopilot, each a known parameter within its range."""
+    if not isinstance(table, dict):
+        raise ScenarioError(f"{where}: expected a table of NAME = number")
+    out = []
+    for name, value in table.items():
+        definition = PARAMS_BY_NAME.get(name)
+        if definition is None:
+            raise ScenarioError(f"{where}: {name}: no such parameter (nac-sitl's are listed in sitl/vehicle/params.py)")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+                definition.min <= value <= definition.max):
+            raise ScenarioError(f"{where}: {name} = {value!r}: expected a number within "
+                                f"{definition.min:g}..{definition.max:g}")
+        out.append((name, float(value)))
+    return tuple(out)
 
 
 def _vehicle(table: dict, scenario_path: Path, where: str) -> VehiclePlan:

@@ -277,9 +277,22 @@ class Fleet:
 
     def _hold(self, i: int) -> None:
         if self._flying(i):
-            self._set_goal(i, self._pos(i), Motion.GOTO, Check.NONE)
+            self._set_goal(i, self._stopping_point_m(i), Motion.GOTO, Check.NONE)
         else:
             self._set_goal(i, self._pos(i), Motion.IDLE, Check.NONE)
+
+    def _stopping_point_m(self, i: int) -> np.ndarray:
+        """Where a stop ends: here under the research's law; ahead by v^2 / 2a under ArduCopter's, which brakes
+        to that point rather than turning back to where the stop was asked."""
+        here = self._pos(i)
+        if self.params.get(i, "NAC_NAV_LAW") == 1 or self.state is None:
+            return here
+        velocity = self.state.vel_mps[i]
+        accel_xy = self.params.get(i, "WPNAV_ACCEL") / 100.0
+        accel_z = self.params.get(i, "WPNAV_ACCEL_Z") / 100.0
+        here[:2] += velocity[:2] * float(np.hypot(*velocity[:2])) / (2.0 * accel_xy)
+        here[2] = max(here[2] + velocity[2] * abs(velocity[2]) / (2.0 * accel_z), 0.5)
+        return here
 
     def _timer(self, i: int, seconds: float, phase: Phase) -> None:
         self.check[i] = Check.TIMER

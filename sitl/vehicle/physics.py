@@ -39,6 +39,11 @@ class PhysicsParams:
     hover_current_a: np.ndarray
     current_per_mps_a: np.ndarray  # extra draw per m/s of horizontal speed
     idle_current_a: np.ndarray  # avionics draw, armed or not
+    research_law: np.ndarray | None = None  # (N,) bool: the research's proportional law, else ArduCopter's
+    accel_xy_mps2: np.ndarray | None = None  # WPNAV_ACCEL, for ArduCopter's law
+    accel_z_mps2: np.ndarray | None = None  # WPNAV_ACCEL_Z
+    land_speed_high_mps: np.ndarray | None = None  # LAND above land_alt_low_m (ArduCopter's law)
+    land_alt_low_m: np.ndarray | None = None
 
     @staticmethod
     def defaults(n: int) -> PhysicsParams:
@@ -141,14 +146,57 @@ def commanded_yaw_rad(yaw_rad, previous_rad, target_rad, rate_rps, dt_s: float) 
     return (out + math.pi) % (2 * math.pi) - math.pi
 
 
+STOP_TAU_S = 0.5  # last metres of a leg: speed proportional to the distance left, so the stop does not chatter
+
+
+def copter_velocity_mps(pos_m, goal_m, vel_mps, params: PhysicsParams, speed_xy_mps, which) -> np.ndarray:
+    """ArduCopter's WPNav in outline: a trapezoid to the goal (accelerate at WPNAV_ACCEL, cruise at the leg's
+    speed, brake so as to stop there), the same vertically with WPNAV_ACCEL_Z. The speed is the mission's
+    (DO_CHANGE_SPEED may exceed WPNAV_SPEED, as on ArduCopter). The change asked of the first-order velocity
+    response is kept to what the acceleration limit allows within its time constant."""
+    error = goal_m - pos_m
+    tau = params.vel_tau_s[which]
+    distance_xy = np.hypot(error[:, 0], error[:, 1])
+    toward = error[:, :2] / np.maximum(distance_xy, 1e-9)[:, None]
+    # braking starts a response time early: the velocity follows its target tau late
+    closing_xy = np.maximum(np.einsum("ij,ij->i", vel_mps[:, :2], toward), 0.0)
+    braking_xy = np.maximum(distance_xy - closing_xy * tau, 0.0)
+    accel_xy, accel_z = params.accel_xy_mps2[which], params.accel_z_mps2[which]
+    speed = np.minimum.reduce([speed_xy_mps, np.sqrt(2.0 * accel_xy * braking_xy), distance_xy / STOP_TAU_S])
+    target = np.empty_like(error)
+    target[:, :2] = toward * speed[:, None]
+    climb_max = np.where(error[:, 2] > 0, params.speed_up_max_mps[which], params.speed_down_max_mps[which])
+    height = np.abs(error[:, 2])
+    braking_z = np.maximum(height - np.maximum(vel_mps[:, 2] * np.sign(error[:, 2]), 0.0) * tau, 0.0)
+    target[:, 2] = np.sign(error[:, 2]) * np.minimum.reduce([climb_max, np.sqrt(2.0 * accel_z * braking_z),
+                                                             height / STOP_TAU_S])
+    change = target - vel_mps
+    change_xy = np.hypot(change[:, 0], change[:, 1])
+    change[:, :2] *= np.minimum(1.0, accel_xy * tau / np.maximum(change_xy, 1e-9))[:, None]
+    change[:, 2] = np.clip(change[:, 2], -accel_z * tau, accel_z * tau)
+    return vel_mps + change
+
+
+def land_speed_mps(height_m, params: PhysicsParams) -> np.ndarray:
+    """LAND's descent: ArduCopter's law comes down at LAND_SPEED_HIGH above LAND_ALT_LOW, LAND_SPEED below."""
+    if params.research_law is None:
+        return params.land_speed_mps
+    high = ~params.research_law & (height_m > params.land_alt_low_m)
+    return np.where(high, params.land_speed_high_mps, params.land_speed_mps)
+
+
 def step(state: VehicleState, cmd: Command, params: PhysicsParams, dt_s: float) -> VehicleState:
     v_des = desired_velocity_mps(state.pos_m, cmd.goal_m, params, cmd.speed_xy_mps)
+    if params.research_law is not None and not params.research_law.all():
+        copter = ~params.research_law
+        v_des[copter] = copter_velocity_mps(state.pos_m[copter], cmd.goal_m[copter], state.vel_mps[copter], params,
+                                            cmd.speed_xy_mps[copter], copter)
     if cmd.velocity_mps is not None:
         following = cmd.motion == Motion.VELOCITY
         if following.any():
             v_des[following] = clamp_velocity_mps(cmd.velocity_mps[following], params, cmd.speed_xy_mps, following)
     landing = cmd.motion == Motion.LAND
-    v_des[:, 2] = np.where(landing, -params.land_speed_mps, v_des[:, 2])
+    v_des[:, 2] = np.where(landing, -land_speed_mps(state.pos_m[:, 2], params), v_des[:, 2])
     idle = (cmd.motion == Motion.IDLE) | ~cmd.armed
     v_des[idle] = 0.0
 

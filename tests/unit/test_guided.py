@@ -102,7 +102,7 @@ def test_position_and_velocity_together_go_to_the_position_and_all_ignored_stops
     both = local(guided.LOCAL_NED, ACC_IGNORE | YAW_IGNORE | YAW_RATE_IGNORE,
                  xyz=(0.0, 15.0, -10.0), vel=(0.0, 1.0, 0.0), state=state)
     fleet.setpoint(0, both)
-    state, t = run(fleet, state, params, 5.0, t0=t)
+    state, t = run(fleet, state, params, 2.0, t0=t)
     assert state.vel_mps[0, 0] > 0.5
     fleet.setpoint(0, local(guided.LOCAL_NED, NOTHING, state=state))
     state, t = run(fleet, state, params, 8.0, t0=t)

@@ -82,3 +82,40 @@ def test_do_items_point_the_nose_set_servos_and_camera_items_pass_over():
 def test_an_upload_refuses_only_what_the_copter_does_not_take(command, accepted):
     item = MissionItem(1, command, Frame.GLOBAL_RELATIVE_ALT_INT, lat_deg=47.4, lon_deg=8.5, alt_m=10)
     assert (items_.validate_item(item, 0) is None) == accepted
+
+
+@pytest.mark.parametrize("law, leg_s", [(0, (9.5, 13.0)), (1, (20.0, 23.0))])
+def test_a_50_m_leg_takes_arducopters_trapezoid_time_or_the_research_laws(law, leg_s):
+    """ArduCopter's WPNav: accelerate at 2.5 m/s^2 to 5 m/s, cruise, brake: about 12 s for 50 m. The research's
+    proportional law approaches asymptotically: 21 s to within the 2 m acceptance radius."""
+    fleet, state, params = make()
+    params.set(0, "NAC_NAV_LAW", law)
+    fleet.replace_mission(0, 0, [MissionItem(0, 16), MissionItem(1, MavCmd.NAV_TAKEOFF, alt_m=10),
+                                 wp(2, 0, 50, 10), wp(3, 0, 60, 10)])
+    fleet.arm(0, True)
+    fleet.mission_start(0, 0)
+    times = {}
+
+    def watch(f, s):
+        times.setdefault(int(f.current_seq[0]), f.t_s)
+        return int(f.current_seq[0]) == 3
+
+    run(fleet, state, params, 120.0, until=watch)
+    assert leg_s[0] < times[3] - times[2] < leg_s[1]
+
+
+def test_land_comes_down_fast_then_at_land_speed_and_do_change_speed_may_exceed_wpnav_speed():
+    fleet, state, params = make()
+    fleet.replace_mission(0, 0, [MissionItem(0, 16), MissionItem(1, MavCmd.NAV_TAKEOFF, alt_m=30),
+                                 MissionItem(2, MavCmd.DO_CHANGE_SPEED, Frame.MISSION, p2=8.0), wp(3, 0, 100, 30),
+                                 MissionItem(4, MavCmd.NAV_LAND)])
+    fleet.arm(0, True)
+    fleet.mission_start(0, 0)
+    samples = []
+    run(fleet, state, params, 200.0, until=lambda f, s: samples.append((int(f.current_seq[0]), s.vel_mps[0].copy(),
+                                                                          s.pos_m[0, 2])) or not f.armed[0])
+    cruise = max(np.hypot(*v[:2]) for seq, v, _ in samples if seq == 3)
+    assert cruise == pytest.approx(8.0, abs=0.1), "8 m/s asked, above WPNAV_SPEED's 5"
+    high = [-v[2] for seq, v, z in samples if seq == 4 and 15.0 < z < 25.0]
+    low = [-v[2] for seq, v, z in samples if seq == 4 and 1.0 < z < 5.0]
+    assert max(high) == pytest.approx(1.5, abs=0.05) and max(low) == pytest.approx(0.5, abs=0.05)

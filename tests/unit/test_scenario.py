@@ -113,3 +113,17 @@ def test_a_southern_or_western_home_is_taken_as_typed():
     assert (config.home.lat_deg, config.home.lon_deg, config.home.alt_m) == (-35.363261, 149.16523, 584.0)
     assert args.ground_station.lon_deg == -1.5
     assert joined_coordinates(["run", "--speedup", "-1"]) == ["run", "--speedup", "-1"], "only coordinates"
+
+
+def test_a_scenarios_params_reach_every_vehicle_and_bad_ones_are_named(tmp_path):
+    from sitl.experiment.scenario import ScenarioError, load_scenario
+
+    assert dict(load_scenario("paper-flight-moving").params) == {"NAC_NAV_LAW": 1.0}, "the research's law"
+    text = (SCENARIO_DIR / "paper-sim-static.toml").read_text()
+    for table, words in (('[params]\nNO_SUCH = 1\n', "NO_SUCH: no such parameter"),
+                         ('[params]\nWPNAV_SPEED = "fast"\n', "WPNAV_SPEED = 'fast': expected a number")):
+        path = tmp_path / "bad.toml"
+        path.write_text(text.replace("[params]\nNAC_NAV_LAW = 1", table.strip()).replace("../", str(SCENARIO_DIR) + "/")
+                        .replace('mission = "', f'mission = "{SCENARIO_DIR}/'))
+        with pytest.raises(ScenarioError, match=words):
+            load_scenario(str(path))
