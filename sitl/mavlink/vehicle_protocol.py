@@ -19,7 +19,7 @@ from nac_onboard.mavlink.signing import SigningState
 from sitl.mavlink.codec import FrameEncoder, mavlink
 from sitl.mavlink.mission_protocol import Ack, Complete, MissionReceiver, Request
 from sitl.mavlink.telemetry import BUILDERS, NOT_DATA_STREAMS, Streams, TelemetrySource
-from sitl.vehicle import guided
+from sitl.vehicle import guided, pilot
 from sitl.vehicle.flight import FORCE_DISARM_MAGIC, CommandOutcome, CopterMode, Event, Result, Severity
 from sitl.vehicle.flight import OK as OK_OUTCOME
 from sitl.vehicle.mission_items import validate_item
@@ -41,7 +41,6 @@ PARAM_TYPES = {"INT8": M.MAV_PARAM_TYPE_INT8, "INT16": M.MAV_PARAM_TYPE_INT16, "
 FTP_HEADER = struct.Struct("<HBBBBBBI")  # seq, session, opcode, size, req_opcode, burst_complete, padding, offset
 FTP_TERMINATE_SESSION, FTP_RESET_SESSIONS, FTP_ACK, FTP_NAK = 1, 2, 128, 129
 FTP_ERR_FILE_NOT_FOUND = 10
-IGNORE_CHANNEL = 65535  # RC_CHANNELS_OVERRIDE: leave the channel as it is (MAVLink 1 senders lack 9-18)
 RESTART_S = 3.0  # simulated seconds a rebooting autopilot is silent
 FLIGHT_SW_VERSION = (4 << 24) | (5 << 16) | (7 << 8) | 255  # 4.5.7 official: what an ArduCopter of today says
 
@@ -292,7 +291,8 @@ class VehicleProtocol:
             0, msg.get_srcSystem(), msg.get_srcComponent(), list(reply.ljust(251, b"\0"))), channel)
 
     def _on_rc_override(self, msg, channel: Connection) -> None:
-        self.fleet.rc_override(self.i, [getattr(msg, f"chan{k}_raw", IGNORE_CHANNEL) for k in range(1, 17)])
+        # a MAVLink 1 sender has no channels 9-18: they stay as they are
+        self.fleet.rc_override(self.i, [getattr(msg, f"chan{k}_raw", pilot.IGNORE) for k in range(1, 17)])
 
     def _on_timesync(self, msg, channel: Connection) -> None:
         if msg.tc1 == 0:

@@ -150,7 +150,7 @@ class Fleet:
         self.circling: dict[int, list] = {}  # NAV_LOITER_TURNS: [centre, radius, turns left (rad), last bearing]
         self.rtl_target_m = np.zeros((n, 3))  # where RTL goes: home or the nearest rally point
         self.fences: list[fence_.Fence | None] = [None] * n  # built from the fence list when first needed
-        self.fence_breach: list[str | None] = [None] * n
+        self.fence_breach = np.full(n, None, dtype=object)  # why each vehicle is outside its fence, or None
         self.rc_us = np.tile(pilot.idle_channels(), (n, 1))  # RC_CHANNELS_OVERRIDE, else the idle receiver
         self.rc_overridden = np.zeros((n, pilot.CHANNELS), dtype=bool)
         self.rc_until_t_s = np.full(n, -math.inf)
@@ -210,7 +210,7 @@ class Fleet:
         """FENCE_ENABLE: a flying vehicle that leaves the fence says so and takes FENCE_ACTION (0 report only,
         2 land, 4 brake, otherwise RTL); coming back inside clears the breach."""
         watched = self.armed & ~state.on_ground & (self.params.column("FENCE_ENABLE") > 0)
-        for i in np.flatnonzero(watched | np.array([b is not None for b in self.fence_breach])):
+        for i in np.flatnonzero(watched | np.not_equal(self.fence_breach, None)):
             i = int(i)
             reason = fence_.breach(self._fence(i), state.pos_m[i], int(self.params.get(i, "FENCE_TYPE")),
                                    self.params.get(i, "FENCE_ALT_MAX"), self.params.get(i, "FENCE_RADIUS")) \
@@ -707,9 +707,7 @@ class Fleet:
         if self.mode[i] != CopterMode.GUIDED or not self._flying(i):
             return False
         if target.pos_m is not None:
-            goal = np.array(target.pos_m, dtype=float)
-            goal[2] = max(goal[2], 0.5)
-            self._set_goal(i, goal, Motion.GOTO, Check.NONE)
+            self.goto(i, target.pos_m)
         elif target.is_velocity_control:
             self.velocity_mps[i] = target.vel_mps if target.vel_mps is not None else self.state.vel_mps[i]
             self.accel_mps2[i] = target.acc_mps2 if target.acc_mps2 is not None else 0.0

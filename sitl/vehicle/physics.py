@@ -177,6 +177,19 @@ def copter_velocity_mps(pos_m, goal_m, vel_mps, params: PhysicsParams, speed_xy_
     return vel_mps + change
 
 
+def goal_velocity_mps(state: VehicleState, cmd: Command, params: PhysicsParams) -> np.ndarray:
+    """The velocity each vehicle's law asks for toward its goal, each law computed only where it is in use."""
+    research = params.research_law
+    if research is None or research.all():
+        return desired_velocity_mps(state.pos_m, cmd.goal_m, params, cmd.speed_xy_mps)
+    v_des = desired_velocity_mps(state.pos_m, cmd.goal_m, params, cmd.speed_xy_mps) if research.any() \
+        else np.empty_like(state.pos_m)
+    copter = ~research
+    v_des[copter] = copter_velocity_mps(state.pos_m[copter], cmd.goal_m[copter], state.vel_mps[copter], params,
+                                        cmd.speed_xy_mps[copter], copter)
+    return v_des
+
+
 def land_speed_mps(height_m, params: PhysicsParams) -> np.ndarray:
     """LAND's descent: ArduCopter's law comes down at LAND_SPEED_HIGH above LAND_ALT_LOW, LAND_SPEED below."""
     if params.research_law is None:
@@ -186,11 +199,7 @@ def land_speed_mps(height_m, params: PhysicsParams) -> np.ndarray:
 
 
 def step(state: VehicleState, cmd: Command, params: PhysicsParams, dt_s: float) -> VehicleState:
-    v_des = desired_velocity_mps(state.pos_m, cmd.goal_m, params, cmd.speed_xy_mps)
-    if params.research_law is not None and not params.research_law.all():
-        copter = ~params.research_law
-        v_des[copter] = copter_velocity_mps(state.pos_m[copter], cmd.goal_m[copter], state.vel_mps[copter], params,
-                                            cmd.speed_xy_mps[copter], copter)
+    v_des = goal_velocity_mps(state, cmd, params)
     if cmd.velocity_mps is not None:
         following = cmd.motion == Motion.VELOCITY
         if following.any():
