@@ -257,8 +257,7 @@ def _home_position(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
 
 
 def _rc_channels(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
-    channels = [int(v) for v in w.fleet.rc_us[i]]
-    return enc.fields(M.MAVLink_rc_channels_message, t.boot_ms[i], 16, *channels, 0, 0, 255)
+    return enc.fields(M.MAVLink_rc_channels_message, t.boot_ms[i], 16, *w.fleet.rc_us[i].tolist(), 0, 0, 255)
 
 
 def _servo_output_raw(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:

@@ -178,13 +178,16 @@ def copter_velocity_mps(pos_m, goal_m, vel_mps, params: PhysicsParams, speed_xy_
 
 
 def goal_velocity_mps(state: VehicleState, cmd: Command, params: PhysicsParams) -> np.ndarray:
-    """The velocity each vehicle's law asks for toward its goal, each law computed only where it is in use."""
+    """The velocity each vehicle's law asks for toward its goal, each law computed only where it is in use (and
+    ArduCopter's, the dearer, only for vehicles flying to a goal: an idle one is held still by the step)."""
     research = params.research_law
     if research is None or research.all():
         return desired_velocity_mps(state.pos_m, cmd.goal_m, params, cmd.speed_xy_mps)
     v_des = desired_velocity_mps(state.pos_m, cmd.goal_m, params, cmd.speed_xy_mps) if research.any() \
-        else np.empty_like(state.pos_m)
-    copter = ~research
+        else np.zeros_like(state.pos_m)
+    copter = ~research & cmd.armed & ((cmd.motion == Motion.GOTO) | (cmd.motion == Motion.LAND))
+    if not copter.any():
+        return v_des
     v_des[copter] = copter_velocity_mps(state.pos_m[copter], cmd.goal_m[copter], state.vel_mps[copter], params,
                                         cmd.speed_xy_mps[copter], copter)
     return v_des
