@@ -146,7 +146,7 @@ class TelemetrySource:
             state=s, time_boot_ms=int(w.t_s * 1000), boot_ms=ints(np.maximum(w.t_s - w.boot_t_s, 0.0) * 1000),
             time_usec=int(self.unix_time_s() * 1e6),
             lat_e7=ints(fix.lat_deg * 1e7), lon_e7=ints(fix.lon_deg * 1e7), alt_mm=ints(fix.alt_m * 1000),
-            rel_alt_mm=ints(fix.pos_m[:, 2] * 1000), vn_cms=ints(s.vel_mps[:, 1] * 100),
+            rel_alt_mm=ints((fix.pos_m[:, 2] - w.fleet.home_m[:, 2]) * 1000), vn_cms=ints(s.vel_mps[:, 1] * 100),
             ve_cms=ints(s.vel_mps[:, 0] * 100), vd_cms=ints(-s.vel_mps[:, 2] * 100), hdg_cdeg=ints(hdg * 100),
             roll=roll.tolist(), pitch=pitch.tolist(), yaw=yaw.tolist(), landed_state=landed.tolist(),
         )
@@ -249,10 +249,10 @@ def _mission_current(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes
 
 
 def _home_position(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
-    home = w.homes[i]
+    home, east, north, up = w.home_of(i), *w.fleet.home_m[i].tolist()
     msg = M.MAVLink_home_position_message(
         int(round(home.lat_deg * 1e7)), int(round(home.lon_deg * 1e7)), int(round(home.alt_m * 1000)),
-        0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, t.time_usec)
+        north, east, -up, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, t.time_usec)
     return enc.message(msg)
 
 

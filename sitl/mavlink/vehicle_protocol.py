@@ -16,7 +16,7 @@ from typing import Protocol
 
 from missions.model import MavCmd, MissionItem, MissionType
 from nac_onboard.mavlink.signing import SigningState
-from sitl.mavlink.codec import FrameEncoder, mavlink
+from sitl.mavlink.codec import FrameEncoder, ProtocolVersionMessage, mavlink
 from sitl.mavlink.mission_protocol import Ack, Complete, MissionReceiver, Request
 from sitl.mavlink.telemetry import BUILDERS, NOT_DATA_STREAMS, Streams, TelemetrySource
 from sitl.vehicle import guided, pilot
@@ -77,6 +77,7 @@ class VehicleProtocol:
         self.on_params_changed()
         self._after_ack: list = []
         self._command_alt_amsl = False
+        self._command_is_int = False
         self._pending_transfer = None
         self._refused_frames: set[tuple[str, int]] = set()
         self.silent_until_t_s = -math.inf  # restarting: nothing in or out until then (simulated seconds)
@@ -127,6 +128,7 @@ class VehicleProtocol:
         else:
             x, y, z = msg.param5, msg.param6, msg.param7
             self._command_alt_amsl = False  # COMMAND_LONG carries no frame: altitude relative to home
+        self._command_is_int = is_int
         outcome = self.command(msg.command, params, x, y, z, channel)
         if outcome.text:
             self.statustext(Severity.INFO if outcome.result == Result.ACCEPTED else Severity.WARNING, outcome.text)
@@ -182,8 +184,7 @@ class VehicleProtocol:
     def _command_more(self, command: int, p: list[float], x: float, y: float, z: float,
                       channel: Connection) -> CommandOutcome:
         """The commands a ground station uses beyond flying: yaw, region of interest, pause, servos, reboot,
-        home. REQUEST_PROTOCOL_VERSION stays UNSUPPORTED: its answer, PROTOCOL_VERSION (300), is in no dialect
-        pymavlink ships, so no pymavlink client could read it."""
+        home, the protocol version."""
         f, i = self.fleet, self.i
         if command == M.MAV_CMD_CONDITION_YAW:
             return f.condition_yaw(i, p[0], p[1], p[2], p[3] >= 0.5)
@@ -212,6 +213,18 @@ class VehicleProtocol:
             return outcome
         if command == M.MAV_CMD_GET_HOME_POSITION:
             self._after_ack.append(lambda: self.send_one(M.MAVLINK_MSG_ID_HOME_POSITION, channel))
+            return OK_OUTCOME
+        if command == M.MAV_CMD_DO_SET_HOME:
+            if p[0] >= 0.5:
+                return f.set_home(i, None)
+            if not (math.isfinite(x) and math.isfinite(y) and -90 <= x <= 90 and -180 <= y <= 180) or x == y == 0:
+                return CommandOutcome(Result.DENIED, "Set home refused: no location")
+            # ArduPilot takes COMMAND_LONG's altitude as above mean sea level, COMMAND_INT's by its frame.
+            relative = self._command_is_int and not self._command_alt_amsl
+            return f.set_home(i, self.world.global_to_enu(i, x, y, z, relative=relative))
+        if command == M.MAV_CMD_REQUEST_PROTOCOL_VERSION:
+            self._after_ack.append(lambda: self.send(self.encoder.fields(
+                ProtocolVersionMessage, 200, 100, 200, bytes(8), bytes(8)), channel))
             return OK_OUTCOME
         return CommandOutcome(Result.UNSUPPORTED)
 
@@ -367,7 +380,7 @@ class VehicleProtocol:
     def download_items(self, mission_type: int) -> list[MissionItem]:
         items = list(self.fleet.mission(self.i, mission_type))
         if mission_type == MissionType.MISSION:
-            home = self.world.homes[self.i]
+            home = self.world.home_of(self.i)
             # ArduPilot's item 0 is always the current home, whatever was uploaded there.
             home_item = MissionItem(0, MavCmd.NAV_WAYPOINT, frame=0, lat_deg=home.lat_deg, lon_deg=home.lon_deg,
                                     alt_m=home.alt_m)
@@ -436,6 +449,8 @@ class VehicleProtocol:
         elif kind is Event.TEXT:
             severity, text = value
             self.statustext(severity, text)
+        elif kind is Event.HOME:
+            self.send_one(M.MAVLINK_MSG_ID_HOME_POSITION)
 
     def build(self, msgid: int) -> bytes:
         return BUILDERS[msgid](self.encoder, self.i, self.world, self.telemetry.current())

@@ -85,14 +85,14 @@ def breach(fence: Fence, pos_m: np.ndarray, kinds: int, alt_max_m: float, radius
     return None
 
 
-def rally_target(rally: list[MissionItem], home: Home, here_m: np.ndarray, include_home: bool,
-                 limit_km: float) -> np.ndarray | None:
-    """Where RTL goes (east, north, altitude above home): the nearest rally point, or home when it is nearer
-    and RALLY_INCL_HOME allows it, or when every rally point is beyond RALLY_LIMIT_KM (0: no limit); None for
-    home."""
-    best, best_m = None, float(np.hypot(*here_m[:2])) if include_home else float("inf")
+def rally_target(rally: list[MissionItem], origin: Home, home_m: np.ndarray, here_m: np.ndarray,
+                 include_home: bool, limit_km: float) -> np.ndarray | None:
+    """Where RTL goes (east, north, up about the origin): the nearest rally point (its altitude above home), or
+    home when it is nearer and RALLY_INCL_HOME allows it, or when every rally point is beyond RALLY_LIMIT_KM (0:
+    no limit); None for home."""
+    best, best_m = None, float(np.hypot(*(here_m[:2] - home_m[:2]))) if include_home else float("inf")
     for item in rally:
-        point = np.append(_en(item, home), item.alt_m)
+        point = np.append(_en(item, origin), item.alt_m + home_m[2])
         distance_m = float(np.hypot(*(point[:2] - here_m[:2])))
         if limit_km > 0 and distance_m > limit_km * 1000.0:
             continue

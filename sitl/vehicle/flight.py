@@ -75,6 +75,7 @@ class Event(Enum):
     MODE = "mode"  # value: custom mode number
     ARMED = "armed"  # value: bool
     TEXT = "text"  # value: (Severity, text)
+    HOME = "home"  # value: None (home moved: HOME_POSITION is sent)
 
 
 class Phase(Enum):
@@ -105,6 +106,7 @@ class Check(IntEnum):
 PILOT_MODES = frozenset({CopterMode.LOITER, CopterMode.POSHOLD, CopterMode.ALT_HOLD})
 HOLD_MODES = frozenset({CopterMode.STABILIZE, CopterMode.ALT_HOLD, CopterMode.LOITER, CopterMode.POSHOLD,
                         CopterMode.BRAKE, CopterMode.GUIDED})
+HOME_FROM_ORIGIN_MAX_M = 50_000.0  # ArduPilot refuses a home farther than this from the EKF origin
 FORCE_DISARM_MAGIC = 21196  # COMPONENT_ARM_DISARM param 2: disarm even in flight (ArduPilot)
 
 
@@ -149,6 +151,8 @@ class Fleet:
         self.roi_m = np.full((n, 3), math.nan)  # region of interest the nose points at (DO_SET_ROI*), ENU
         self.circling: dict[int, list] = {}  # NAV_LOITER_TURNS: [centre, radius, turns left (rad), last bearing]
         self.rtl_target_m = np.zeros((n, 3))  # where RTL goes: home or the nearest rally point
+        self.home_m = np.zeros((n, 3))  # home about the frame's origin (DO_SET_HOME moves home, not the origin)
+        self.home_locked = np.zeros(n, dtype=bool)  # set by DO_SET_HOME: arming no longer moves home
         self.fences: list[fence_.Fence | None] = [None] * n  # built from the fence list when first needed
         self.fence_breach = np.full(n, None, dtype=object)  # why each vehicle is outside its fence, or None
         self.rc_us = np.tile(pilot.idle_channels(), (n, 1))  # RC_CHANNELS_OVERRIDE, else the idle receiver
@@ -382,7 +386,7 @@ class Fleet:
         if item.frame in AMSL_FRAMES:
             goal[2] = item.alt_m - self.homes[i].alt_m
         else:
-            goal[2] = item.alt_m
+            goal[2] = item.alt_m + self.home_m[i, 2]
         goal[2] = max(goal[2], 0.0)
         return goal
 
@@ -447,6 +451,8 @@ class Fleet:
             self.set_servo(i, int(item.p1), int(item.p2))
         elif cmd == items_.DO_FENCE_ENABLE:
             self.enable_fence(i, item.p1)
+        elif cmd == items_.DO_SET_HOME:
+            self.set_home(i, None if item.p1 >= 0.5 else self.item_goal_m(i, item))
 
     def _start_nav_item(self, i: int, item: MissionItem) -> None:
         cmd = item.command
@@ -569,6 +575,9 @@ class Fleet:
         self._set_goal(i, self._pos(i), Motion.IDLE, Check.NONE)
         self._text(i, "Arming motors")
         self._emit(i, Event.ARMED, True)
+        if not self.home_locked[i] and self.gps_ok[i]:  # ArduCopter: home is where it arms, unless DO_SET_HOME
+            self.home_m[i] = self._pos(i)
+            self._emit(i, Event.HOME, None)
         return OK
 
     def prearm_failure(self, i: int) -> str | None:
@@ -630,12 +639,12 @@ class Fleet:
     def _begin_rtl(self, i: int) -> None:
         """Climb to RTL_ALT, fly to the nearest rally point (or home), land there."""
         here = self._pos(i)
-        rally = fence_.rally_target(self.mission(i, MissionType.RALLY), self.homes[i], here,
+        rally = fence_.rally_target(self.mission(i, MissionType.RALLY), self.homes[i], self.home_m[i], here,
                                     self.params.get(i, "RALLY_INCL_HOME") > 0, self.params.get(i, "RALLY_LIMIT_KM"))
-        self.rtl_target_m[i] = np.zeros(3) if rally is None else rally
+        self.rtl_target_m[i] = self.home_m[i] if rally is None else rally
         if rally is not None:
             self._text(i, f"RTL: to the rally point {np.hypot(*(rally[:2] - here[:2])):.0f} m away")
-        rtl_alt = max(here[2], self.params.get(i, "RTL_ALT") / 100.0)
+        rtl_alt = max(here[2], self.home_m[i, 2] + self.params.get(i, "RTL_ALT") / 100.0)
         self._set_goal(i, [here[0], here[1], rtl_alt], Motion.GOTO, Check.ALTITUDE, phase=Phase.RTL_CLIMB)
 
     def takeoff(self, i: int, alt_m: float) -> CommandOutcome:
@@ -775,6 +784,21 @@ class Fleet:
         self.servo_pwm[i][channel] = pwm
         return OK
 
+    def set_home(self, i: int, home_m: np.ndarray | None) -> CommandOutcome:
+        """DO_SET_HOME: here (None) or a given place. RTL, relative altitudes and HOME_POSITION follow home; the
+        local frame's origin (ArduPilot's EKF origin) stays, and with it LOCAL_POSITION_NED."""
+        if home_m is None:
+            if not self.gps_ok[i]:
+                return CommandOutcome(Result.FAILED, "Set home refused: no position")
+            home_m = self._pos(i)
+        home_m = np.asarray(home_m, dtype=float)
+        if not np.isfinite(home_m).all() or np.hypot(*home_m[:2]) > HOME_FROM_ORIGIN_MAX_M:
+            return CommandOutcome(Result.FAILED, "Set home refused: more than 50 km from the EKF origin")
+        self.home_m[i] = home_m
+        self.home_locked[i] = True
+        self._emit(i, Event.HOME, None)
+        return OK
+
     def reboot(self, i: int) -> CommandOutcome:
         """What a restart leaves: missions and parameters (stored), nothing in flight; disarmed only."""
         if self.armed[i]:
@@ -784,6 +808,7 @@ class Fleet:
         self.failsafe[i] = False
         self.yaw_target_rad[i] = self.yaw_rate_rps[i] = math.nan
         self.roi_m[i] = math.nan
+        self.home_locked[i] = False
         self.paused[i] = None
         self.speed_xy_mps[i] = self.params.get(i, "WPNAV_SPEED") / 100.0
         if len(self.mission(i)) > 1:

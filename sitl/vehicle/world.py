@@ -134,8 +134,13 @@ class World:
     def global_to_enu(self, vehicle: int, lat: float, lon: float, alt: float, relative: bool = True) -> np.ndarray:
         home = self.homes[vehicle]
         enu = lla_to_enu(lat, lon, home.alt_m, home)
-        enu[2] = alt if relative else alt - home.alt_m
+        enu[2] = alt + self.fleet.home_m[vehicle, 2] if relative else alt - home.alt_m
         return enu
+
+    def home_of(self, vehicle: int) -> Home:
+        """Where vehicle's home is now (DO_SET_HOME and arming move it from the origin of its frame)."""
+        lat, lon, alt = enu_to_lla(self.fleet.home_m[vehicle], self.homes[vehicle])
+        return Home(float(lat), float(lon), float(alt))
 
     def positions_ecef_m(self) -> np.ndarray:
         """Every vehicle's true position, earth-centred (N, 3): what the radio between them sees."""

@@ -182,3 +182,51 @@ def test_a_fence_breach_sends_the_copter_to_the_rally_point(start_sitl, mavproxy
     proxy.expect(r"RTL>|Mode RTL", 15.0)
     until(lambda: not sim.truth(0)["armed"], 120.0, "landed and disarmed")
     assert np.hypot(*(sim.truth(0)["pos_m"][:2] - [15.0, 45.0])) < 1.5, "at the rally point, not home"
+
+
+def test_a_wpl_mission_with_roi_spline_yaw_servo_turns_and_delay_flies_in_auto_to_its_end(start_sitl, mavproxy,
+                                                                                          tmp_path):
+    """The items that used to refuse the whole upload, loaded by `wp load` from a QGC WPL 110 file: the nose on
+    the region of interest along the spline, CONDITION_YAW's heading, the servo, one turn on the 8 m circle, the
+    4 s delay, then RTL; every item reached, in the vehicle's truth."""
+    sim = start_sitl(speedup=10.0)
+    proxy = mavproxy(sim)
+    home = sim.homes[0]
+    north, circle = offset_home(home, 0.0, 30.0), offset_home(home, 25.0, 30.0)
+    rows = [(0, 1, 0, 16, 0, 0, 0, 0, home.lat_deg, home.lon_deg, home.alt_m),
+            (1, 0, 3, 22, 0, 0, 0, 0, 0, 0, 8),
+            (2, 0, 3, 201, 0, 0, 0, 0, circle.lat_deg, circle.lon_deg, 0),  # DO_SET_ROI
+            (3, 0, 3, 82, 0, 0, 0, 0, north.lat_deg, north.lon_deg, 8),  # NAV_SPLINE_WAYPOINT
+            (4, 0, 3, 115, 90, 30, 1, 0, 0, 0, 0),  # CONDITION_YAW to 90 degrees at 30 deg/s, clockwise
+            (5, 0, 3, 183, 9, 1600, 0, 0, 0, 0, 0),  # DO_SET_SERVO 9 to 1600 us
+            (6, 0, 3, 18, 1, 0, 8, 0, circle.lat_deg, circle.lon_deg, 8),  # NAV_LOITER_TURNS: 1 turn, 8 m
+            (7, 0, 3, 93, 4, -1, -1, -1, 0, 0, 0),  # NAV_DELAY 4 s
+            (8, 0, 3, 20, 0, 0, 0, 0, 0, 0, 0)]  # NAV_RETURN_TO_LAUNCH
+    mission = tmp_path / "items.waypoints"
+    mission.write_text("QGC WPL 110\n" + "".join("\t".join(str(v) for v in r) + "\t1\n" for r in rows))
+    proxy.send(f"wp load {mission}")
+    proxy.expect(r"Sent all \d+ waypoints|Loaded \d+ waypoints", 15.0)
+    until(lambda: len(sim.world.fleet.mission(0)) == 9, 10.0, "the whole mission is on the vehicle")
+    take_off(proxy, 8)
+    proxy.send("mode auto")
+    centre = np.array([25.0, 30.0])
+    off_roi_deg, circle_m, delay_t_s, seqs = [], [], [], set()
+    while (truth := sim.truth(0))["armed"]:
+        assert sim.t_s < 400, f"the mission ends; stuck at item {truth['mission_seq']}"
+        seq, pos = truth["mission_seq"], truth["pos_m"]
+        seqs.add(seq)
+        yaw_deg = np.degrees(sim.world.state.yaw_rad[0])  # a compass heading
+        if seq == 3 and np.hypot(*(centre - pos[:2])) > 5.0:
+            bearing_deg = np.degrees(np.arctan2(*(centre - pos[:2])))
+            off_roi_deg.append(abs((yaw_deg - bearing_deg + 180.0) % 360.0 - 180.0))
+        if seq == 6:
+            circle_m.append(np.hypot(*(pos[:2] - centre)))
+        if seq == 7:
+            delay_t_s.append(sim.t_s)
+        time.sleep(0.01)
+    assert {3, 6, 7, 8} <= seqs and sim.truth(0)["mission_state"] == 5, "every item, mission complete"
+    assert np.median(off_roi_deg) < 5.0, "the nose on the region of interest along the spline"
+    assert sum(abs(d - 8.0) < 1.0 for d in circle_m) > len(circle_m) / 2, "the turn on the 8 m circle"
+    assert 3.7 <= delay_t_s[-1] - delay_t_s[0] <= 4.3, "NAV_DELAY held for its 4 s (sampled every 0.1 s)"
+    assert sim.world.fleet.servo_pwm[0] == {9: 1600}
+    assert np.hypot(*sim.truth(0)["pos_m"][:2]) < 1.0, "RTL landed at home"

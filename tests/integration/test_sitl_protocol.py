@@ -161,6 +161,48 @@ def test_commands_a_ground_station_uses_change_the_vehicle(start_sitl, gcs_for):
     assert homes <= 2, "HOME_POSITION stays at one per 5 s, not 10 Hz"
 
 
+def test_do_set_home_moves_home_for_rtl_and_relative_altitude_and_the_protocol_version_answers(start_sitl, gcs_for):
+    """DO_SET_HOME to a place 40 m north, 5 m above the old home (COMMAND_LONG: altitude above sea level):
+    HOME_POSITION, mission item 0 and GLOBAL_POSITION_INT.relative_alt follow it, LOCAL_POSITION_NED does not
+    jump, and RTL lands there. REQUEST_PROTOCOL_VERSION is acknowledged and PROTOCOL_VERSION (300) follows."""
+    from missions.geo import offset_home
+    from tests.integration.gcs import take_off
+
+    sim = start_sitl(speedup=10.0)
+    gcs = gcs_for(sim)
+    home = sim.homes[0]
+    new_home = offset_home(home, 0.0, 40.0)
+    take_off(gcs, 10)
+    assert gcs.command(M.MAV_CMD_DO_SET_HOME, 0, 0, 0, 0, new_home.lat_deg, new_home.lon_deg,
+                       home.alt_m + 5.0) == M.MAV_RESULT_ACCEPTED
+    reported = gcs.recv("HOME_POSITION", 2.0)
+    assert reported is not None and abs(reported.latitude / 1e7 - new_home.lat_deg) < 1e-6
+    assert abs(reported.x - 40.0) < 0.1 and abs(reported.altitude / 1000 - (home.alt_m + 5.0)) < 0.01
+    position = gcs.recv("GLOBAL_POSITION_INT", 2.0)
+    assert abs(position.relative_alt / 1000 - (sim.truth(0)["pos_m"][2] - 5.0)) < 0.3, "height above the new home"
+    assert abs(gcs.recv("LOCAL_POSITION_NED", 2.0).z + 10.0) < 0.3, "the local frame stays where it was"
+    assert gcs.download()[0].lat_deg == pytest.approx(new_home.lat_deg, abs=1e-7), "item 0 is the new home"
+    assert gcs.set_mode("RTL") == M.MAV_RESULT_ACCEPTED
+    assert gcs.recv("HEARTBEAT", 120.0, lambda m: not m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED) is not None
+    assert np.hypot(*(sim.truth(0)["pos_m"][:2] - [0.0, 40.0])) < 1.0, "landed at the new home"
+    assert gcs.command(M.MAV_CMD_DO_SET_HOME, 0, 0, 0, 0, 0, 0, 0) == M.MAV_RESULT_DENIED, "no location"
+    gcs.conn.mav.command_long_send(1, 1, M.MAV_CMD_REQUEST_PROTOCOL_VERSION, 0, 1, 0, 0, 0, 0, 0, 0)
+    # pymavlink has no PROTOCOL_VERSION: it hands over the whole frame, whose header it leaves unread.
+    deadline = time.monotonic() + 2.0
+    seen, frames = [], []
+    while not frames and time.monotonic() < deadline:
+        for msg in gcs.poll(0.1):
+            seen.append(msg.get_type())
+            if msg.get_type() == "COMMAND_ACK":
+                assert msg.command != M.MAV_CMD_REQUEST_PROTOCOL_VERSION or msg.result == M.MAV_RESULT_ACCEPTED
+            elif msg.get_type() == "UNKNOWN_300":
+                frames.append(bytes(msg.data))
+    assert seen.index("COMMAND_ACK") < seen.index("UNKNOWN_300"), "the answer follows its ACK"
+    assert frames[0][5] == 1, "from system 1"
+    payload = frames[0][10:10 + frames[0][1]] + bytes(22)  # MAVLink 2 trims the trailing zeros
+    assert payload[:6] == bytes([200, 0, 100, 0, 200, 0]), "version 2.0, from 1.0 to 2.0"
+
+
 def test_a_reboot_silences_the_vehicle_then_it_comes_back_with_a_new_boot_clock(start_sitl, gcs_for):
     sim = start_sitl(speedup=2.0)
     gcs = gcs_for(sim)

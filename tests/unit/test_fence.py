@@ -7,7 +7,7 @@ import pytest
 from missions.model import Frame, MavCmd, MissionItem, MissionType
 from sitl.vehicle import fence as fence_
 from sitl.vehicle import guided
-from sitl.vehicle.flight import CopterMode
+from sitl.vehicle.flight import CopterMode, Event, Result
 from tests.unit.test_flight import HOME, run, wp
 from tests.unit.test_guided import ONLY_POS, airborne, local
 
@@ -62,3 +62,28 @@ def test_report_only_action_and_fence_disabled_let_the_vehicle_fly_on():
     state, t = run(fleet, state, params, 1.0, t0=t)
     assert fleet.fence_breach[0] is None and any("breach cleared" in str(v) for _, _, v in fleet.events)
     assert fleet.enable_fence(0, 3).result != 0
+
+
+def test_rtl_goes_to_the_home_set_by_do_set_home_and_arming_does_not_move_it_back():
+    """DO_SET_HOME in flight ("here"), then RTL: back to that place, not to where the copter armed; relative
+    altitudes count from the new home. Home set by hand survives the next arming; without it, arming moves it."""
+    fleet, state, params, t = airborne()
+    fleet.setpoint(0, local(guided.LOCAL_NED, ONLY_POS, xyz=(20.0, 30.0, -10.0), state=state))  # 20 N, 30 E
+    state, t = run(fleet, state, params, 60.0, t0=t, until=lambda f, s: np.hypot(*(s.pos_m[0, :2] - [30, 20])) < 0.2)
+    assert fleet.set_home(0, None).result == Result.ACCEPTED
+    assert fleet.home_m[0] == pytest.approx([30.0, 20.0, 10.0], abs=0.3)
+    assert fleet.item_goal_m(0, wp(1, 0.0, 0.0, alt=5.0))[2] == pytest.approx(15.0, abs=0.3), "5 m above new home"
+    fleet.setpoint(0, local(guided.LOCAL_NED, ONLY_POS, xyz=(-10.0, 0.0, -10.0), state=state))
+    state, t = run(fleet, state, params, 60.0, t0=t, until=lambda f, s: s.pos_m[0, 1] < -9.8)
+    fleet.set_mode(0, CopterMode.RTL)
+    state, t = run(fleet, state, params, 200.0, t0=t, until=lambda f, s: not f.armed[0])
+    assert state.pos_m[0, :2] == pytest.approx([30.0, 20.0], abs=1.0), "landed under the new home"
+    assert any(kind is Event.HOME for _, kind, _ in fleet.events)
+    fleet.set_mode(0, CopterMode.GUIDED)
+    assert fleet.arm(0, True).result == Result.ACCEPTED
+    assert fleet.home_m[0, :2] == pytest.approx([30.0, 20.0], abs=0.3), "a home set by hand stays"
+    fleet.arm(0, False)
+    assert fleet.reboot(0).result == Result.ACCEPTED
+    assert fleet.arm(0, True).result == Result.ACCEPTED
+    assert fleet.home_m[0] == pytest.approx(state.pos_m[0], abs=1e-6), "after a reboot, home is where it armed"
+    assert fleet.set_home(0, np.array([60_000.0, 0.0, 0.0])).result == Result.FAILED, "beyond 50 km of the origin"
