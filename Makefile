@@ -6,14 +6,14 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench bench-smoke clean
+.PHONY: demo test lint bench bench-smoke arm64-check clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 
 $(STAMP): pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[test]'
+	$(BIN)/python -m pip install -q -e '.[mpich,test]'
 	$(BIN)/python -m pip install -q --no-deps $$($(BIN)/python -c "import sys; toml = __import__('tomllib' if \
 	    sys.version_info >= (3, 11) else 'tomli'); print(' '.join(toml.load(open('pyproject.toml', 'rb'))['tool']['nac']['test-no-deps']))")
 	touch $(STAMP)
@@ -39,6 +39,13 @@ bench: $(STAMP)
 
 bench-smoke: $(STAMP)
 	set -e; for b in $(BENCHMARKS); do $(BIN)/python benchmarks/$$b.py --smoke; done
+
+# NAC on an arm64 companion's userland under qemu: wheelhouse here, offline install there, doctor, a compute run
+# (root; minutes). Its result is recorded in docs/deploy-arm64.md.
+arm64-check:
+	@command -v debootstrap >/dev/null && test -x /usr/bin/qemu-aarch64-static || \
+	    DEBIAN_FRONTEND=noninteractive apt-get install -y -q debootstrap qemu-user-static binfmt-support >/dev/null
+	deploy/arm64-check.sh
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .ruff_cache

@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
-# Install the NAC onboard agent as a systemd service on a UAV's companion (Jetson TX2: aarch64, Ubuntu).
+# Install the NAC onboard agent as a systemd service on a UAV's companion (Jetson: aarch64, Ubuntu).
 # Idempotent: run it again after `git pull` to upgrade; an existing /etc/nac/agent.toml is kept.
 #
 #   sudo deploy/install.sh --role master|worker --id NAME [--sysid N] [--uri URI]
 #   deploy/install.sh --prefix DIR ...      stage everything under DIR (an image root, or a test) and touch
 #                                           nothing outside it: no apt, no service start
+#   deploy/install.sh --plan                say which Python and MPI this machine gets, change nothing
 # Options:
 #   --role master|worker   which example config to start from (deploy/master.toml, deploy/worker.toml)
 #   --id NAME              the vehicle's name in logs and peer tables (default: the role)
@@ -13,14 +14,18 @@
 #   --force-config         overwrite an existing agent.toml (the old one is kept as agent.toml.bak)
 #   --fleet-key FILE       the fleet's peer key (the same on every vehicle); without it one is made once
 #   --no-system-packages   skip apt-get (iperf3, python3-venv) even without --prefix
+#   --offline DIR          install from a wheelhouse made by deploy/wheelhouse.sh: no network at all
+# Paths: Python >= 3.10 present: a venv on it; older (JetPack 4: 3.6): a standalone CPython 3.11 (runs on
+# glibc 2.17+; from DIR/python/ offline, else through uv). MPI: the mpich wheel on glibc >= 2.28; older
+# (JetPack 4: 2.27): the distribution's MPICH, with mpi4py compiled against it.
 set -euo pipefail
 
-usage() { sed -n '2,17p' "$0" | sed 's/^# \{0,1\}//'; exit 2; }
+usage() { sed -n '2,23p' "$0" | sed 's/^# \{0,1\}//'; exit 2; }
 die() { echo "install.sh: $*" >&2; exit 2; }
 
 here=$(cd "$(dirname "$0")" && pwd)
 source_dir=$(dirname "$here")
-prefix="" role="" vehicle_id="" sysid="" uri="" force_config=0 system_packages=1 fleet_key=""
+prefix="" role="" vehicle_id="" sysid="" uri="" force_config=0 system_packages=1 fleet_key="" offline="" plan=0
 while [ $# -gt 0 ]; do
     case "$1" in
         --prefix) prefix=${2%/}; shift 2 ;;
@@ -31,10 +36,54 @@ while [ $# -gt 0 ]; do
         --force-config) force_config=1; shift ;;
         --fleet-key) fleet_key=$2; shift 2 ;;
         --no-system-packages) system_packages=0; shift ;;
+        --offline) offline=${2%/}; shift 2 ;;
+        --plan) plan=1; shift ;;
         -h|--help) usage ;;
         *) die "unknown option $1 (see --help)" ;;
     esac
 done
+
+# ---- the path: which Python and which MPI this machine can take -------------------------------------------
+python=${PYTHON:-python3}
+version_at_least() { [ "$(printf '%s\n%s\n' "$2" "$1" | sort -V | head -n 1)" = "$2" ]; }  # $1 >= $2
+system_python=$("$python" -c 'import sys; print("%d.%d.%d" % sys.version_info[:3])' 2>/dev/null || echo none)
+glibc=$(getconf GNU_LIBC_VERSION 2>/dev/null | awk '{print $2}')
+glibc=${glibc:-unknown}
+if [ "$system_python" != none ] && version_at_least "$system_python" 3.10; then
+    python_path=system
+    python_why="Python $system_python ($python): a venv on it"
+else
+    python_path=standalone
+    python_why="standalone CPython 3.11 (the system's Python is $system_python, older than 3.10)"
+fi
+if [ "$glibc" != unknown ] && version_at_least "$glibc" 2.28; then
+    mpi_path=wheel
+    mpi_why="the mpich wheel (glibc $glibc >= 2.28)"
+else
+    mpi_path=distro
+    mpi_why="the distribution's MPICH (apt: mpich libmpich-dev), mpi4py compiled against it (glibc $glibc < 2.28: no mpich wheel)"
+fi
+echo "install.sh: this machine: $(uname -m), glibc $glibc, Python $system_python"
+echo "install.sh: Python: $python_why"
+echo "install.sh: MPI: $mpi_why"
+echo "install.sh: packages: ${offline:+from the wheelhouse $offline (offline)}${offline:-from the package index}"
+[ "$plan" = 1 ] && exit 0
+if [ -n "$offline" ]; then
+    [ -d "$offline" ] || die "--offline $offline: no such directory (make it with deploy/wheelhouse.sh)"
+    ls "$offline"/nac-*.whl >/dev/null 2>&1 || die "--offline $offline: no nac-*.whl in it: not a wheelhouse from deploy/wheelhouse.sh"
+    manifest() { sed -n "s/^$1: //p" "$offline/MANIFEST.txt" 2>/dev/null; }
+    [ "$(manifest platform)" = "$(uname -m)" ] \
+        || die "--offline $offline: made for '$(manifest platform)', this machine is $(uname -m)"
+    [ "$glibc" = unknown ] || version_at_least "$glibc" "$(manifest glibc)" \
+        || die "--offline $offline: made for glibc $(manifest glibc), this machine has $glibc (wheelhouse.sh --glibc $glibc)"
+    venv_python=3.11
+    [ "$python_path" = system ] && venv_python=${system_python%.*}
+    [ "$(manifest python)" = "$venv_python" ] \
+        || die "--offline $offline: made for Python $(manifest python), the venv here runs $venv_python (wheelhouse.sh --python $venv_python)"
+    if [ "$mpi_path" = wheel ] && ! ls "$offline"/mpich-*.whl >/dev/null 2>&1; then
+        die "--offline $offline: no mpich wheel in it (made with --glibc below 2.28), but this machine takes one"
+    fi
+fi
 case "$role" in master|worker) ;; *) die "--role must be master or worker" ;; esac
 vehicle_id=${vehicle_id:-$role}
 [[ "$vehicle_id" =~ ^[A-Za-z0-9._-]+$ ]] || die "--id must be letters, digits, '.', '_' or '-' (got '$vehicle_id')"
@@ -51,13 +100,16 @@ app=$prefix/opt/nac
 venv=$app/venv
 etc=$prefix/etc/nac
 units=$prefix/etc/systemd/system
-python=${PYTHON:-python3}
 step() { echo "==> $*"; }
 
+[ -n "$offline" ] && system_packages=0  # no network: apt cannot run (the JetPack image or a local mirror can)
 if [ "$system_packages" = 1 ]; then
-    step "system packages: iperf3, python3-venv, openssh (apt)"
-    DEBIAN_FRONTEND=noninteractive apt-get install -y -q iperf3 python3-venv python3-pip openssh-client \
-        openssh-server >/dev/null
+    packages="iperf3 openssh-client openssh-server chrony"
+    [ "$python_path" = system ] && packages="$packages python3-venv python3-pip"
+    [ "$mpi_path" = distro ] && packages="$packages mpich libmpich-dev"
+    step "system packages: $packages (apt)"
+    # shellcheck disable=SC2086
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -q $packages >/dev/null
 fi
 
 step "user nac (group dialout for the autopilot's serial port)"
@@ -68,9 +120,53 @@ else
     systemd-sysusers "$here/nac.sysusers.conf"
 fi
 
+if [ "$python_path" = standalone ]; then
+    # python-build-standalone's CPython: one tarball, runs on glibc 2.17+, what uv installs.
+    if [ -n "$offline" ]; then
+        if [ ! -x "$app/python/bin/python3" ]; then
+            tarball=$(ls "$offline"/python/cpython-3.11*.tar.gz 2>/dev/null | head -n 1)
+            [ -n "$tarball" ] || die "--offline $offline: no python/cpython-3.11*.tar.gz in it (wheelhouse.sh --standalone-python FILE)"
+            step "standalone CPython 3.11 from $tarball into $app/python"
+            mkdir -p "$app/python"
+            tar -xzf "$tarball" -C "$app/python" --strip-components=1
+        fi
+        python=$app/python/bin/python3
+    else
+        step "standalone CPython 3.11 through uv into $app/python-uv"
+        "$python" -m pip install -q --user --upgrade "pip<22" || die "cannot upgrade $python's pip"
+        "$python" -m pip install -q --user uv || die "cannot install uv with $python's pip"
+        UV_PYTHON_INSTALL_DIR="$app/python-uv" "$python" -m uv python install 3.11 \
+            || die "uv could not fetch a standalone CPython 3.11 (no internet? use --offline)"
+        python=$(ls -d "$app"/python-uv/cpython-3.11*/bin/python3 | head -n 1)
+    fi
+fi
+
 step "python environment $venv"
-[ -x "$venv/bin/python" ] || "$python" -m venv "$venv"
-"$venv/bin/python" -m pip install -q --disable-pip-version-check --upgrade "$source_dir"
+if [ ! -x "$venv/bin/python" ]; then
+    "$python" -c "import ensurepip, venv" 2>/dev/null \
+        || die "$python cannot make a venv: install python3-venv (apt-get install python3-venv)"
+    "$python" -m venv "$venv"
+fi
+pip_install() {
+    if [ -n "$offline" ]; then
+        "$venv/bin/python" -m pip install -q --disable-pip-version-check --no-index --find-links "$offline" "$@"
+    else
+        "$venv/bin/python" -m pip install -q --disable-pip-version-check "$@"
+    fi
+}
+if [ "$mpi_path" = distro ]; then
+    command -v mpicc >/dev/null || die "no mpicc: install the distribution's MPICH (apt-get install mpich libmpich-dev)"
+    # mpi4py compiled against that MPICH, so every rank links the library mpiexec comes with.
+    MPICC=mpicc pip_install --no-binary mpi4py mpi4py
+    extra=""
+else
+    extra="[mpich]"
+fi
+if [ -n "$offline" ]; then
+    pip_install --upgrade "$(ls "$offline"/nac-*.whl | head -n 1)$extra"
+else
+    pip_install --upgrade "$source_dir$extra"
+fi
 mkdir -p "$app/deploy"
 cp "$here/README.md" "$here/master.toml" "$here/worker.toml" "$app/deploy/"
 cp -r "$here/mpi" "$app/deploy/"

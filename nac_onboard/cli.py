@@ -7,6 +7,9 @@
     nac-onboard state [--feed HOST:PORT]                             what the agent knows of everyone now
     nac-onboard compute --task matmul|linreg ...                     one MPI rank (run under mpiexec)
     nac-onboard data fetch [--url URL]                               the Forest Fires CSV into the user cache
+    nac-onboard doctor [--role R] [--config FILE] [--json]           what this node has, and what its role lacks
+    nac-onboard mpi hostfile [--feed HOST:PORT] [--out FILE]         MPICH hostfile from the peers the agent hears
+    nac-onboard mpi run [--hostfile FILE] -- PROGRAM ARGS...         the job over them, same MPI build checked
 
 Exit codes: 0 ok, 1 the operation failed, 2 bad input.
 """
@@ -61,6 +64,22 @@ def build_parser() -> argparse.ArgumentParser:
     dsub = data.add_subparsers(dest="action", required=True, metavar="ACTION")
     fetch = dsub.add_parser("fetch", help="download the UCI archive, check the CSV's sha256, keep it in the cache")
     fetch.add_argument("--url", default=None, help="archive URL (default: the UCI repository's)")
+    doctor = sub.add_parser("doctor", help="what this node has (Python, MPI, glibc, clock, serial port, disk) "
+                                           "and whether its role can run; exit 1 naming what is missing")
+    doctor.add_argument("--role", choices=("master", "worker"), help="default: the config's, else worker")
+    doctor.add_argument("--config", help="agent TOML: its autopilot serial port and log directory are checked")
+    doctor.add_argument("--json", action="store_true")
+    mpi = sub.add_parser("mpi", help="an MPI job over the vehicles the master's agent hears")
+    msub = mpi.add_subparsers(dest="action", required=True, metavar="ACTION")
+    hostfile = msub.add_parser("hostfile", help="write MPICH's hostfile: this master, then the live workers; "
+                                                "exit 2 naming a node whose MPI build differs")
+    hostfile.add_argument("--feed", default="127.0.0.1:47200", help="the master agent's state feed")
+    hostfile.add_argument("--out", help="file to write (default: print it)")
+    job = msub.add_parser("run", help="check the MPI builds, write the hostfile, run mpiexec -f HOSTFILE -n N ...")
+    job.add_argument("--feed", default="127.0.0.1:47200", help="the master agent's state feed")
+    job.add_argument("--hostfile", default="mpi-hostfile", help="where to write the hostfile (default: %(default)s)")
+    job.add_argument("--timeout", type=float, default=None, dest="timeout_s", help="seconds before giving up")
+    job.add_argument("program", nargs=argparse.REMAINDER, help="-- then the program and its arguments")
     return parser
 
 
@@ -82,6 +101,15 @@ def run(args) -> int:
         return throughput_command(args)
     if args.command == "log":
         return log_check(args.files)
+    if args.command in ("doctor", "mpi"):
+        from nac_onboard.node import commands
+
+        if args.command == "doctor":
+            return commands.run_doctor(args.role, args.config, args.json)
+        if args.action == "hostfile":
+            return commands.write_hostfile(args.feed, args.out)
+        program = args.program[1:] if args.program[:1] == ["--"] else args.program
+        return commands.run_job(args.feed, args.hostfile, program, args.timeout_s)
     if args.command == "data":
         from nac_onboard.compute import forestfires
 

@@ -45,6 +45,7 @@ from nac_onboard.mavlink.client import LinkError
 from nac_onboard.mavlink.dialect import M
 from nac_onboard.mavlink.routing import RawEndpoint
 from nac_onboard.mavlink.signing import load_signing_key
+from nac_onboard.node.mpi_build import mpi_build
 
 log = logging.getLogger(__name__)
 EXPIRE_CHECK_S = 0.1
@@ -108,7 +109,8 @@ class Agent:
     def open(self) -> Agent:
         c = self.config
         self.log.write("agent_started", vehicle=c.vehicle.id, role=c.vehicle.role, config=c.source,
-                       autopilot=c.autopilot.uri, run_dir=str(self.run_dir), pid=os.getpid())
+                       autopilot=c.autopilot.uri, run_dir=str(self.run_dir), pid=os.getpid(),
+                       mpi_build=mpi_build())
         self.autopilot.open(time.monotonic())
         allow = tuple(parse_host_port(text, "routing.allow") for text in c.routing.allow)
         for uri, read_only in [*((u, False) for u in c.routing.endpoints), *((u, True) for u in c.routing.watch)]:
@@ -321,10 +323,10 @@ class Agent:
         port = self.throughput_server.port if self.throughput_server else 0
         if not known:
             return PeerState(id=c.vehicle.id, role=c.vehicle.role, t_s=time.time(), sysid=self.autopilot.sysid or 0,
-                             probe_port=port)
+                             probe_port=port, mpi_build=mpi_build())
         return PeerState(id=c.vehicle.id, role=c.vehicle.role, t_s=time.time(), sysid=v.sysid, lat_deg=v.lat_deg,
                          lon_deg=v.lon_deg, alt_m=v.alt_m, vel_ned_mps=tuple(v.vel_ned_mps),
-                         battery_pct=v.battery_pct, probe_port=port)
+                         battery_pct=v.battery_pct, probe_port=port, mpi_build=mpi_build())
 
     def _publish_state(self) -> None:
         data = encode_peer_state(self.own_state(), self.config.fleet_key)
@@ -385,7 +387,7 @@ class Agent:
         with self._state_lock:
             peers = self.peers.snapshot(time.monotonic())
         me = {k: getattr(own, k) for k in ("id", "role", "sysid", "lat_deg", "lon_deg", "alt_m", "vel_ned_mps",
-                                           "battery_pct")}
+                                           "battery_pct", "mpi_build")}
         me["link_up"] = self.autopilot.up
         return {"t_s": time.time(), "self": me, "peers": peers}
 

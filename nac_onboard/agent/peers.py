@@ -2,7 +2,7 @@
 
 Pure: no sockets or clocks here; the agent passes datagrams and times in. A peer message is one UDP datagram:
 the JSON body {"nac": "peer-state/1", "id", "role", "sysid", "lat_deg", "lon_deg", "alt_m", "vel_ned_mps",
-"battery_pct", "t_s", "probe_port"} (unknown positions are null), authenticated with the fleet key as
+"battery_pct", "t_s", "probe_port", "mpi_build"} (unknown positions are null), authenticated with the fleet key as
 `NACS1 KEY_ID HMAC_SHA256_HEX\\n` + body, the HMAC over `KEY_ID\\n` + body (docs/security.md).
 
 Everything that arrives is hostile until checked: the size before parsing, the signature before the body is
@@ -26,6 +26,7 @@ SIGNED_MAGIC = b"NACS1 "
 ID_PATTERN = re.compile(r"[A-Za-z0-9._-]{1,32}")
 ROLES = ("master", "worker")
 MAX_SPEED_MPS = 1000.0
+MPI_BUILD_PATTERN = re.compile(r"[ -~]{0,160}")  # printable ASCII: it is printed when builds disagree
 ALT_RANGE_M = (-1000.0, 100_000.0)
 
 
@@ -63,6 +64,7 @@ class PeerState:
     vel_ned_mps: tuple | None = None
     battery_pct: int | None = None
     probe_port: int = 0  # its throughput server (0 = none)
+    mpi_build: str = ""  # "MPICH 5.0.2 ch4:ucx ofi": every rank of a job needs the same ("": not reported)
     host: str = ""  # filled in by the receiver: the address the datagram came from
 
     def position(self) -> dict | None:
@@ -143,6 +145,9 @@ def _check(body: dict, host: str) -> PeerState:
         raise PeerMessageError("schema", "id: expected 1-32 letters, digits, '.', '_' or '-'")
     if role not in ROLES:
         raise PeerMessageError("schema", f"role: expected one of {', '.join(ROLES)}")
+    mpi_build = body.get("mpi_build", "")
+    if not isinstance(mpi_build, str) or not MPI_BUILD_PATTERN.fullmatch(mpi_build):
+        raise PeerMessageError("schema", "mpi_build: expected up to 160 printable ASCII characters")
     vel = body.get("vel_ned_mps")
     if vel is not None:
         if not isinstance(vel, list) or len(vel) != 3:
@@ -155,7 +160,8 @@ def _check(body: dict, host: str) -> PeerState:
         lon_deg=_number(body, "lon_deg", -180.0, 180.0, optional=True),
         alt_m=_number(body, "alt_m", *ALT_RANGE_M, optional=True), vel_ned_mps=vel,
         battery_pct=_number(body, "battery_pct", 0, 100, optional=True, integer=True),
-        probe_port=_number(body, "probe_port", 0, 65535, integer=True) if "probe_port" in body else 0, host=host)
+        probe_port=_number(body, "probe_port", 0, 65535, integer=True) if "probe_port" in body else 0,
+        mpi_build=mpi_build, host=host)
 
 
 @dataclass

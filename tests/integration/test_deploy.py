@@ -78,3 +78,101 @@ def test_install_refuses_bad_arguments_before_touching_anything(tmp_path):
         result = install(root, *args)
         assert result.returncode == 2 and message in result.stderr
     assert not (root / "opt").exists()
+
+
+def fake_machine(folder: Path, python_version: str | None, glibc: str) -> dict:
+    """PATH with a python3 that says it is python_version (None: no Python at all) and a getconf that says glibc."""
+    folder.mkdir()
+    says = "exit 127" if python_version is None else f"echo {python_version}"
+    (folder / "python3").write_text(f"#!/bin/sh\n{says}\n")
+    (folder / "getconf").write_text(f"#!/bin/sh\n[ \"$1\" = GNU_LIBC_VERSION ] && echo 'glibc {glibc}'\n")
+    for tool in folder.iterdir():
+        tool.chmod(0o755)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHON"}
+    return dict(env, PATH=f"{folder}:/usr/bin:/bin")
+
+
+@pytest.mark.parametrize("python_version, glibc, python_path, mpi_path", [
+    ("3.6.9", "2.27", "standalone CPython 3.11", "distribution's MPICH"),  # Jetson TX2/Nano, JetPack 4.6
+    ("3.8.10", "2.31", "standalone CPython 3.11", "mpich wheel"),  # Xavier/Orin, JetPack 5 (Ubuntu 20.04)
+    ("3.10.12", "2.35", "a venv on it", "mpich wheel"),  # Orin, JetPack 6 (Ubuntu 22.04)
+    ("3.11.2", "2.36", "a venv on it", "mpich wheel"),  # Debian 12, a Raspberry Pi or a laptop
+    ("3.12.3", "2.27", "a venv on it", "distribution's MPICH"),  # a newer Python on an old glibc
+    (None, "2.28", "standalone CPython 3.11", "mpich wheel"),  # no Python at all
+])
+def test_install_says_which_python_and_mpi_this_machine_takes(tmp_path, python_version, glibc, python_path,
+                                                             mpi_path):
+    env = fake_machine(tmp_path / "bin", python_version, glibc)
+    done = subprocess.run(["bash", str(DEPLOY / "install.sh"), "--plan"], capture_output=True, text=True,
+                          timeout=30, env=env)
+    assert done.returncode == 0, done.stderr
+    lines = dict(line.removeprefix("install.sh: ").split(": ", 1) for line in done.stdout.splitlines())
+    assert python_path in lines["Python"] and mpi_path in lines["MPI"]
+    assert f"glibc {glibc}" in lines["this machine"] and f"Python {python_version or 'none'}" in lines["this machine"]
+
+
+def test_an_offline_install_refuses_a_wheelhouse_made_for_another_machine(tmp_path):
+    wheelhouse = tmp_path / "wh"
+    wheelhouse.mkdir()
+    (wheelhouse / "nac-0.1.0-py3-none-any.whl").write_bytes(b"")
+    machine = os.uname().machine
+    other = "aarch64" if machine == "x86_64" else "x86_64"
+    env = fake_machine(tmp_path / "bin", "3.11.2", "2.36")
+    for manifest, message in [(f"platform: {other}\npython: 3.11\nglibc: 2.28\n", f"made for '{other}'"),
+                              (f"platform: {machine}\npython: 3.10\nglibc: 2.28\n", "made for Python 3.10"),
+                              (f"platform: {machine}\npython: 3.11\nglibc: 2.39\n", "made for glibc 2.39"),
+                              (f"platform: {machine}\npython: 3.11\nglibc: 2.27\n", "no mpich wheel")]:
+        (wheelhouse / "MANIFEST.txt").write_text(manifest)
+        done = subprocess.run(["bash", str(DEPLOY / "install.sh"), "--offline", str(wheelhouse), "--prefix",
+                               str(tmp_path / "root"), "--role", "worker"], capture_output=True, text=True,
+                              timeout=30, env=env)
+        assert done.returncode == 2 and message in done.stderr, done.stderr
+    assert not (tmp_path / "root" / "opt").exists(), "refused before touching anything"
+
+
+def wheelhouse(out: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["bash", str(DEPLOY / "wheelhouse.sh"), "--out", str(out), *args], capture_output=True,
+                          text=True, timeout=600)
+
+
+@pytest.mark.slow
+def test_a_jetpack4_wheelhouse_holds_only_what_glibc_2_27_runs_and_mpi4py_to_compile(tmp_path):
+    made = wheelhouse(tmp_path / "wh", "--platform", "aarch64", "--python", "3.11", "--glibc", "2.27")
+    assert made.returncode == 0, made.stderr
+    files = sorted(p.name for p in (tmp_path / "wh").iterdir())
+    wheels = [f for f in files if f.endswith(".whl")]
+    names = {w.split("-")[0].lower() for w in wheels}
+    assert {"nac", "numpy", "scipy", "pandas", "pymavlink", "mpi4py", "setuptools", "build"} <= names
+    assert "mpich" not in names, "no mpich wheel below glibc 2.28: the distribution's MPICH instead"
+    assert any(f.startswith("mpi4py-") and f.endswith(".tar.gz") for f in files), "mpi4py's source, to compile"
+    for wheel in wheels:
+        python_tag, abi, platform = wheel.removesuffix(".whl").split("-")[-3:]
+        assert platform == "any" or "aarch64" in platform, wheel
+        assert abi in ("none", "abi3", "cp311") and ("cp311" in python_tag or python_tag.startswith("py")), wheel
+        glibc_minors = [int(tag.split("_")[2]) for tag in platform.split(".") if tag.startswith("manylinux_2_")]
+        assert platform == "any" or "manylinux2014" in platform or min(glibc_minors) <= 27, wheel
+    assert "glibc: 2.27" in (tmp_path / "wh" / "MANIFEST.txt").read_text()
+    checked = subprocess.run(["sha256sum", "--check", "--quiet", "SHA256SUMS"], cwd=tmp_path / "wh",
+                             capture_output=True, text=True, timeout=60)
+    assert checked.returncode == 0, checked.stdout
+
+
+@pytest.mark.slow
+@needs_systemd
+def test_an_offline_install_from_a_wheelhouse_needs_no_network(tmp_path):
+    """The wheelhouse for this machine, then install.sh --offline in a network namespace with no interface up:
+    pip can reach no index, so everything comes from the folder."""
+    machine = os.uname().machine
+    made = wheelhouse(tmp_path / "wh", "--platform", machine, "--python", "3.11")
+    assert made.returncode == 0, made.stderr
+    root = tmp_path / "root"
+    done = subprocess.run(["unshare", "--net", "bash", str(DEPLOY / "install.sh"), "--offline", str(tmp_path / "wh"),
+                           "--prefix", str(root), "--role", "worker", "--id", "uav2"], capture_output=True, text=True,
+                          timeout=600, env=dict(os.environ, PIP_COMPILE="0"))
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "from the wheelhouse" in done.stdout and "the mpich wheel" in done.stdout
+    venv = root / "opt/nac/venv/bin"
+    assert (venv / "mpiexec").exists(), "the mpich wheel's mpiexec"
+    doctor = subprocess.run([str(venv / "nac-onboard"), "doctor", "--role", "master"], capture_output=True,
+                            text=True, timeout=60)
+    assert doctor.returncode == 0 and "mpi:    MPICH" in doctor.stdout, doctor.stdout + doctor.stderr

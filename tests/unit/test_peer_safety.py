@@ -37,6 +37,7 @@ def body(**changes) -> bytes:
     body(lat_deg=float("nan")), body(alt_m=float("inf")), body(probe_port=-1), body(probe_port=70000),
     body(id="x" * 33), body(id="a b"), body(id=""), body(role="boss"), body(sysid=True), body(sysid=300),
     body(vel_ned_mps=[1, 2]), body(vel_ned_mps=["a", 0, 0]), body(t_s="soon"), b"\xff\xfe",
+    body(mpi_build=7), body(mpi_build="MPICH\n\x1b[2J"), body(mpi_build="M" * 161),  # it is printed
     b"{" + b'"a":1,' * 400 + b'"nac":"peer-state/1"}',  # too big
 ])
 def test_datagrams_that_crashed_the_agent_are_refused_by_name(datagram):
@@ -61,6 +62,8 @@ def test_signed_state_round_trips_and_forgeries_are_refused():
     assert reasons == {"tampered": "bad_signature", "unsigned": "unsigned", "other fleet": "bad_signature",
                        "other key id": "unknown_key", "no key here": "unknown_key"}
     assert decode_peer_state(encode_peer_state(state), "10.0.0.3", KEY, allow_unsigned=True).id == "w1"
+    built = PeerState("w1", "worker", NOW, mpi_build="MPICH 5.0.2 ch4:ucx ofi")
+    assert decode_peer_state(encode_peer_state(built, KEY), "10.0.0.2", KEY).mpi_build == "MPICH 5.0.2 ch4:ucx ofi"
 
 
 def test_replayed_and_stale_signed_state_is_refused():

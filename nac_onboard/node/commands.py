@@ -1,0 +1,80 @@
+"""The node commands of `nac-onboard`: doctor, mpi hostfile, mpi run."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from nac_onboard.agent.config import load_agent_config
+from nac_onboard.agent.state_feed import fetch_state
+from nac_onboard.compute.launch import mpiexec_path
+from nac_onboard.errors import BadInput, OperationFailed
+from nac_onboard.node import doctor, fleet_mpi
+from nac_onboard.node.facts import read_facts
+
+DEFAULT_LOG_DIR = "/var/log/nac"
+
+
+def run_doctor(role: str | None, config_path: str | None, as_json: bool = False, out=None) -> int:
+    """Print what this node has; 1 when something its role needs is missing."""
+    out = out or sys.stdout
+    serial_device, log_dir = None, DEFAULT_LOG_DIR
+    if config_path:
+        config = load_agent_config(config_path)
+        role = role or config.vehicle.role
+        log_dir = config.log.dir
+        if config.autopilot.uri.startswith("serial:"):
+            serial_device = config.autopilot.uri.split(":")[1]
+    role = role or "worker"
+    facts = read_facts(serial_device, log_dir if Path(log_dir).is_absolute() else Path.cwd() / log_dir)
+    findings = doctor.assess(facts, role)
+    if as_json:
+        print(json.dumps({"role": role, "facts": dataclasses.asdict(facts),
+                          "findings": [dataclasses.asdict(f) for f in findings]}, indent=2), file=out)
+    else:
+        print(doctor.report(facts, role, findings), file=out)
+    return 1 if any(f.needed for f in findings) else 0
+
+
+def job_from_feed(feed: str) -> list[fleet_mpi.Node]:
+    """The nodes of a job as the master's agent hears them, after the MPI-build check (exit 2 naming the odd
+    node out); notes on the peers left out go to stderr."""
+    state = fetch_state(feed)
+    workers = [p for p in (state.get("peers") or {}).values() if p.get("host") and not p.get("lost")]
+    master_host = fleet_mpi.address_toward(workers[0]["host"]) if workers else "127.0.0.1"
+    nodes, notes = fleet_mpi.job_nodes(state, master_host)
+    for note in notes:
+        print(f"nac-onboard mpi: {note}", file=sys.stderr)
+    fleet_mpi.check_builds(nodes)
+    return nodes
+
+
+def write_hostfile(feed: str, path: str | None, out=None) -> int:
+    text = fleet_mpi.hostfile_text(job_from_feed(feed))
+    if path:
+        try:
+            Path(path).write_text(text)
+        except OSError as err:
+            raise OperationFailed(f"cannot write the hostfile {path}: {err.strerror}") from None
+        print(f"wrote {path}", file=out or sys.stdout)
+    else:
+        print(text, end="", file=out or sys.stdout)
+    return 0
+
+
+def run_job(feed: str, hostfile: str, program: list[str], timeout_s: float | None = None) -> int:
+    """`mpiexec -f HOSTFILE -n N PROGRAM...` over the nodes heard, once they all run the same MPI build."""
+    if not program:
+        raise BadInput("mpi run: give the program after --, e.g. -- nac-onboard compute --task linreg")
+    nodes = job_from_feed(feed)
+    write_hostfile(feed, hostfile, out=sys.stderr)
+    command = [mpiexec_path(), "-f", hostfile, "-n", str(len(nodes)), *program]
+    try:
+        return subprocess.run(command, timeout=timeout_s).returncode
+    except FileNotFoundError:
+        raise OperationFailed(f"{command[0]} not found: install MPI (nac-onboard doctor)") from None
+    except subprocess.TimeoutExpired:
+        raise OperationFailed(f"the MPI job did not end within {timeout_s:g} s") from None
