@@ -80,6 +80,19 @@ def until(condition, timeout_s: float, what: str) -> None:
         time.sleep(0.02)
 
 
+def wpl(rows) -> str:
+    """A QGC WPL 110 file, as Mission Planner and MAVProxy write them."""
+    return "QGC WPL 110\n" + "".join("\t".join(str(v) for v in r) + "\t1\n" for r in rows)
+
+
+def load_mission(proxy: MavProxy, sim, path: Path, rows) -> None:
+    """`wp load` of the rows as a WPL file, until the whole mission is on the vehicle."""
+    path.write_text(wpl(rows))
+    proxy.send(f"wp load {path}")
+    proxy.expect(r"Sent all \d+ waypoints|Loaded \d+ waypoints", 15.0)
+    until(lambda: len(sim.world.fleet.mission(0)) == len(rows), 10.0, "the mission is on the vehicle")
+
+
 def take_off(proxy: MavProxy, alt_m: float) -> None:
     proxy.send("mode guided")
     proxy.expect(r"DO_SET_MODE: ACCEPTED")
@@ -135,11 +148,7 @@ def test_a_wpl_mission_flies_in_auto_and_pauses_and_resumes(start_sitl, mavproxy
             (1, 0, 3, 22, 0, 0, 0, 0, 0, 0, 10),
             (2, 0, 3, 16, 0, 0, 0, 0, far.lat_deg, far.lon_deg, 10),
             (3, 0, 3, 20, 0, 0, 0, 0, 0, 0, 0)]
-    mission = tmp_path / "out-and-back.waypoints"
-    mission.write_text("QGC WPL 110\n" + "".join("\t".join(str(v) for v in r) + "\t1\n" for r in rows))
-    proxy.send(f"wp load {mission}")
-    proxy.expect(r"Sent all \d+ waypoints|Loaded \d+ waypoints", 15.0)
-    until(lambda: len(sim.world.fleet.mission(0)) == 4, 10.0, "the mission is on the vehicle")
+    load_mission(proxy, sim, tmp_path / "out-and-back.waypoints", rows)
     take_off(proxy, 10)
     proxy.send("mode auto")
     until(lambda: sim.truth(0)["pos_m"][1] > 15.0, 30.0, "flying the mission")
@@ -160,10 +169,6 @@ def test_a_fence_breach_sends_the_copter_to_the_rally_point(start_sitl, mavproxy
     sim = start_sitl(speedup=5.0)
     proxy = mavproxy(sim)
     home = sim.homes[0]
-
-    def wpl(rows) -> str:
-        return "QGC WPL 110\n" + "".join("\t".join(str(v) for v in r) + "\t1\n" for r in rows)
-
     corners = [offset_home(home, e, n) for e, n in ((-40, -40), (40, -40), (40, 40), (-40, 40))]
     fence_file, rally_file = tmp_path / "fence.txt", tmp_path / "rally.txt"
     fence_file.write_text(wpl([(k, 0, 0, 5001, 4, 0, 0, 0, c.lat_deg, c.lon_deg, 0) for k, c in enumerate(corners)]))
@@ -202,11 +207,7 @@ def test_a_wpl_mission_with_roi_spline_yaw_servo_turns_and_delay_flies_in_auto_t
             (6, 0, 3, 18, 1, 0, 8, 0, circle.lat_deg, circle.lon_deg, 8),  # NAV_LOITER_TURNS: 1 turn, 8 m
             (7, 0, 3, 93, 4, -1, -1, -1, 0, 0, 0),  # NAV_DELAY 4 s
             (8, 0, 3, 20, 0, 0, 0, 0, 0, 0, 0)]  # NAV_RETURN_TO_LAUNCH
-    mission = tmp_path / "items.waypoints"
-    mission.write_text("QGC WPL 110\n" + "".join("\t".join(str(v) for v in r) + "\t1\n" for r in rows))
-    proxy.send(f"wp load {mission}")
-    proxy.expect(r"Sent all \d+ waypoints|Loaded \d+ waypoints", 15.0)
-    until(lambda: len(sim.world.fleet.mission(0)) == 9, 10.0, "the whole mission is on the vehicle")
+    load_mission(proxy, sim, tmp_path / "items.waypoints", rows)
     take_off(proxy, 8)
     proxy.send("mode auto")
     centre = np.array([25.0, 30.0])
