@@ -1,6 +1,7 @@
 """`nac-ground`: the operator's command line over the MAVLink client.
 
     nac-ground [--connect URI ...] [--sysid N] [--signing-key-file F] COMMAND ...
+    nac-ground view RUN_DIR [--follow] [--address HOST:PORT] [--screenshot FILE]   a run in a browser
 
 Exit codes: 0 ok, 1 the vehicle refused or did not answer in time, 2 bad input (nothing was sent).
 """
@@ -57,6 +58,14 @@ def build_parser() -> argparse.ArgumentParser:
     monitor.add_argument("--refresh-s", type=float, default=1.0)
     monitor.add_argument("--duration-s", type=float, help="stop after this long (default: until Ctrl-C)")
     _add_logs_parser(sub)
+    view = sub.add_parser("view", help="replay a finished run (SITL or real) in a browser: map, links, job, timeline")
+    view.add_argument("run_dir", type=Path)
+    view.add_argument("--address", default="127.0.0.1:8765", help="HOST:PORT to serve on (default %(default)s; "
+                                                                   "loopback unless another address is given)")
+    view.add_argument("--follow", action="store_true",
+                      help="live: follow the run directory as its logs are written (an experiment, a flight)")
+    view.add_argument("--screenshot", type=Path, metavar="FILE",
+                      help="save a PNG of the page at the end of the run (headless Chromium) and exit")
     return parser
 
 
@@ -131,6 +140,10 @@ def run(args: argparse.Namespace, out=None) -> int:
     out = out or sys.stdout
     if args.command == "logs":
         return run_logs(args, out)
+    if args.command == "view":
+        from ground.view.serve import replay
+
+        return replay(args.run_dir, args.address, args.screenshot, out, live=args.follow)
     key = (args.command, getattr(args, "action", None))
     if key == ("mission", "validate"):
         ops.mission_validate(args.file, out)

@@ -84,6 +84,9 @@ def build_parser() -> argparse.ArgumentParser:
     exp.add_argument("--links", default="model",
                      help="model: links from the radio model and the live positions; replay:RUN_DIR: each pair's "
                           "throughput as a recorded run measured it, interpolated over simulated time")
+    exp.add_argument("--view", nargs="?", const="127.0.0.1:8765", metavar="ADDR:PORT",
+                     help="serve the live page while the run goes on (default 127.0.0.1:8765; another address "
+                          "only when given) and save its screenshot as RUN_DIR/view.png")
     exp.add_argument("-v", "--verbose", action="store_true")
     radio = sub.add_parser("radio", help="a channel's throughput against distance: median, 95 % band, MCS, range")
     radio.add_argument("channel", help="preset (paper-sim, wifi-flight, wifi-open-field) or channel TOML")
@@ -187,7 +190,7 @@ def experiment(args: argparse.Namespace, out=None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     result = run_scenario(scenario, args.out, speedup, args.base_port, out, stop, analyze=not args.no_analysis,
-                          network=args.network, links=args.links)
+                          network=args.network, links=args.links, view=args.view)
     return result.outcome.exit_code
 
 

@@ -83,7 +83,8 @@ def read_run(path: str | Path) -> RunLog:
         _warn(run, read.problems)
         run.experiment = {}
         for record in read.records:  # the runner's start record, then its end record (outcome)
-            run.experiment.update(record)
+            if record.get("kind") != "fault":  # each fault as it happened; the end record lists them all
+                run.experiment.update(record)
     network = path / "network.jsonl"
     if network.exists():
         read = read_jsonl(network)

@@ -142,7 +142,10 @@ class Experiment:
                            radio={"name": self.radio.name, "describe": self.radio.describe(),
                                   "sources": self.radio.sources},
                            links=f"replay:{self.replay.source}" if self.replay else "model",
-                           vehicles=[{"id": v.id, "role": v.role} for v in self.scenario.vehicles])
+                           vehicles=[{"id": v.id, "role": v.role} for v in self.scenario.vehicles],
+                           missions={v.id: [[it.lat_deg, it.lon_deg] for it in v.mission.items
+                                            if it.lat_deg or it.lon_deg]
+                                     for v in self.scenario.vehicles if v.mission is not None})
         try:
             self._preflight()
             self._start()
@@ -424,6 +427,8 @@ class Experiment:
         record = {"t_sim_s": round(self._sim_elapsed_s(), 3), "vehicle": fault.vehicle, "kind": fault.kind.value,
                   "state": "on" if on else "off"}
         self.fault_log.append(record)
+        self._write_record("fault", vehicle=fault.vehicle, fault=fault.kind.value, state=record["state"],
+                           t_sim_s=record["t_sim_s"])  # as it happens: the live view reads it
         print(f"fault: {fault.kind.value} {record['state']} for {fault.vehicle} at t={record['t_sim_s']:.1f} s",
               file=self.out, flush=True)
 
@@ -518,19 +523,47 @@ def default_run_dir(scenario: Scenario) -> Path:
 
 def run_scenario(scenario: Scenario, run_dir: Path | None, speedup: float, base_port: int = 14550,
                  out=None, stop: threading.Event | None = None, analyze: bool = True,
-                 network: str | None = None, links: str = "model") -> ExperimentResult:
+                 network: str | None = None, links: str = "model", view: str | None = None) -> ExperimentResult:
     """Run one scenario and print its final summary; the result says how it ended and where the report is.
     network: "kernel", "sleep" or None (kernel where it can run). links: "model" (the radio model) or
-    "replay:RUN" (a recorded run's measured throughput per pair)."""
+    "replay:RUN" (a recorded run's measured throughput per pair). view: HOST:PORT to serve the live page on
+    (its screenshot at the end goes into the run directory as view.png)."""
     out = out or sys.stdout
     replay = parse_links(links)
     chosen = choose_network(network)
     if chosen[0] != network:
         print(f"network: {chosen[0]} ({chosen[1]})", file=out, flush=True)
     run_dir = Path(run_dir) if run_dir else default_run_dir(scenario)
-    result = Experiment(scenario, run_dir, speedup, base_port, out, stop, analyze, chosen, replay).run()
+    experiment = Experiment(scenario, run_dir, speedup, base_port, out, stop, analyze, chosen, replay)
+    viewer = None
+    if view:
+        from ground.view.serve import ViewThread
+        from ground.view.server import ViewServer
+
+        run_dir.mkdir(parents=True, exist_ok=True)
+        viewer = ViewThread(ViewServer(run_dir, live=True, title=scenario.name), view)
+        print(f"view: {viewer.start()}", file=out, flush=True)
+    try:
+        result = experiment.run()
+    finally:
+        if viewer is not None:
+            _screenshot(viewer, run_dir, out)
+            viewer.stop()
     print(final_summary(result), file=out, flush=True)
     return result
+
+
+def _screenshot(viewer, run_dir: Path, out) -> None:
+    from ground.view.serve import chromium, screenshot
+
+    if chromium() is None:
+        print("view: no Chromium here, so no view.png (Debian: apt-get install chromium)", file=out, flush=True)
+        return
+    try:
+        screenshot(viewer.url, run_dir / "view.png")
+        print(f"view: {run_dir / 'view.png'}", file=out, flush=True)
+    except NacError as err:
+        print(f"view: no screenshot: {err}", file=out, flush=True)
 
 
 def final_summary(result: ExperimentResult) -> str:

@@ -1,0 +1,200 @@
+"""One reader for live and replay: the records of a run directory, read as they are appended, each turned into
+the small frame the page draws (positions in local metres, probes, iterations, link capacities, events).
+
+    RUN_DIR/<vehicle>/agent.jsonl       telemetry and events       -> "pos", "ev"
+    RUN_DIR/<vehicle>/throughput.jsonl  the master's probes         -> "probe"
+    RUN_DIR/**/compute.jsonl            the MPI job's iterations    -> "it"
+    RUN_DIR/network.jsonl               the link model's capacities -> "cap"
+    RUN_DIR/experiment.json             the runner's faults         -> "ev"
+
+Live, a file's last line may still be being written: it waits for its newline. A line that is not JSON, or a
+record without what it needs, is skipped and named in `problems` (file and line); what no file holds is in
+`missing`. Nothing here raises for a damaged run.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from missions.geo import Home, lla_to_enu
+
+EVENT_KINDS = {"link_lost": "autopilot link lost", "link_restored": "autopilot link back", "peer_lost": "lost",
+               "peer_seen": "seen", "mission_item_reached": "reached item", "landed_state": "landed state",
+               "agent_started": "agent started"}
+MAX_LINE_BYTES = 1 << 20
+
+
+@dataclass
+class _Tail:
+    """A file read from where the last read stopped, whole lines only."""
+
+    path: Path
+    offset: int = 0
+    line_no: int = 0
+    partial: bytes = b""
+
+    def new_lines(self) -> list[tuple[int, bytes]]:
+        try:
+            with open(self.path, "rb") as f:
+                f.seek(self.offset)
+                data = f.read()
+        except OSError:
+            return []
+        self.offset += len(data)
+        data = self.partial + data
+        lines = data.split(b"\n")
+        self.partial = lines.pop()
+        if len(self.partial) > MAX_LINE_BYTES:  # not a line being written: a damaged file
+            lines.append(self.partial)
+            self.partial = b""
+        out = []
+        for line in lines:
+            self.line_no += 1
+            if line.strip():
+                out.append((self.line_no, line))
+        return out
+
+
+@dataclass
+class RunFollower:
+    run_dir: Path
+    records: list[dict] = field(default_factory=list)  # every frame so far, in arrival order; "s" is its index
+    vehicles: dict[str, dict] = field(default_factory=dict)  # id -> {"role": ...}
+    problems: list[str] = field(default_factory=list)
+    origin: Home | None = None  # the map's (0, 0): the first position heard, at ground level
+    mission_lla: dict[str, list] = field(default_factory=dict)  # vehicle -> [[lat, lon], ...] (experiment.json)
+    _tails: dict[Path, _Tail] = field(default_factory=dict)
+    _seen_kinds: set = field(default_factory=set)
+
+    def __post_init__(self):
+        self.run_dir = Path(self.run_dir)
+
+    def poll(self) -> list[dict]:
+        """The frames appended since the last call (new files are picked up as they appear)."""
+        self._discover()
+        new: list[dict] = []
+        for path, tail in self._tails.items():
+            for line_no, line in tail.new_lines():
+                try:
+                    record = json.loads(line)
+                except ValueError:
+                    self._problem(f"{path.relative_to(self.run_dir)}:{line_no}: not a JSON record, skipped")
+                    continue
+                if not isinstance(record, dict) or not _finite(record.get("t_s")):
+                    self._problem(f"{path.relative_to(self.run_dir)}:{line_no}: no t_s, skipped")
+                    continue
+                frame = self._frame(path, record)
+                if frame is not None:
+                    frame["s"] = len(self.records)
+                    self.records.append(frame)
+                    new.append(frame)
+        return new
+
+    def finish(self) -> None:
+        """After the run: a last line without its newline will not be completed now."""
+        self.poll()
+        for path, tail in self._tails.items():
+            if tail.partial.strip():
+                self._problem(f"{path.relative_to(self.run_dir)}:{tail.line_no + 1}: truncated last line, skipped")
+                tail.partial = b""
+
+    def missions_m(self) -> dict[str, list]:
+        """Each vehicle's mission waypoints in map metres [[east, north], ...] (empty until a position is heard)."""
+        if self.origin is None:
+            return {}
+        out = {}
+        for vehicle, points in self.mission_lla.items():
+            enu = [lla_to_enu(lat, lon, self.origin.alt_m, self.origin) for lat, lon in points]
+            out[vehicle] = [[round(float(p[0]), 2), round(float(p[1]), 2)] for p in enu]
+        return out
+
+    def missing(self) -> list[str]:
+        wanted = {"pos": "positions (VEHICLE/agent.jsonl telemetry)", "probe": "throughput probes (throughput.jsonl)",
+                  "it": "compute iterations (compute.jsonl)", "cap": "link model capacities (network.jsonl, SITL)"}
+        return [text for kind, text in wanted.items() if kind not in self._seen_kinds]
+
+    def _problem(self, text: str) -> None:
+        if len(self.problems) < 200:
+            self.problems.append(text)
+        elif len(self.problems) == 200:
+            self.problems.append("... more problems not listed")
+
+    def _discover(self) -> None:
+        if not self.run_dir.is_dir():
+            return
+        candidates = [self.run_dir / "experiment.json", self.run_dir / "network.jsonl"]
+        for sub in sorted(p for p in self.run_dir.iterdir() if p.is_dir()):
+            candidates += [sub / "agent.jsonl", sub / "throughput.jsonl", sub / "compute.jsonl"]
+        for path in candidates:
+            if path not in self._tails and path.is_file():
+                self._tails[path] = _Tail(path)
+
+    def _frame(self, path: Path, r: dict) -> dict | None:
+        kind, t_s = r.get("kind"), float(r["t_s"])
+        if path.name == "agent.jsonl":
+            vehicle = path.parent.name
+            if kind == "agent_started":
+                self.vehicles.setdefault(vehicle, {})["role"] = r.get("role", "?")
+            if kind == "telemetry":
+                return self._position(vehicle, t_s, r)
+            if kind in EVENT_KINDS:
+                detail = r.get("peer") or r.get("seq") or r.get("state") or ""
+                return {"k": "ev", "t": t_s, "v": vehicle, "text": f"{vehicle}: {EVENT_KINDS[kind]} {detail}".strip()}
+            return None
+        if path.name == "throughput.jsonl" and kind == "throughput":
+            end = r.get("end") or {}
+            bps = ((end.get("sum_received") or {}).get("bits_per_second")) if isinstance(end, dict) else None
+            ok = _finite(bps) and not r.get("error")
+            self._seen_kinds.add("probe")
+            return {"k": "probe", "t": t_s, "a": str(r.get("client")), "b": str(r.get("server")),
+                    "bps": float(bps) if ok else 0.0, "ok": bool(ok), "d": _num(r.get("distance_m"))}
+        if path.name == "compute.jsonl" and kind == "iteration":
+            workers = r.get("workers") or {}
+            present = workers.get("present") or []
+            self._seen_kinds.add("it")
+            return {"k": "it", "t": t_s, "i": r.get("iteration"), "dur": _num(r.get("duration_s")),
+                    "cost": _num(r.get("cost")), "n": sum(1 for p in present if p), "of": len(present)}
+        if path.name == "network.jsonl" and kind == "link_rates":
+            self._seen_kinds.add("cap")
+            return {"k": "cap", "t": t_s, "a": r.get("a"), "b": r.get("b"), "bps": r.get("rate_bps"),
+                    "d": r.get("distance_m")}
+        if path.name == "experiment.json" and kind == "experiment":
+            for vehicle in r.get("vehicles") or []:
+                if isinstance(vehicle, dict) and isinstance(vehicle.get("id"), str):
+                    self.vehicles.setdefault(vehicle["id"], {})["role"] = str(vehicle.get("role", "?"))
+            missions = r.get("missions")
+            if isinstance(missions, dict):
+                self.mission_lla = {str(v): [p for p in points if isinstance(p, list) and len(p) == 2
+                                             and _finite(p[0]) and _finite(p[1])]
+                                    for v, points in missions.items() if isinstance(points, list)}
+            return None
+        if path.name == "experiment.json" and kind == "fault":
+            return {"k": "ev", "t": t_s, "v": r.get("vehicle"), "fault": True,
+                    "text": f"fault: {r.get('fault')} {r.get('state')} for {r.get('vehicle')}"}
+        return None
+
+    def _position(self, vehicle: str, t_s: float, r: dict) -> dict | None:
+        lat, lon, alt = r.get("lat_deg"), r.get("lon_deg"), r.get("alt_m")
+        if not (_finite(lat) and _finite(lon) and _finite(alt)) or not (-90 <= lat <= 90 and -180 <= lon <= 180):
+            return None
+        if self.origin is None:
+            rel = r.get("rel_alt_m")
+            self.origin = Home(float(lat), float(lon), float(alt) - (float(rel) if _finite(rel) else 0.0))
+        east, north, up = lla_to_enu(float(lat), float(lon), float(alt), self.origin)
+        self._seen_kinds.add("pos")
+        self.vehicles.setdefault(vehicle, {}).setdefault("role", "?")
+        return {"k": "pos", "t": t_s, "v": vehicle, "e": round(float(east), 2), "n": round(float(north), 2),
+                "u": round(float(up), 2), "hdg": _num(r.get("yaw_deg")), "mode": r.get("mode"),
+                "armed": r.get("armed"), "batt": r.get("battery_pct"), "seq": r.get("mission_seq"),
+                "tb": _num(r["time_boot_ms"] / 1000.0) if _finite(r.get("time_boot_ms")) else None}
+
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _num(value) -> float | None:
+    return round(float(value), 4) if _finite(value) else None

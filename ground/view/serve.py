@@ -1,0 +1,96 @@
+"""Serving the view: in a thread beside an experiment, or in the foreground for a finished run; and a
+screenshot of the page by headless Chromium (Debian's `chromium`), when it is installed."""
+
+from __future__ import annotations
+
+import asyncio
+import shutil
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+from ground.view.server import ViewServer
+from nac_onboard.address import parse_host_port
+from nac_onboard.errors import BadInput, OperationFailed
+
+DEFAULT_ADDRESS = "127.0.0.1:8765"  # loopback unless asked: the page shows where the vehicles are
+CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                  "--hide-scrollbars"]
+
+
+class ViewThread:
+    """A ViewServer on its own event loop in a daemon thread: start() returns the URL, stop() ends it."""
+
+    def __init__(self, server: ViewServer, address: str = DEFAULT_ADDRESS):
+        self.server = server
+        self.host, self.port = parse_host_port(address, "view address", allow_port_zero=True)
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, name="view", daemon=True)
+        self.url = ""
+
+    def start(self) -> str:
+        self.thread.start()
+        future = asyncio.run_coroutine_threadsafe(self.server.start(self.host, self.port), self.loop)
+        try:
+            self.url = future.result(timeout=10.0)
+        except Exception:
+            self.loop.call_soon_threadsafe(self.loop.stop)
+            raise
+        return self.url
+
+    def stop(self) -> None:
+        if self.thread.is_alive():
+            asyncio.run_coroutine_threadsafe(self.server.stop(), self.loop).result(timeout=10.0)
+            self.loop.call_soon_threadsafe(self.loop.stop)
+            self.thread.join(10.0)
+
+
+def chromium() -> str | None:
+    return shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+
+
+def screenshot(url: str, path: Path, width: int = 1400, height: int = 860, timeout_s: float = 60.0) -> Path:
+    """The page at url as a PNG, by headless Chromium (it waits for the page's scripts, virtual time)."""
+    browser = chromium()
+    if browser is None:
+        raise OperationFailed("no Chromium to take the screenshot with (Debian: apt-get install chromium)")
+    profile = path.parent / ".chromium-profile"
+    try:
+        done = subprocess.run([browser, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", f"--screenshot={path}",
+                               f"--window-size={width},{height}", "--virtual-time-budget=4000", url],
+                              capture_output=True, text=True, timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        raise OperationFailed(f"Chromium took more than {timeout_s:g} s to render {url}") from None
+    finally:
+        shutil.rmtree(profile, ignore_errors=True)
+    if done.returncode != 0 or not path.exists():
+        raise OperationFailed(f"Chromium could not take the screenshot: {done.stderr.strip()[-300:]}")
+    return path
+
+
+def replay(run_dir: Path, address: str, screenshot_path: Path | None = None, out=None, live: bool = False) -> int:
+    """Serve a run until Ctrl-C: finished (replay), or followed as it is written (live). With screenshot_path,
+    save the page at the run's end and stop."""
+    out = out or sys.stdout
+    if not Path(run_dir).is_dir():
+        raise BadInput(f"{run_dir}: no such run directory")
+    server = ViewServer(run_dir, live=live)
+    if not live and not server.follower.records:
+        raise BadInput(f"{run_dir}: no NAC records here (VEHICLE/agent.jsonl, throughput.jsonl, compute.jsonl)")
+    viewer = ViewThread(server, address)
+    url = viewer.start()
+    try:
+        missing = server.follower.missing()
+        print(f"view: {url} ({'live' if live else f'{len(server.follower.records)} records'}"
+              + (f"; missing: {'; '.join(missing)}" if missing and not live else "") + ")", file=out, flush=True)
+        if screenshot_path is not None:
+            print(f"view: {screenshot(url + '?at=end', Path(screenshot_path))}", file=out, flush=True)
+            return 0
+        threading.Event().wait()  # until Ctrl-C
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.stop()
+    return 0

@@ -1,0 +1,270 @@
+// NAC's view: the run's frames (positions in local metres, probes, iterations, link capacities, events) drawn
+// at a cursor time, live (Server-Sent Events) or replayed (all frames at once, then play/pause/scrub).
+"use strict";
+
+const SVGNS = "http://www.w3.org/2000/svg";
+const COLORS = ["#2471a3", "#d35400", "#27ae60", "#8e44ad", "#c0392b", "#16a085", "#b7950b", "#5d6d7e"];
+const TRAIL_S = 60, RATE_WINDOW_S = 60;
+const view = {
+  info: null, pos: {}, probes: {}, caps: [], its: [], events: [], t0: Infinity, t1: -Infinity,
+  cursor: 0, follow: true, playing: false, speed: 10, lastSeq: -1, bounds: null, dirty: true, color: {},
+};
+window.nacView = view;
+
+const $ = (id) => document.getElementById(id);
+function el(tag, attrs, parent) {
+  const node = document.createElementNS(SVGNS, tag);
+  for (const [k, v] of Object.entries(attrs || {})) node.setAttribute(k, v);
+  if (parent) parent.appendChild(node);
+  return node;
+}
+function insertByTime(list, frame) {  // frames mostly arrive in order: append, else insert in place
+  let i = list.length;
+  while (i > 0 && list[i - 1].t > frame.t) i--;
+  list.splice(i, 0, frame);
+}
+function at(list, t) {  // the last frame at or before t
+  let lo = 0, hi = list.length - 1, best = -1;
+  while (lo <= hi) {
+    const mid = (lo + hi) >> 1;
+    if (list[mid].t <= t) { best = mid; lo = mid + 1; } else hi = mid - 1;
+  }
+  return best < 0 ? null : list[best];
+}
+function colorOf(id) {
+  if (!(id in view.color)) view.color[id] = COLORS[Object.keys(view.color).length % COLORS.length];
+  return view.color[id];
+}
+
+function ingest(frames) {
+  for (const f of frames) {
+    view.lastSeq = Math.max(view.lastSeq, f.s);
+    view.t0 = Math.min(view.t0, f.t);
+    view.t1 = Math.max(view.t1, f.t);
+    if (f.k === "pos") { (view.pos[f.v] = view.pos[f.v] || []); insertByTime(view.pos[f.v], f); grow(f.e, f.n); }
+    else if (f.k === "probe") { const key = f.a + ">" + f.b; (view.probes[key] = view.probes[key] || []); insertByTime(view.probes[key], f); }
+    else if (f.k === "cap") insertByTime(view.caps, f);
+    else if (f.k === "it") insertByTime(view.its, f);
+    else if (f.k === "ev") insertByTime(view.events, f);
+  }
+  if (view.follow) view.cursor = view.t1;
+  view.dirty = true;
+}
+function grow(e, n) {
+  const b = view.bounds || (view.bounds = { e0: e, e1: e, n0: n, n1: n });
+  b.e0 = Math.min(b.e0, e); b.e1 = Math.max(b.e1, e); b.n0 = Math.min(b.n0, n); b.n1 = Math.max(b.n1, n);
+}
+
+// ---- the map --------------------------------------------------------------------------------------------
+function niceStep(span) {
+  const raw = span / 8, p = Math.pow(10, Math.floor(Math.log10(raw)));
+  return [1, 2, 5, 10].map((m) => m * p).find((s) => s >= raw);
+}
+function layoutMap() {
+  const b = view.bounds || { e0: -10, e1: 10, n0: -10, n1: 10 };
+  const span = Math.max(b.e1 - b.e0, b.n1 - b.n0, 20), pad = span * 0.12;
+  const box = [b.e0 - pad, -(b.n1 + pad), b.e1 - b.e0 + 2 * pad, b.n1 - b.n0 + 2 * pad];
+  const key = box.map((v) => v.toFixed(1)).join(" ");
+  view.textM = Math.max(box[2], box[3]) / 45;
+  if (key === view.mapKey) return;
+  view.mapKey = key;
+  $("map").setAttribute("viewBox", key);
+  const grid = $("grid");
+  grid.replaceChildren();
+  const step = niceStep(Math.max(box[2], box[3]));
+  const big = Math.max(box[2], box[3]);  // the page may be wider or taller than the box: grid beyond it too
+  const g = [box[0] - big, box[1] - big, box[2] + 2 * big, box[3] + 2 * big];
+  for (let e = Math.ceil(g[0] / step) * step; e < g[0] + g[2]; e += step)
+    el("line", { x1: e, x2: e, y1: g[1], y2: g[1] + g[3], class: "gridline" + (Math.abs(e) < 1e-9 ? " major" : ""), "vector-effect": "non-scaling-stroke" }, grid);
+  for (let n = Math.ceil(-(g[1] + g[3]) / step) * step; n < -g[1]; n += step)
+    el("line", { x1: g[0], x2: g[0] + g[2], y1: -n, y2: -n, class: "gridline" + (Math.abs(n) < 1e-9 ? " major" : ""), "vector-effect": "non-scaling-stroke" }, grid);
+  const x = box[0] + step * 0.3, y = box[1] + box[3] - step * 0.3;
+  el("line", { x1: x, x2: x + step, y1: y, y2: y, class: "scale", "stroke-width": 3, "vector-effect": "non-scaling-stroke" }, grid);
+  const label = el("text", { x: x, y: y - view.textM * 0.4, class: "scale-label", "font-size": view.textM * 0.8 }, grid);
+  label.textContent = step + " m";
+  const missions = $("missions");
+  missions.replaceChildren();
+  for (const [vid, points] of Object.entries((view.info && view.info.missions) || {})) {
+    if (!points.length) continue;
+    el("polyline", { points: points.map((p) => p[0] + "," + -p[1]).join(" "), class: "mission", stroke: colorOf(vid), "vector-effect": "non-scaling-stroke" }, missions);
+    for (const p of points) el("circle", { cx: p[0], cy: -p[1], r: view.textM * 0.25, class: "waypoint" }, missions);
+  }
+}
+
+function probeAt(a, b, t) { const list = view.probes[a + ">" + b]; return list ? at(list, t) : null; }
+function capacityAt(a, b, t) {
+  const cap = at(view.caps, t);
+  if (!cap || !cap.a) return null;
+  for (let i = 0; i < cap.a.length; i++)
+    if ((cap.a[i] === a && cap.b[i] === b) || (cap.a[i] === b && cap.b[i] === a)) return cap.bps[i];
+  return null;
+}
+const mbit = (bps) => (bps / 1e6).toFixed(1);
+
+function drawMap(t) {
+  layoutMap();
+  const vehicles = $("vehicles"), trails = $("trails"), links = $("links");
+  vehicles.replaceChildren(); trails.replaceChildren(); links.replaceChildren();
+  const here = {};
+  for (const [vid, list] of Object.entries(view.pos)) {
+    const p = at(list, t);
+    if (!p) continue;
+    here[vid] = p;
+    const trail = list.filter((q) => q.t <= t && q.t >= t - TRAIL_S);
+    el("polyline", { points: trail.map((q) => q.e + "," + -q.n).join(" "), class: "trail", stroke: colorOf(vid), "vector-effect": "non-scaling-stroke" }, trails);
+  }
+  const roles = (view.info && view.info.vehicles) || {};
+  const master = Object.keys(roles).find((v) => roles[v].role === "master");
+  if (master && here[master]) {
+    for (const [vid, p] of Object.entries(here)) {
+      if (vid === master) continue;
+      const probe = probeAt(master, vid, t), cap = capacityAt(master, vid, t);
+      const out = (probe && !probe.ok) || cap === 0;
+      const m = here[master];
+      el("line", { x1: m.e, y1: -m.n, x2: p.e, y2: -p.n, class: "link" + (out ? " out" : ""), "data-worker": vid, "data-state": out ? "out" : "up", "stroke-width": 2, "vector-effect": "non-scaling-stroke" }, links);
+      const label = el("text", { x: (m.e + p.e) / 2, y: -(m.n + p.n) / 2, class: "link-label", "font-size": view.textM * 0.8 }, links);
+      label.textContent = (out ? "out of range" : probe ? mbit(probe.bps) + " Mbit/s" : "no probe yet") + (cap != null ? " (model " + mbit(cap) + ")" : "");
+    }
+  }
+  for (const [vid, p] of Object.entries(here)) {
+    const g = el("g", { class: "vehicle" + (p.armed === false ? " disarmed" : ""), id: "vehicle-" + vid, "data-id": vid, "data-e": p.e, "data-n": p.n, "data-t": p.t, "data-tb": p.tb,
+                        transform: `translate(${p.e},${-p.n})` }, vehicles);
+    const s = view.textM * 0.9;
+    el("polygon", { points: `0,${-s} ${s * 0.6},${s * 0.7} 0,${s * 0.35} ${-s * 0.6},${s * 0.7}`, class: "body", fill: colorOf(vid), transform: `rotate(${p.hdg || 0})`, "vector-effect": "non-scaling-stroke" }, g);
+    const label = el("text", { x: s * 1.1, y: s * 0.4, "font-size": view.textM }, g);
+    label.textContent = `${vid} (${(roles[vid] || {}).role || "?"}) ${p.mode || ""}`;
+  }
+  return here;
+}
+
+// ---- panels and charts ------------------------------------------------------------------------------------
+function drawPanels(t, here) {
+  const roles = (view.info && view.info.vehicles) || {}, missions = (view.info && view.info.missions) || {};
+  const rows = Object.keys({ ...roles, ...view.pos }).sort().map((vid) => {
+    const p = here[vid] || {};
+    const total = (missions[vid] || []).length;
+    return `<tr><td style="color:${colorOf(vid)}">${vid}</td><td>${(roles[vid] || {}).role || "?"}</td><td>${p.mode || "-"}</td>` +
+           `<td>${p.armed == null ? "-" : p.armed ? "armed" : "disarmed"}</td><td>${p.batt == null ? "-" : p.batt + " %"}</td>` +
+           `<td>${p.seq == null ? "-" : p.seq + (total ? "/" + total : "")}</td></tr>`;
+  });
+  $("fleet").tBodies[0].innerHTML = rows.join("");
+  const done = view.its.filter((it) => it.t <= t);
+  const last = done[done.length - 1];
+  const perMin = done.filter((it) => it.t > t - RATE_WINDOW_S).length * (60 / RATE_WINDOW_S);
+  $("job").innerHTML = last
+    ? `<span id="iterations" data-count="${done.length}">${done.length}</span> iterations, ${perMin.toFixed(0)} per minute; ` +
+      `workers present ${last.n}/${last.of}; training cost ${last.cost == null ? "-" : last.cost.toPrecision(4)}`
+    : `<span id="iterations" data-count="0">0</span> iterations yet`;
+  chart($("cost-chart"), [{ color: "#1d2430", points: done.filter((it) => it.cost != null).map((it) => [it.t, it.cost]) }], t, "cost");
+  const series = Object.entries(view.probes).map(([key, list]) => ({
+    color: colorOf(key.split(">")[1]), label: key.split(">")[1],
+    points: list.filter((p) => p.t <= t).map((p) => [p.t, p.bps / 1e6]),
+  }));
+  chart($("tp-chart"), series, t, "Mbit/s");
+  $("tp-legend").innerHTML = series.map((s) => `<span style="color:${s.color}">&#9632; ${s.label}</span>`).join("");
+}
+function chart(canvas, series, t, unit) {
+  const ctx = canvas.getContext("2d"), w = canvas.width, h = canvas.height;
+  ctx.clearRect(0, 0, w, h);
+  const all = series.flatMap((s) => s.points);
+  if (!all.length || !isFinite(view.t0)) return;
+  const tMin = view.t0, tMax = Math.max(t, tMin + 1);
+  const yMax = Math.max(...all.map((p) => p[1]), 1e-9) * 1.1;
+  ctx.fillStyle = "#46505e"; ctx.font = "10px sans-serif";
+  ctx.fillText(yMax.toPrecision(3) + " " + unit, 2, 10);
+  for (const s of series) {
+    ctx.strokeStyle = s.color; ctx.beginPath();
+    s.points.forEach(([pt, v], i) => {
+      const x = ((pt - tMin) / (tMax - tMin)) * (w - 4) + 2, y = h - 2 - (v / yMax) * (h - 14);
+      if (i) ctx.lineTo(x, y); else ctx.moveTo(x, y);
+    });
+    ctx.stroke();
+  }
+}
+
+// ---- time: the cursor, the timeline, play ---------------------------------------------------------------
+function drawTimeline() {
+  if (!isFinite(view.t0)) { $("cursor-label").textContent = "waiting for the first record"; return; }
+  const slider = $("cursor"), span = Math.max(view.t1 - view.t0, 0);
+  slider.max = span.toFixed(1);
+  slider.value = (view.cursor - view.t0).toFixed(1);
+  $("cursor-label").textContent = `${(view.cursor - view.t0).toFixed(1)} s of ${span.toFixed(1)} s`;
+  $("clock").textContent = new Date(view.cursor * 1000).toISOString().replace("T", " ").slice(0, 21) + " UTC";
+  const ticks = $("ticks");
+  if (ticks.dataset.count !== String(view.events.length) || ticks.dataset.span !== span.toFixed(1)) {
+    ticks.dataset.count = view.events.length; ticks.dataset.span = span.toFixed(1);
+    ticks.setAttribute("viewBox", `0 0 ${Math.max(span, 1)} 1`);
+    ticks.replaceChildren();
+    for (const ev of view.events) {
+      const tick = el("rect", { x: ev.t - view.t0, y: 0, width: Math.max(span, 1) / 400, height: 1, fill: ev.fault ? "#c0392b" : "#7f8c8d" }, ticks);
+      el("title", {}, tick).textContent = ev.text;
+    }
+  }
+}
+function draw() {
+  if (view.dirty) {
+    view.dirty = false;
+    const here = drawMap(view.cursor);
+    drawPanels(view.cursor, here);
+    drawTimeline();
+  }
+}
+let lastFrame = null;
+function tick(now) {
+  requestAnimationFrame(tick);  // first: a drawing error must not stop the page
+  if (view.playing && lastFrame != null) {
+    view.cursor = Math.min(view.cursor + ((now - lastFrame) / 1000) * view.speed, view.t1);
+    if (view.cursor >= view.t1 && !view.info.live) { view.playing = false; $("play").textContent = "play"; }
+    view.dirty = true;
+  }
+  lastFrame = now;
+  draw();  // at most once per animation frame, whatever the number of records that arrived
+}
+function seek(t) { view.follow = false; view.cursor = Math.max(view.t0, Math.min(t, view.t1)); view.dirty = true; draw(); }
+view.seek = seek;
+
+function showNotes(info) {
+  const notes = [...info.missing.map((m) => "missing: " + m), ...info.problems];
+  $("notes-summary").textContent = notes.length ? `${notes.length} thing(s) missing or damaged` : "nothing missing";
+  $("notes-list").innerHTML = notes.map((n) => `<li>${n.replace(/</g, "&lt;")}</li>`).join("");
+}
+
+async function start() {
+  view.info = await (await fetch("/api/state")).json();
+  $("title").textContent = view.info.title;
+  $("mode").textContent = view.info.live ? "live" : "replay";
+  $("mode").classList.toggle("live", view.info.live);
+  showNotes(view.info);
+  for (const points of Object.values(view.info.missions || {})) points.forEach((q) => grow(q[0], q[1]));
+  ingest(await (await fetch("/api/records")).json());
+  const start = new URLSearchParams(location.search).get("at");  // ?at=end or seconds from the start
+  if (!view.info.live || start) {
+    view.follow = false;
+    view.cursor = start === "end" ? view.t1 : view.t0 + (parseFloat(start) || 0);
+  }
+  $("cursor").addEventListener("input", (e) => seek(view.t0 + parseFloat(e.target.value)));
+  $("play").addEventListener("click", () => {
+    view.playing = !view.playing; view.follow = false;
+    if (view.playing && view.cursor >= view.t1) view.cursor = view.t0;
+    $("play").textContent = view.playing ? "pause" : "play";
+  });
+  $("speed").addEventListener("change", (e) => { view.speed = parseFloat(e.target.value); });
+  $("follow").addEventListener("click", () => { view.follow = true; view.playing = false; view.cursor = view.t1; view.dirty = true; });
+  if (view.info.live) {
+    const stream = new EventSource("/api/stream?after=" + view.lastSeq);
+    stream.addEventListener("records", (e) => ingest(JSON.parse(e.data)));
+    stream.addEventListener("end", () => stream.close());
+    setInterval(async () => {  // missions and notes change as files appear
+      const info = await (await fetch("/api/state")).json();
+      const missionsChanged = JSON.stringify(info.missions) !== JSON.stringify(view.info.missions);
+      view.info = info; showNotes(info);
+      if (missionsChanged) {
+        for (const points of Object.values(info.missions || {})) points.forEach((q) => grow(q[0], q[1]));
+        view.mapKey = null; view.dirty = true;
+      }
+    }, 2000);
+  }
+  document.body.dataset.ready = "1";
+  requestAnimationFrame(tick);
+}
+start();
