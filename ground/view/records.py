@@ -14,12 +14,13 @@ record without what it needs, is skipped and named in `problems` (file and line)
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from missions.geo import Home, lla_to_enu
+import orjson
+
+from missions.geo import EnuFrame, Home, lla_to_enu
 
 EVENT_KINDS = {"link_lost": "autopilot link lost", "link_restored": "autopilot link back", "peer_lost": "lost",
                "peer_seen": "seen", "mission_item_reached": "reached item", "landed_state": "landed state",
@@ -65,6 +66,7 @@ class RunFollower:
     vehicles: dict[str, dict] = field(default_factory=dict)  # id -> {"role": ...}
     problems: list[str] = field(default_factory=list)
     origin: Home | None = None  # the map's (0, 0): the first position heard, at ground level
+    _frame_m: EnuFrame | None = None
     mission_lla: dict[str, list] = field(default_factory=dict)  # vehicle -> [[lat, lon], ...] (experiment.json)
     _tails: dict[Path, _Tail] = field(default_factory=dict)
     _seen_kinds: set = field(default_factory=set)
@@ -79,8 +81,8 @@ class RunFollower:
         for path, tail in self._tails.items():
             for line_no, line in tail.new_lines():
                 try:
-                    record = json.loads(line)
-                except ValueError:
+                    record = orjson.loads(line)
+                except orjson.JSONDecodeError:
                     self._problem(f"{path.relative_to(self.run_dir)}:{line_no}: not a JSON record, skipped")
                     continue
                 if not isinstance(record, dict) or not _finite(record.get("t_s")):
@@ -180,16 +182,19 @@ class RunFollower:
         lat, lon, alt = r.get("lat_deg"), r.get("lon_deg"), r.get("alt_m")
         if not (_finite(lat) and _finite(lon) and _finite(alt)) or not (-90 <= lat <= 90 and -180 <= lon <= 180):
             return None
-        if self.origin is None:
+        if self._frame_m is None:
             rel = r.get("rel_alt_m")
             self.origin = Home(float(lat), float(lon), float(alt) - (float(rel) if _finite(rel) else 0.0))
-        east, north, up = lla_to_enu(float(lat), float(lon), float(alt), self.origin)
+            self._frame_m = EnuFrame(self.origin)
+        east, north, up = self._frame_m.enu(lat, lon, alt)
         self._seen_kinds.add("pos")
-        self.vehicles.setdefault(vehicle, {}).setdefault("role", "?")
-        return {"k": "pos", "t": t_s, "v": vehicle, "e": round(float(east), 2), "n": round(float(north), 2),
-                "u": round(float(up), 2), "hdg": _num(r.get("yaw_deg")), "mode": r.get("mode"),
-                "armed": r.get("armed"), "batt": r.get("battery_pct"), "seq": r.get("mission_seq"),
-                "tb": _num(r["time_boot_ms"] / 1000.0) if _finite(r.get("time_boot_ms")) else None}
+        if vehicle not in self.vehicles:
+            self.vehicles[vehicle] = {"role": "?"}
+        boot_ms = r.get("time_boot_ms")
+        return {"k": "pos", "t": t_s, "v": vehicle, "e": round(east, 2), "n": round(north, 2), "u": round(up, 2),
+                "hdg": _num(r.get("yaw_deg")), "mode": r.get("mode"), "armed": r.get("armed"),
+                "batt": r.get("battery_pct"), "seq": r.get("mission_seq"),
+                "tb": round(boot_ms / 1000.0, 3) if _finite(boot_ms) else None}
 
 
 def _finite(value) -> bool:

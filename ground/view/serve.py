@@ -52,7 +52,9 @@ def chromium() -> str | None:
 
 
 def screenshot(url: str, path: Path, width: int = 1400, height: int = 860, timeout_s: float = 60.0) -> Path:
-    """The page at url as a PNG, by headless Chromium (it waits for the page's scripts, virtual time)."""
+    """The page at the run's end as a PNG, by headless Chromium (it waits for the page's scripts, virtual time;
+    a snapshot: no live stream, which would keep the network busy for ever)."""
+    url += ("&" if "?" in url else "?") + "at=end&snapshot=1"
     browser = chromium()
     if browser is None:
         raise OperationFailed("no Chromium to take the screenshot with (Debian: apt-get install chromium)")
@@ -86,7 +88,7 @@ def replay(run_dir: Path, address: str, screenshot_path: Path | None = None, out
         print(f"view: {url} ({'live' if live else f'{len(server.follower.records)} records'}"
               + (f"; missing: {'; '.join(missing)}" if missing and not live else "") + ")", file=out, flush=True)
         if screenshot_path is not None:
-            print(f"view: {screenshot(url + '?at=end', Path(screenshot_path))}", file=out, flush=True)
+            print(f"view: {screenshot(url, Path(screenshot_path))}", file=out, flush=True)
             return 0
         threading.Event().wait()  # until Ctrl-C
     except KeyboardInterrupt:

@@ -15,10 +15,10 @@ animation frame, so it drops frames, not records.
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 from pathlib import Path
 
+import orjson
 from aiohttp import web
 
 from ground.view.records import RunFollower
@@ -98,8 +98,7 @@ class ViewServer:
 
     async def _records(self, request: web.Request) -> web.Response:
         after = _after(request)
-        return web.Response(text=json.dumps(self.follower.records[after + 1:], separators=(",", ":")),
-                            content_type="application/json")
+        return web.Response(body=orjson.dumps(self.follower.records[after + 1:]), content_type="application/json")
 
     async def _stream(self, request: web.Request) -> web.StreamResponse:
         after = _after(request)
@@ -112,8 +111,7 @@ class ViewServer:
                 if len(records) > after + 1:
                     batch = records[after + 1:]
                     after = batch[-1]["s"]
-                    data = json.dumps(batch, separators=(",", ":"))
-                    await response.write(f"id: {after}\nevent: records\ndata: {data}\n\n".encode())
+                    await response.write(b"id: %d\nevent: records\ndata: %s\n\n" % (after, orjson.dumps(batch)))
                 elif not self.live:
                     await response.write(b"event: end\ndata: {}\n\n")
                     break

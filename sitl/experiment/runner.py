@@ -547,13 +547,13 @@ def run_scenario(scenario: Scenario, run_dir: Path | None, speedup: float, base_
         result = experiment.run()
     finally:
         if viewer is not None:
-            _screenshot(viewer, run_dir, out)
+            save_screenshot(viewer, run_dir, out)
             viewer.stop()
     print(final_summary(result), file=out, flush=True)
     return result
 
 
-def _screenshot(viewer, run_dir: Path, out) -> None:
+def save_screenshot(viewer, run_dir: Path, out) -> None:
     from ground.view.serve import chromium, screenshot
 
     if chromium() is None:

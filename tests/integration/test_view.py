@@ -14,7 +14,7 @@ from ground.view.serve import CHROMIUM_FLAGS, ViewThread, chromium
 from ground.view.server import ViewServer
 from missions import save_mission
 from missions.geo import Home, enu_to_lla, lla_to_enu
-from sitl.experiment.runner import Experiment, Outcome
+from sitl.experiment.runner import Experiment, Outcome, save_screenshot
 from sitl.experiment.scenario import load_scenario
 from sitl.scenarios.generate import at, hover, route
 from tests.conftest import allocate_base_port
@@ -97,6 +97,8 @@ def test_the_live_page_follows_the_simulator_and_the_replay_scrubs_through_the_r
             iterations.append(int(browser.execute_script(
                 "const i = document.getElementById('iterations'); return i ? +i.dataset.count : 0")))
             time.sleep(0.3)
+        runner.join(120)
+        save_screenshot(viewer, run_dir, console)  # what `--view` does when the run ends
     finally:
         experiment.stop_event.set()
         runner.join(120)
@@ -107,6 +109,8 @@ def test_the_live_page_follows_the_simulator_and_the_replay_scrubs_through_the_r
     states = [s for k, s in enumerate(link_states) if s and (k == 0 or s != link_states[k - 1])]
     assert states[:3] == ["up", "out", "up"], f"w1's link over time: {states}"
     assert iterations[-1] > iterations[len(iterations) // 4] > 0, "the iteration counter advanced"
+    shot = (run_dir / "view.png").read_bytes()
+    assert shot[:8] == b"\x89PNG\r\n\x1a\n" and len(shot) > 20_000, "the live page's screenshot"
 
     # The finished run, replayed: the slider scrubbed to three times, each vehicle where its records say.
     follower = RunFollower(run_dir)
@@ -129,3 +133,69 @@ def test_the_live_page_follows_the_simulator_and_the_replay_scrubs_through_the_r
         assert browser.execute_script("return document.getElementById('mode').textContent") == "replay"
     finally:
         replay.stop()
+
+
+def write_damaged_run(folder: Path) -> Path:
+    """Two vehicles' telemetry (20 records each, 1 s apart, w1 flying east at 2 m/s), a damaged line, a half
+    line at the end; no probes, no compute, no capacities."""
+    from tests.unit.test_view_records import telemetry
+
+    for vid, speed in (("master", 0.0), ("w1", 2.0)):
+        (folder / vid).mkdir(parents=True)
+        lines = [telemetry(1000.0 + k, speed * k, 3.0) for k in range(20)]
+        lines.insert(7, "{damaged\n")
+        (folder / vid / "agent.jsonl").write_text("".join(lines) + '{"t_s": 1030.0, "ki')
+    return folder
+
+
+def test_a_damaged_run_replays_what_is_there_and_lists_what_is_not(browser, tmp_path):
+    run = write_damaged_run(tmp_path / "run")
+    replay = ViewThread(ViewServer(run, live=False), "127.0.0.1:0")
+    browser.get(replay.start())
+    try:
+        wait_for(browser, "return document.body.dataset.ready")
+        browser.execute_script("const s = document.getElementById('cursor'); s.value = 10;"
+                               "s.dispatchEvent(new Event('input'));")
+        drawn = {v["id"]: v for v in browser.execute_script(VEHICLES_JS)}
+        assert drawn["w1"]["e"] == pytest.approx(20.0, abs=0.01) and drawn["master"]["e"] == pytest.approx(0.0)
+        notes = browser.execute_script("return document.getElementById('notes-list').textContent")
+        for expected in ("master/agent.jsonl:8: not a JSON record", "w1/agent.jsonl:22: truncated last line",
+                         "missing: throughput probes", "missing: compute iterations"):
+            assert expected in notes
+    finally:
+        replay.stop()
+
+
+def test_a_reconnecting_browser_resumes_after_the_last_record_it_had(tmp_path):
+    """The stream as EventSource reconnects: Last-Event-ID names the last record held; nothing before it is
+    sent again, nothing after it is skipped."""
+    import urllib.request
+
+    run = write_damaged_run(tmp_path / "run")
+    viewer = ViewThread(ViewServer(run, live=True), "127.0.0.1:0")
+    url = viewer.start()
+    try:
+        request = urllib.request.Request(url + "api/stream", headers={"Last-Event-ID": "25"})
+        with urllib.request.urlopen(request, timeout=10) as stream:
+            for raw in stream:
+                if raw.startswith(b"data: ["):
+                    batch = __import__("json").loads(raw[6:])
+                    break
+        assert [f["s"] for f in batch] == list(range(26, 40)), "records 26 on (of 40), once each"
+    finally:
+        viewer.stop()
+
+
+def test_a_port_in_use_exits_1_naming_it(tmp_path):
+    import socket
+    import subprocess
+    import sys
+
+    run = write_damaged_run(tmp_path / "run")
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        done = subprocess.run([str(Path(sys.executable).parent / "nac-ground"), "view", str(run), "--address",
+                               f"127.0.0.1:{port}"], capture_output=True, text=True, timeout=30)
+    assert done.returncode == 1 and f"127.0.0.1:{port}" in done.stderr and "Traceback" not in done.stderr

@@ -66,5 +66,5 @@ def test_probes_iterations_faults_and_missions_become_frames(tmp_path):
     assert frames["ev"]["text"] == "fault: link_down on for w1" and frames["ev"]["fault"]
     assert follower.vehicles["w1"] == {"role": "worker"}
     assert follower.missions_m()["master"][0] == pytest.approx([0.0, 50.0], abs=0.05)
-    assert follower.problems == ["experiment.json:3: no t_s, skipped"]
+    assert follower.problems == ["experiment.json:3: not a JSON record, skipped"], "NaN is not JSON"
     follower.finish()

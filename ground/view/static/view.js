@@ -237,7 +237,10 @@ async function start() {
   showNotes(view.info);
   for (const points of Object.values(view.info.missions || {})) points.forEach((q) => grow(q[0], q[1]));
   ingest(await (await fetch("/api/records")).json());
-  const start = new URLSearchParams(location.search).get("at");  // ?at=end or seconds from the start
+  const query = new URLSearchParams(location.search);
+  const start = query.get("at");  // ?at=end or seconds from the start
+  const snapshot = query.has("snapshot");  // no stream: what is there now (a screenshot's headless browser
+  // waits for the network to be idle, which an open stream never is)
   if (!view.info.live || start) {
     view.follow = false;
     view.cursor = start === "end" ? view.t1 : view.t0 + (parseFloat(start) || 0);
@@ -250,7 +253,7 @@ async function start() {
   });
   $("speed").addEventListener("change", (e) => { view.speed = parseFloat(e.target.value); });
   $("follow").addEventListener("click", () => { view.follow = true; view.playing = false; view.cursor = view.t1; view.dirty = true; });
-  if (view.info.live) {
+  if (view.info.live && !snapshot) {
     const stream = new EventSource("/api/stream?after=" + view.lastSeq);
     stream.addEventListener("records", (e) => ingest(JSON.parse(e.data)));
     stream.addEventListener("end", () => stream.close());
@@ -264,6 +267,8 @@ async function start() {
       }
     }, 2000);
   }
+  view.dirty = true;
+  draw();  // the slider has its range before anyone can scrub it
   document.body.dataset.ready = "1";
   requestAnimationFrame(tick);
 }
