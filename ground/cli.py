@@ -2,6 +2,7 @@
 
     nac-ground [--connect URI ...] [--sysid N] [--signing-key-file F] COMMAND ...
     nac-ground view RUN_DIR [--follow] [--address HOST:PORT] [--screenshot FILE]   a run in a browser
+    nac-ground view --live --connect URI [--connect URI ...] [--feed HOST:PORT]     vehicles live over MAVLink
 
 Exit codes: 0 ok, 1 the vehicle refused or did not answer in time, 2 bad input (nothing was sent).
 """
@@ -58,12 +59,18 @@ def build_parser() -> argparse.ArgumentParser:
     monitor.add_argument("--refresh-s", type=float, default=1.0)
     monitor.add_argument("--duration-s", type=float, help="stop after this long (default: until Ctrl-C)")
     _add_logs_parser(sub)
-    view = sub.add_parser("view", help="replay a finished run (SITL or real) in a browser: map, links, job, timeline")
-    view.add_argument("run_dir", type=Path)
+    view = sub.add_parser("view", help="a run in a browser, replayed or live; or vehicles live over MAVLink")
+    view.add_argument("run_dir", type=Path, nargs="?", help="run directory (optional with --live)")
     view.add_argument("--address", default="127.0.0.1:8765", help="HOST:PORT to serve on (default %(default)s; "
                                                                    "loopback unless another address is given)")
     view.add_argument("--follow", action="store_true",
                       help="live: follow the run directory as its logs are written (an experiment, a flight)")
+    view.add_argument("--live", action="store_true", help="watch vehicles live over MAVLink (--connect) and the "
+                                                          "master agent's state feed (--feed)")
+    view.add_argument("--connect", action="append", dest="view_connect", metavar="URI", default=[],
+                      help="with --live: a MAVLink link to watch (repeatable): udpin:HOST:PORT, tcp:..., serial:...")
+    view.add_argument("--feed", metavar="HOST:PORT", help="with --live: the master agent's state feed (ids, roles, "
+                                                          "positions of every peer)")
     view.add_argument("--screenshot", type=Path, metavar="FILE",
                       help="save a PNG of the page at the end of the run (headless Chromium) and exit")
     return parser
@@ -143,6 +150,12 @@ def run(args: argparse.Namespace, out=None) -> int:
     if args.command == "view":
         from ground.view.serve import replay
 
+        if args.live:
+            from ground.view.serve import watch
+
+            return watch(args.view_connect, args.feed, args.run_dir, args.address, out)
+        if args.run_dir is None:
+            raise BadInput("view: give a RUN_DIR, or --live with --connect URI and/or --feed HOST:PORT")
         return replay(args.run_dir, args.address, args.screenshot, out, live=args.follow)
     key = (args.command, getattr(args, "action", None))
     if key == ("mission", "validate"):

@@ -26,6 +26,8 @@ EVENT_KINDS = {"link_lost": "autopilot link lost", "link_restored": "autopilot l
                "peer_seen": "seen", "mission_item_reached": "reached item", "landed_state": "landed state",
                "agent_started": "agent started"}
 MAX_LINE_BYTES = 1 << 20
+SOURCES = {"agent.jsonl": "agent", "throughput.jsonl": "throughput", "compute.jsonl": "compute",
+           "network.jsonl": "network", "experiment.json": "experiment"}
 
 
 @dataclass
@@ -61,7 +63,7 @@ class _Tail:
 
 @dataclass
 class RunFollower:
-    run_dir: Path
+    run_dir: Path | None  # None: no files, only what live sources add
     records: list[dict] = field(default_factory=list)  # every frame so far, in arrival order; "s" is its index
     vehicles: dict[str, dict] = field(default_factory=dict)  # id -> {"role": ...}
     problems: list[str] = field(default_factory=list)
@@ -72,7 +74,7 @@ class RunFollower:
     _seen_kinds: set = field(default_factory=set)
 
     def __post_init__(self):
-        self.run_dir = Path(self.run_dir)
+        self.run_dir = None if self.run_dir is None else Path(self.run_dir)
 
     def poll(self) -> list[dict]:
         """The frames appended since the last call (new files are picked up as they appear)."""
@@ -88,12 +90,21 @@ class RunFollower:
                 if not isinstance(record, dict) or not _finite(record.get("t_s")):
                     self._problem(f"{path.relative_to(self.run_dir)}:{line_no}: no t_s, skipped")
                     continue
-                frame = self._frame(path, record)
+                source, vehicle = SOURCES.get(path.name, ""), path.parent.name
+                frame = self.add(source, vehicle, record)
                 if frame is not None:
-                    frame["s"] = len(self.records)
-                    self.records.append(frame)
                     new.append(frame)
         return new
+
+    def add(self, source: str, vehicle: str, record: dict) -> dict | None:
+        """One record as a file would hold it ("agent" telemetry or events of `vehicle`, "throughput",
+        "compute", "network", "experiment"): its frame, appended, or None when it draws nothing. Live sources
+        other than files (a MAVLink link, an agent's state feed) come in here too."""
+        frame = self._frame(source, vehicle, record)
+        if frame is not None:
+            frame["s"] = len(self.records)
+            self.records.append(frame)
+        return frame
 
     def finish(self) -> None:
         """After the run: a last line without its newline will not be completed now."""
@@ -125,7 +136,7 @@ class RunFollower:
             self.problems.append("... more problems not listed")
 
     def _discover(self) -> None:
-        if not self.run_dir.is_dir():
+        if self.run_dir is None or not self.run_dir.is_dir():
             return
         candidates = [self.run_dir / "experiment.json", self.run_dir / "network.jsonl"]
         for sub in sorted(p for p in self.run_dir.iterdir() if p.is_dir()):
@@ -134,10 +145,9 @@ class RunFollower:
             if path not in self._tails and path.is_file():
                 self._tails[path] = _Tail(path)
 
-    def _frame(self, path: Path, r: dict) -> dict | None:
+    def _frame(self, source: str, vehicle: str, r: dict) -> dict | None:
         kind, t_s = r.get("kind"), float(r["t_s"])
-        if path.name == "agent.jsonl":
-            vehicle = path.parent.name
+        if source == "agent":
             if kind == "agent_started":
                 self.vehicles.setdefault(vehicle, {})["role"] = r.get("role", "?")
             if kind == "telemetry":
@@ -146,24 +156,24 @@ class RunFollower:
                 detail = r.get("peer") or r.get("seq") or r.get("state") or ""
                 return {"k": "ev", "t": t_s, "v": vehicle, "text": f"{vehicle}: {EVENT_KINDS[kind]} {detail}".strip()}
             return None
-        if path.name == "throughput.jsonl" and kind == "throughput":
+        if source == "throughput" and kind == "throughput":
             end = r.get("end") or {}
             bps = ((end.get("sum_received") or {}).get("bits_per_second")) if isinstance(end, dict) else None
             ok = _finite(bps) and not r.get("error")
             self._seen_kinds.add("probe")
             return {"k": "probe", "t": t_s, "a": str(r.get("client")), "b": str(r.get("server")),
                     "bps": float(bps) if ok else 0.0, "ok": bool(ok), "d": _num(r.get("distance_m"))}
-        if path.name == "compute.jsonl" and kind == "iteration":
+        if source == "compute" and kind == "iteration":
             workers = r.get("workers") or {}
             present = workers.get("present") or []
             self._seen_kinds.add("it")
             return {"k": "it", "t": t_s, "i": r.get("iteration"), "dur": _num(r.get("duration_s")),
                     "cost": _num(r.get("cost")), "n": sum(1 for p in present if p), "of": len(present)}
-        if path.name == "network.jsonl" and kind == "link_rates":
+        if source == "network" and kind == "link_rates":
             self._seen_kinds.add("cap")
             return {"k": "cap", "t": t_s, "a": r.get("a"), "b": r.get("b"), "bps": r.get("rate_bps"),
                     "d": r.get("distance_m")}
-        if path.name == "experiment.json" and kind == "experiment":
+        if source == "experiment" and kind == "experiment":
             for vehicle in r.get("vehicles") or []:
                 if isinstance(vehicle, dict) and isinstance(vehicle.get("id"), str):
                     self.vehicles.setdefault(vehicle["id"], {})["role"] = str(vehicle.get("role", "?"))
@@ -173,7 +183,7 @@ class RunFollower:
                                              and _finite(p[0]) and _finite(p[1])]
                                     for v, points in missions.items() if isinstance(points, list)}
             return None
-        if path.name == "experiment.json" and kind == "fault":
+        if source == "experiment" and kind == "fault":
             return {"k": "ev", "t": t_s, "v": r.get("vehicle"), "fault": True,
                     "text": f"fault: {r.get('fault')} {r.get('state')} for {r.get('vehicle')}"}
         return None

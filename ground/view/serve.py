@@ -96,3 +96,32 @@ def replay(run_dir: Path, address: str, screenshot_path: Path | None = None, out
     finally:
         viewer.stop()
     return 0
+
+
+def watch(uris: list[str], feed: str | None, run_dir: Path | None, address: str, out=None) -> int:
+    """Vehicles live over MAVLink (and the master agent's state feed), with a run directory's files when one is
+    given; until Ctrl-C."""
+    from ground.view.mavlink_source import MavlinkSource
+
+    out = out or sys.stdout
+    if not uris and not feed:
+        raise BadInput("view --live: give at least one --connect URI or a --feed HOST:PORT")
+    if feed:
+        parse_host_port(feed, "--feed")
+    if run_dir is not None and not Path(run_dir).is_dir():
+        raise BadInput(f"{run_dir}: no such run directory")
+    source = MavlinkSource(uris, feed)
+    viewer = ViewThread(ViewServer(run_dir, live=True, title="live", sources=[source]), address)
+    try:
+        url = viewer.start()
+    except BaseException:
+        source.close()
+        raise
+    try:
+        print(f"view: {url} (live: {', '.join(uris + ([f'feed {feed}'] if feed else []))})", file=out, flush=True)
+        threading.Event().wait()  # until Ctrl-C
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.stop()
+    return 0

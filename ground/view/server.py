@@ -31,10 +31,11 @@ HEARTBEAT_S = 15.0  # an SSE comment when nothing new: proxies and browsers keep
 
 
 class ViewServer:
-    def __init__(self, run_dir: str | Path, live: bool, title: str = ""):
-        self.follower = RunFollower(Path(run_dir))
+    def __init__(self, run_dir: str | Path | None, live: bool, title: str = "", sources: list | None = None):
+        self.follower = RunFollower(None if run_dir is None else Path(run_dir))
         self.live = live
-        self.title = title or Path(run_dir).name
+        self.sources = sources or []  # live sources beside the files: MavlinkSource
+        self.title = title or (Path(run_dir).name if run_dir is not None else "live")
         self.extra: dict = {}  # set by the caller: range_m, scenario name...
         self._changed: asyncio.Event | None = None  # made in start(), on the server loop
         self._runner: web.AppRunner | None = None
@@ -74,12 +75,15 @@ class ViewServer:
             self._changed.set()
         if self._poller is not None:
             self._poller.cancel()
+        for source in self.sources:
+            source.close()
         if self._runner is not None:
             await self._runner.cleanup()
 
     async def _poll(self) -> None:
         while True:
-            if self.follower.poll():
+            added = sum(source.pump(self.follower) for source in self.sources)
+            if self.follower.poll() or added:
                 self._changed.set()
                 self._changed = asyncio.Event()
             await asyncio.sleep(POLL_S)
