@@ -50,7 +50,7 @@ class MavlinkSource:
                 "t_s": now, "kind": "telemetry", "time_boot_ms": v.time_boot_ms, "lat_deg": v.lat_deg,
                 "lon_deg": v.lon_deg, "alt_m": v.alt_m, "rel_alt_m": v.rel_alt_m, "yaw_deg": v.yaw_deg,
                 "battery_pct": v.battery_pct, "mode": v.mode, "armed": v.armed,
-                "mission_seq": v.mission_seq}) is not None
+                "mission_seq": v.mission_seq, "mission_total": v.mission_total}) is not None
         return added
 
     def _read_feed(self, follower: RunFollower) -> int:

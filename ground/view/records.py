@@ -203,7 +203,7 @@ class RunFollower:
         boot_ms = r.get("time_boot_ms")
         return {"k": "pos", "t": t_s, "v": vehicle, "e": round(east, 2), "n": round(north, 2), "u": round(up, 2),
                 "hdg": _num(r.get("yaw_deg")), "mode": r.get("mode"), "armed": r.get("armed"),
-                "batt": r.get("battery_pct"), "seq": r.get("mission_seq"),
+                "batt": r.get("battery_pct"), "seq": r.get("mission_seq"), "tot": r.get("mission_total"),
                 "tb": round(boot_ms / 1000.0, 3) if _finite(boot_ms) else None}
 
 

@@ -83,14 +83,24 @@ def replay(run_dir: Path, address: str, screenshot_path: Path | None = None, out
         raise BadInput(f"{run_dir}: no NAC records here (VEHICLE/agent.jsonl, throughput.jsonl, compute.jsonl)")
     viewer = ViewThread(server, address)
     url = viewer.start()
-    try:
-        missing = server.follower.missing()
-        print(f"view: {url} ({'live' if live else f'{len(server.follower.records)} records'}"
-              + (f"; missing: {'; '.join(missing)}" if missing and not live else "") + ")", file=out, flush=True)
-        if screenshot_path is not None:
+    missing = server.follower.missing()
+    announce = (f"view: {url} ({'live' if live else f'{len(server.follower.records)} records'}"
+                + (f"; missing: {'; '.join(missing)}" if missing and not live else "") + ")")
+    then = None
+    if screenshot_path is not None:
+        def then():
             print(f"view: {screenshot(url, Path(screenshot_path))}", file=out, flush=True)
-            return 0
-        threading.Event().wait()  # until Ctrl-C
+    return _serve(viewer, announce, out, then)
+
+
+def _serve(viewer: ViewThread, announce: str, out, then=None) -> int:
+    """Say where the page is; then do `then` (a screenshot) or serve until Ctrl-C; stop the server either way."""
+    try:
+        print(announce, file=out, flush=True)
+        if then is not None:
+            then()
+        else:
+            threading.Event().wait()
     except KeyboardInterrupt:
         pass
     finally:
@@ -117,11 +127,4 @@ def watch(uris: list[str], feed: str | None, run_dir: Path | None, address: str,
     except BaseException:
         source.close()
         raise
-    try:
-        print(f"view: {url} (live: {', '.join(uris + ([f'feed {feed}'] if feed else []))})", file=out, flush=True)
-        threading.Event().wait()  # until Ctrl-C
-    except KeyboardInterrupt:
-        pass
-    finally:
-        viewer.stop()
-    return 0
+    return _serve(viewer, f"view: {url} (live: {', '.join(uris + ([f'feed {feed}'] if feed else []))})", out)

@@ -280,7 +280,7 @@ class Agent:
                        lon_deg=v.lon_deg, alt_m=v.alt_m, rel_alt_m=v.rel_alt_m, vel_ned_mps=v.vel_ned_mps,
                        roll_deg=round(v.roll_deg, 3), pitch_deg=round(v.pitch_deg, 3), yaw_deg=round(v.yaw_deg, 3),
                        battery_pct=v.battery_pct, voltage_v=v.voltage_v, mode=v.mode, armed=v.armed,
-                       landed=v.landed, mission_seq=v.mission_seq)
+                       landed=v.landed, mission_seq=v.mission_seq, mission_total=v.mission_total)
 
     def _supervise_throughput_server(self) -> None:
         """A server thread that died is started again on its port: without it every probe would read as a lost

@@ -139,10 +139,10 @@ function drawMap(t) {
 
 // ---- panels and charts ------------------------------------------------------------------------------------
 function drawPanels(t, here) {
-  const roles = (view.info && view.info.vehicles) || {}, missions = (view.info && view.info.missions) || {};
+  const roles = (view.info && view.info.vehicles) || {};
   const rows = Object.keys({ ...roles, ...view.pos }).sort().map((vid) => {
     const p = here[vid] || {};
-    const total = (missions[vid] || []).length;
+    const total = p.tot;  // MISSION_CURRENT's total, as the agent logged it
     return `<tr><td style="color:${colorOf(vid)}">${vid}</td><td>${(roles[vid] || {}).role || "?"}</td><td>${p.mode || "-"}</td>` +
            `<td>${p.armed == null ? "-" : p.armed ? "armed" : "disarmed"}</td><td>${p.batt == null ? "-" : p.batt + " %"}</td>` +
            `<td>${p.seq == null ? "-" : p.seq + (total ? "/" + total : "")}</td></tr>`;
