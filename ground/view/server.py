@@ -22,7 +22,7 @@ import orjson
 from aiohttp import web
 
 from ground.view.records import RunFollower
-from nac_onboard.errors import OperationFailed
+from nac_onboard.errors import NacError, OperationFailed
 
 log = logging.getLogger(__name__)
 STATIC = Path(__file__).parent / "static"
@@ -36,7 +36,6 @@ class ViewServer:
         self.live = live
         self.sources = sources or []  # live sources beside the files: MavlinkSource
         self.title = title or (Path(run_dir).name if run_dir is not None else "live")
-        self.extra: dict = {}  # set by the caller: range_m, scenario name...
         self._changed: asyncio.Event | None = None  # made in start(), on the server loop
         self._runner: web.AppRunner | None = None
         self._closing = False
@@ -64,7 +63,7 @@ class ViewServer:
         except OSError as err:
             await self._runner.cleanup()
             raise OperationFailed(f"cannot serve the view on {host}:{port}: {err.strerror or err}") from None
-        bound = site._server.sockets[0].getsockname()[1]  # the port chosen when 0 was asked
+        bound = self._runner.addresses[0][1]  # the port chosen when 0 was asked
         if self.live:
             self._poller = asyncio.create_task(self._poll())
         return f"http://{host if ':' not in host else f'[{host}]'}:{bound}/"
@@ -82,7 +81,14 @@ class ViewServer:
 
     async def _poll(self) -> None:
         while True:
-            added = sum(source.pump(self.follower) for source in self.sources)
+            added = 0
+            for source in self.sources:
+                try:
+                    added += source.pump(self.follower)
+                except (NacError, OSError) as err:  # a link that failed: said on the page, the rest goes on
+                    log.warning("view source: %s", err)
+                    if len(self.follower.problems) < 200:
+                        self.follower.problems.append(f"live source: {err}")
             if self.follower.poll() or added:
                 self._changed.set()
                 self._changed = asyncio.Event()
@@ -98,7 +104,7 @@ class ViewServer:
                                                   "alt_m": f.origin.alt_m}
         return web.json_response({"title": self.title, "live": self.live, "vehicles": f.vehicles, "origin": origin,
                                   "missions": f.missions_m(), "problems": f.problems, "missing": f.missing(),
-                                  "records": len(f.records), **self.extra})
+                                  "records": len(f.records)})
 
     async def _records(self, request: web.Request) -> web.Response:
         after = _after(request)
