@@ -10,6 +10,7 @@
 #   --glibc X.Y                the companion's glibc (`getconf GNU_LIBC_VERSION`; default 2.28): no wheel needs
 #                              a newer one; below 2.28 there is no mpich wheel (JetPack 4: 2.27)
 #   --out DIR                  where (default: wheelhouse-ARCH-pyXY)
+#   --dry-run                  write requirements.txt and print the downloads it would make, download nothing
 #   --standalone-python FILE   also carry a python-build-standalone "install_only" tarball for ARCH
 #                              (cpython-3.11.*-ARCH-unknown-linux-gnu-install_only.tar.gz), for companions whose
 #                              Python is older than 3.10 (JetPack 4)
@@ -18,18 +19,19 @@
 # distribution's MPICH (glibc < 2.28); MANIFEST.txt (platform, Python, date) and SHA256SUMS.
 set -euo pipefail
 
-usage() { sed -n '2,19p' "$0" | sed 's/^# \{0,1\}//'; exit 2; }
+usage() { sed -n '2,20p' "$0" | sed 's/^# \{0,1\}//'; exit 2; }
 die() { echo "wheelhouse.sh: $*" >&2; exit 2; }
 
 here=$(cd "$(dirname "$0")" && pwd)
 source_dir=$(dirname "$here")
-platform="" py="" out="" standalone="" glibc=2.28
+platform="" py="" out="" standalone="" glibc=2.28 dry_run=0
 while [ $# -gt 0 ]; do
     case "$1" in
         --platform) platform=$2; shift 2 ;;
         --python) py=$2; shift 2 ;;
         --out) out=${2%/}; shift 2 ;;
         --glibc) glibc=$2; shift 2 ;;
+        --dry-run) dry_run=1; shift ;;
         --standalone-python) standalone=$2; shift 2 ;;
         -h|--help) usage ;;
         *) die "unknown option $1 (see --help)" ;;
@@ -60,6 +62,12 @@ mpich = project["optional-dependencies"]["mpich"] if sys.argv[2] == "yes" else [
 print("\n".join(project["dependencies"] + mpich))
 PY
 echo "==> binary wheels for $platform, CPython $py, glibc $glibc: $(tr '\n' ' ' < "$out/requirements.txt")"
+if [ "$dry_run" = 1 ]; then
+    echo "would run: pip download --only-binary :all: --implementation cp --python-version $py --abi $abi" \
+        "--abi abi3 --abi none ${platforms[*]} --platform any -r requirements.txt pip setuptools wheel build;" \
+        "then mpi4py's source (no-binary) and NAC's own wheel"
+    exit 0
+fi
 "$python" -m pip download -q --disable-pip-version-check --dest "$out" --only-binary :all: \
     --implementation cp --python-version "$py" --abi "$abi" --abi abi3 --abi none \
     "${platforms[@]}" --platform any -r "$out/requirements.txt" pip setuptools wheel build

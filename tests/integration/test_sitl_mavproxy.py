@@ -122,7 +122,7 @@ def test_parameters_fetch_without_an_ftp_wait_and_an_integer_parameter_is_set(st
 
 def test_guided_velocity_and_position_commands_move_the_vehicle(start_sitl, mavproxy):
     """MAVProxy's `velocity` and `position` are BODY_NED setpoints: forward means where the nose points."""
-    sim = start_sitl(speedup=5.0)
+    sim = start_sitl(speedup=10.0)
     proxy = mavproxy(sim)
     take_off(proxy, 10)
     proxy.send("setyaw 90 0 0")  # CONDITION_YAW: face east
@@ -140,7 +140,7 @@ def test_guided_velocity_and_position_commands_move_the_vehicle(start_sitl, mavp
 
 
 def test_a_wpl_mission_flies_in_auto_and_pauses_and_resumes(start_sitl, mavproxy, tmp_path):
-    sim = start_sitl(speedup=5.0)
+    sim = start_sitl(speedup=10.0)
     proxy = mavproxy(sim)
     home = sim.homes[0]
     far = offset_home(home, 0.0, 60.0)
@@ -166,7 +166,7 @@ def test_a_wpl_mission_flies_in_auto_and_pauses_and_resumes(start_sitl, mavproxy
 def test_a_fence_breach_sends_the_copter_to_the_rally_point(start_sitl, mavproxy, tmp_path):
     """Fence and rally loaded by MAVProxy from WPL files, FENCE_ENABLE set at its prompt: flying out of the
     inclusion square, the copter says so, switches to RTL and lands at the rally point, nearer than home."""
-    sim = start_sitl(speedup=5.0)
+    sim = start_sitl(speedup=10.0)
     proxy = mavproxy(sim)
     home = sim.homes[0]
     corners = [offset_home(home, e, n) for e, n in ((-40, -40), (40, -40), (40, 40), (-40, 40))]
