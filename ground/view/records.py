@@ -24,7 +24,7 @@ from missions.geo import EnuFrame, Home, lla_to_enu
 
 EVENT_KINDS = {"link_lost": "autopilot link lost", "link_restored": "autopilot link back", "peer_lost": "lost",
                "peer_seen": "seen", "mission_item_reached": "reached item", "landed_state": "landed state",
-               "agent_started": "agent started"}
+               "agent_started": "agent started", "mode": "mode", "statustext": "says"}
 MAX_LINE_BYTES = 1 << 20
 SOURCES = {"agent.jsonl": "agent", "throughput.jsonl": "throughput", "compute.jsonl": "compute",
            "network.jsonl": "network", "experiment.json": "experiment"}
@@ -153,7 +153,7 @@ class RunFollower:
             if kind == "telemetry":
                 return self._position(vehicle, t_s, r)
             if kind in EVENT_KINDS:
-                detail = r.get("peer") or r.get("seq") or r.get("state") or ""
+                detail = next((r[k] for k in ("peer", "seq", "value", "text") if r.get(k) is not None), "")
                 return {"k": "ev", "t": t_s, "v": vehicle, "text": f"{vehicle}: {EVENT_KINDS[kind]} {detail}".strip()}
             return None
         if source == "throughput" and kind == "throughput":
