@@ -5,14 +5,12 @@ them."""
 
 from __future__ import annotations
 
-import logging
 import time
 
 from ground.view.records import RunFollower
 from nac_onboard.agent.state_feed import StateFeedError, fetch_state
 from nac_onboard.mavlink.client import MavlinkClient
 
-log = logging.getLogger(__name__)
 STREAM_HZ = 4  # what the view asks each autopilot for (REQUEST_DATA_STREAM), as MAVProxy does
 FEED_PERIOD_S = 1.0
 
@@ -63,9 +61,14 @@ class MavlinkSource:
             return 0
         added = 0
         heard_here = set(self.client.vehicles) if self.client else set()
-        for entry in [state.get("self") or {}, *(state.get("peers") or {}).values()]:
+        peers = state.get("peers") if isinstance(state, dict) else None
+        entries = [state.get("self") if isinstance(state, dict) else None,
+                   *(peers.values() if isinstance(peers, dict) else [])]
+        for entry in entries:  # from the network: anything not shaped like the agent's answer is passed over
+            if not isinstance(entry, dict):
+                continue
             vehicle, role, sysid = entry.get("id"), entry.get("role", "?"), entry.get("sysid")
-            if not isinstance(vehicle, str):
+            if not isinstance(vehicle, str) or not vehicle.isprintable() or len(vehicle) > 32:
                 continue
             if isinstance(sysid, int) and sysid > 0:
                 self.names[sysid] = (vehicle, str(role))
