@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -44,7 +45,7 @@ def job_from_feed(feed: str) -> list[fleet_mpi.Node]:
     node out); notes on the peers left out go to stderr."""
     state = fetch_state(feed)
     workers = [p for p in (state.get("peers") or {}).values() if p.get("host") and not p.get("lost")]
-    master_host = fleet_mpi.address_toward(workers[0]["host"]) if workers else "127.0.0.1"
+    master_host = address_toward(workers[0]["host"]) if workers else "127.0.0.1"
     nodes, notes = fleet_mpi.job_nodes(state, master_host)
     for note in notes:
         print(f"nac-onboard mpi: {note}", file=sys.stderr)
@@ -52,25 +53,39 @@ def job_from_feed(feed: str) -> list[fleet_mpi.Node]:
     return nodes
 
 
-def write_hostfile(feed: str, path: str | None, out=None) -> int:
-    text = fleet_mpi.hostfile_text(job_from_feed(feed))
-    if path:
+def address_toward(host: str) -> str:
+    """This machine's address on the route to host (what the workers reach the master by); no packet is sent."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         try:
-            Path(path).write_text(text)
+            sock.connect((host, 9))
         except OSError as err:
-            raise OperationFailed(f"cannot write the hostfile {path}: {err.strerror}") from None
-        print(f"wrote {path}", file=out or sys.stdout)
+            raise OperationFailed(f"no route to worker {host}: {err.strerror or err}") from None
+        return sock.getsockname()[0]
+
+
+def write_hostfile(feed: str, path: str | None, out=None) -> int:
+    nodes = job_from_feed(feed)
+    if path:
+        save_hostfile(nodes, path, out)
     else:
-        print(text, end="", file=out or sys.stdout)
+        print(fleet_mpi.hostfile_text(nodes), end="", file=out or sys.stdout)
     return 0
+
+
+def save_hostfile(nodes: list[fleet_mpi.Node], path: str, out=None) -> None:
+    try:
+        Path(path).write_text(fleet_mpi.hostfile_text(nodes))
+    except OSError as err:
+        raise OperationFailed(f"cannot write the hostfile {path}: {err.strerror}") from None
+    print(f"wrote {path}", file=out or sys.stdout)
 
 
 def run_job(feed: str, hostfile: str, program: list[str], timeout_s: float | None = None) -> int:
     """`mpiexec -f HOSTFILE -n N PROGRAM...` over the nodes heard, once they all run the same MPI build."""
     if not program:
         raise BadInput("mpi run: give the program after --, e.g. -- nac-onboard compute --task linreg")
-    nodes = job_from_feed(feed)
-    write_hostfile(feed, hostfile, out=sys.stderr)
+    nodes = job_from_feed(feed)  # the feed read and the builds checked once, for the hostfile and the count
+    save_hostfile(nodes, hostfile, out=sys.stderr)
     command = [mpiexec_path(), "-f", hostfile, "-n", str(len(nodes)), *program]
     try:
         return subprocess.run(command, timeout=timeout_s).returncode

@@ -4,7 +4,6 @@ from the agent's state feed."""
 
 from __future__ import annotations
 
-import socket
 from collections import Counter
 from dataclasses import dataclass
 
@@ -77,12 +76,3 @@ def hostfile_text(nodes: list[Node]) -> str:
         lines += [f"# rank {rank}: {n.id} ({n.role}, {n.mpi_build})", f"{n.host}:1"]
     return "\n".join(lines) + "\n"
 
-
-def address_toward(host: str) -> str:
-    """This machine's address on the route to host (what the workers reach the master by); no packet is sent."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        try:
-            sock.connect((host, 9))
-        except OSError as err:
-            raise OperationFailed(f"no route to worker {host}: {err.strerror or err}") from None
-        return sock.getsockname()[0]
