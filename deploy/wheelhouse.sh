@@ -73,7 +73,9 @@ fi
     "${platforms[@]}" --platform any -r "$out/requirements.txt" pip setuptools wheel build
 echo "==> mpi4py's source and build tools (for glibc < 2.28: compiled against the distribution's MPICH)"
 mpi4py_version=$(ls "$out"/mpi4py-*.whl | head -n 1 | sed 's/.*mpi4py-\([^-]*\)-.*/\1/')
-"$python" -m pip download -q --disable-pip-version-check --dest "$out" --no-deps --no-binary :all: \
+# --no-binary for mpi4py alone: with :all:, pip would build mpi4py's own build tools from source too, to read its
+# metadata (minutes, where their wheels take seconds).
+"$python" -m pip download -q --disable-pip-version-check --dest "$out" --no-deps --no-binary mpi4py \
     "mpi4py==$mpi4py_version"
 echo "==> NAC's own wheel"
 "$python" -m pip wheel -q --disable-pip-version-check --no-deps --wheel-dir "$out" "$source_dir"

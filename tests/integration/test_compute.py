@@ -21,6 +21,8 @@ from tests.conftest import SHARED_DATA
 
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
 ENV = dict(os.environ, NAC_DATA_DIR=str(SHARED_DATA))
+# Iteration times against the emulated transfers, and silences timed to tell an unresponsive worker.
+pytestmark = pytest.mark.exclusive
 
 
 def wifi(tmp_path: Path, overhead_bits: float = 0.0) -> str:

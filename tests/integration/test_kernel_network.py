@@ -28,6 +28,8 @@ from tests.conftest import SHARED_DATA, allocate_base_port
 from tests.integration.console import Console
 
 ENV = dict(os.environ, NAC_DATA_DIR=str(SHARED_DATA))
+# Shaped rates measured against their bounds, and the host's namespaces compared before and after a run.
+pytestmark = pytest.mark.exclusive
 SCENARIOS = Path(__file__).resolve().parents[2] / "sitl" / "scenarios"
 
 
