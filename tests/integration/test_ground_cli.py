@@ -59,7 +59,7 @@ def test_examples_upload_download_equal_and_fly_to_completion(scenario, start_si
 
 
 def test_commands_report_refusals_with_exit_1(start_sitl):
-    sim = start_sitl(speedup=10.0)
+    sim = start_sitl(speedup=10.0, params={"DISARM_DELAY": 0})  # one process per command: see the test above
     refused = ground("--connect", link(sim, 0), "mission", "start")
     assert refused.returncode == 1 and "MAV_RESULT_FAILED" in refused.stderr
     ok(ground("--connect", link(sim, 0), "arm"))
@@ -77,7 +77,7 @@ def test_commands_report_refusals_with_exit_1(start_sitl):
 def test_signing_same_key_works_missing_or_wrong_key_is_refused_and_explained(start_sitl, tmp_path):
     key_file = tmp_path / "fleet.key"
     key_file.write_text("nac test fleet key\n")
-    sim = start_sitl(speedup=5.0, signing_key=load_signing_key(key_file))
+    sim = start_sitl(speedup=5.0, signing_key=load_signing_key(key_file), params={"DISARM_DELAY": 0})
     wrong_file = tmp_path / "wrong.key"
     wrong_file.write_text("another key\n")
 
@@ -122,7 +122,7 @@ def test_validate_and_convert_work_offline(tmp_path):
 
 def test_several_vehicles_through_one_link(start_sitl):
     """All vehicles sending to one port (port step 0), as through one telemetry radio: told apart by sysid."""
-    sim = start_sitl(vehicles=3, speedup=5.0, port_step=0)
+    sim = start_sitl(vehicles=3, speedup=5.0, port_step=0, params={"DISARM_DELAY": 0})
     rows = ok(ground("--connect", link(sim, 0), "status")).stdout.splitlines()[1:]
     assert [row.split()[0] for row in rows] == ["1", "2", "3"]
     ok(ground("--connect", link(sim, 0), "--sysid", "2", "arm"))

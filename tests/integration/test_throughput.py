@@ -24,8 +24,6 @@ from nac_onboard.link.iperf3 import compare, iperf3_result, iperf3_server, nac_s
 from nac_onboard.link.throughput import ThroughputServer
 from tests.conftest import free_port
 
-# Rates measured against iperf3's and the channel's, within 5-10 %.
-pytestmark = pytest.mark.exclusive
 needs_iperf3 = pytest.mark.skipif(not iperf3.available(), reason="iperf3 not installed (.ci/run installs it)")
 
 
@@ -69,6 +67,7 @@ def netns():
 
 
 @needs_iperf3
+@pytest.mark.exclusive  # rates or times measured against a bound
 def test_loopback_rate_agrees_with_iperf3_within_10_percent(netns):
     # Plain loopback measures the CPU, not a path: both tools are CPU-bound there and a shared 2-core machine
     # swings their rates by +-30 % from run to run (benchmarks/throughput_vs_iperf3.py records that comparison).
@@ -84,6 +83,7 @@ def test_loopback_rate_agrees_with_iperf3_within_10_percent(netns):
 
 
 @needs_iperf3
+@pytest.mark.exclusive  # rates or times measured against a bound
 def test_rate_limited_link_agrees_with_iperf3_within_10_percent(netns):
     """Two namespaces joined by a veth pair; the client side leaves through tc tbf at 10 Mbit/s."""
     tag = secrets.token_hex(3)
@@ -99,6 +99,7 @@ def test_rate_limited_link_agrees_with_iperf3_within_10_percent(netns):
     assert abs(result.ratio - 1) < 0.10, result.describe(1e6, "Mbit/s")
 
 
+@pytest.mark.exclusive  # rates or times measured against a bound
 def test_emulated_probes_follow_the_channel_model_at_the_live_distance(tmp_path):
     """SITL's probes: paced at the model's capacity for the pair's distance, failing beyond its range, skipped
     (not failed) while a position is unknown."""
@@ -160,6 +161,7 @@ BAD_HEADERS = [b"[1, 2]\n", b"42\n", b"null\n", b"[" * 4000 + b"\n", b'{"protoco
                b'{"protocol": "nac-probe/1", "duration_s": 1e9}\n', b'{"protocol": "iperf"}\n', b"\xff\xfe\n"]
 
 
+@pytest.mark.exclusive  # rates or times measured against a bound
 def test_the_server_refuses_malformed_headers_and_silent_clients_and_keeps_serving():
     """7 of 12 malformed headers once killed the server, a silent client blocked it, and interval_s -1 with
     1-byte writes grew it to 1 GB: each is refused with an answer, and a real probe still runs after them."""

@@ -21,10 +21,8 @@ from tests.conftest import allocate_base_port
 from tests.integration.test_experiment import write_scenario
 
 CHROMEDRIVER = shutil.which("chromedriver")
-# The live page is followed while a 10x SITL run goes on: a busy core delays its first frames.
-pytestmark = [pytest.mark.skipif(not (chromium() and CHROMEDRIVER),
-                                 reason="Chromium and chromedriver are not installed (.ci/run installs them)"),
-              pytest.mark.exclusive]
+pytestmark = pytest.mark.skipif(not (chromium() and CHROMEDRIVER),
+                                reason="Chromium and chromedriver are not installed (.ci/run installs them)")
 VEHICLES_JS = """return [...document.querySelectorAll('#vehicles .vehicle')].map(g => ({
     id: g.dataset.id, e: +g.dataset.e, n: +g.dataset.n, t: +g.dataset.t, tb: +g.dataset.tb}));"""
 
@@ -63,6 +61,7 @@ def out_and_back_scenario(folder: Path) -> Path:
 
 
 @pytest.mark.slow
+@pytest.mark.exclusive  # a 10x SITL run followed live: on a busy core its first frames come late
 def test_the_live_page_follows_the_simulator_and_the_replay_scrubs_through_the_records(browser, tmp_path):
     scenario = load_scenario(str(out_and_back_scenario(tmp_path / "scenario")))
     run_dir = tmp_path / "run"
