@@ -22,11 +22,11 @@ demo: $(STAMP)
 	@test -f "$${NAC_DATA_DIR:-$(DATA_DIR)}/forestfires.csv" || $(BIN)/nac-onboard data fetch
 	NAC_DATA_DIR=$${NAC_DATA_DIR:-$(DATA_DIR)} $(BIN)/python -m sitl.experiment.demo
 
-# The suite on both cores (a file's tests stay on one worker, so its fixtures are set up once), then the tests
-# that measure rates and times, or look at the whole host's namespaces, alone on a quiet machine.
+# The suite on both cores, then the tests that measure rates and times against a bound, or look at the whole
+# host's namespaces, alone on a quiet machine (marked `exclusive`).
 test: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -m "not exclusive" -n 2 --dist loadfile
+	$(BIN)/python -m pytest -m "not exclusive" -n 2 --dist worksteal
 	$(BIN)/python -m pytest -m exclusive
 
 # The lint rules are ruff's, set in pyproject.toml (pycodestyle, pyflakes, isort, bugbear, naming...). The code

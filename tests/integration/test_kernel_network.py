@@ -28,8 +28,6 @@ from tests.conftest import SHARED_DATA, allocate_base_port
 from tests.integration.console import Console
 
 ENV = dict(os.environ, NAC_DATA_DIR=str(SHARED_DATA))
-# Shaped rates measured against their bounds, and the host's namespaces compared before and after a run.
-pytestmark = pytest.mark.exclusive
 SCENARIOS = Path(__file__).resolve().parents[2] / "sitl" / "scenarios"
 
 
@@ -73,6 +71,7 @@ def shortened(name: str, folder: Path, duration_s: float, channel: str = "", max
 @needs_kernel
 @needs_iperf3
 @pytest.mark.parametrize("sharing", [True, False])
+@pytest.mark.exclusive  # shaped rates measured against their bounds
 def test_two_workers_share_the_access_points_airtime_or_not(tmp_path, sharing):
     """Both workers 3 m from the master on a channel capped at 20 Mbit/s send to it at once (real iperf3)."""
     channel = dataclasses.replace(PRESETS["wifi-flight"], name="capped", rate_model="shannon", max_rate_bps=20e6,
@@ -164,6 +163,7 @@ def _measured_matches_applied(summary: dict, run_dir: Path, solid_below_m: float
 
 @needs_kernel
 @pytest.mark.slow
+@pytest.mark.exclusive  # rates and times measured, the whole host's namespaces compared
 def test_the_moving_flight_on_a_kernel_network(tmp_path, monkeypatch):
     """paper-flight-moving end to end at 4x: probes measure the shaped links, w1 flies out of range (its MPI
     transfers stall in the network, not in a model check), training goes on without it, and it comes back."""
@@ -192,6 +192,7 @@ def test_the_moving_flight_on_a_kernel_network(tmp_path, monkeypatch):
 
 @needs_kernel
 @pytest.mark.slow
+@pytest.mark.exclusive  # rates and times measured, the whole host's namespaces compared
 def test_results_in_simulated_time_do_not_depend_on_the_speedup(tmp_path, monkeypatch):
     """paper-flight-static shortened, at 1x and at 4x on a kernel network, its radio's median link (no shadowing
     or fading: both runs see the same rates) and a per-transfer software cost of 2 Mbit so the transfers, not
@@ -230,14 +231,16 @@ def test_without_the_privileges_kernel_exits_2_quickly_and_sleep_still_runs(tmp_
     scenario = shortened("paper-flight-static", tmp_path, 6.0, max_speedup=4.0)
     unprivileged = ["setpriv", "--bounding-set=-net_admin,-sys_admin", "--inh-caps=-net_admin,-sys_admin"]
     t0 = time.monotonic()
-    refused = subprocess.run([*unprivileged, sys.executable, "-m", "sitl.cli", "experiment", str(scenario),
-                              "--network", "kernel", "--out", str(tmp_path / "refused")],
-                             capture_output=True, text=True, env=ENV, timeout=30)
+    command = [*unprivileged, sys.executable, "-m", "sitl.cli", "experiment", str(scenario), "--network", "kernel",
+               "--out", str(tmp_path / "refused")]
+    with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV) as proc:
+        stdout, stderr = proc.communicate(timeout=30)  # setpriv execs python: the run's pid names its namespaces
+    refused = subprocess.CompletedProcess(command, proc.returncode, stdout, stderr)
     assert refused.returncode == 2 and time.monotonic() - t0 < 5.0, refused.stderr
     assert "--network kernel cannot build its network here" in refused.stderr, refused.stderr
     assert "use --network sleep" in refused.stderr and "Traceback" not in refused.stderr
     assert not (tmp_path / "refused").exists(), "nothing started"
-    assert not [n for n in netns.namespaces() if n.endswith("-trial")], "the trial namespace is gone"
+    assert not [n for n in netns.namespaces() if n.startswith(f"{netns.PREFIX}{proc.pid}-")], "the trial is gone"
     ran = subprocess.run([*unprivileged, sys.executable, "-m", "sitl.cli", "experiment", str(scenario), "--speedup",
                           "4", "--out", str(tmp_path / "slept"), "--base-port", str(allocate_base_port(3, slots=5))],
                          capture_output=True, text=True, env=ENV, timeout=120)
@@ -247,6 +250,7 @@ def test_without_the_privileges_kernel_exits_2_quickly_and_sleep_still_runs(tmp_
 
 
 @needs_kernel
+@pytest.mark.exclusive  # rates and times measured, the whole host's namespaces compared
 def test_ctrl_c_on_a_kernel_network_leaves_nothing_behind(tmp_path):
     scenario = shortened("paper-flight-static", tmp_path, 600.0, max_speedup=4.0)
     before = host_state()
