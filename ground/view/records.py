@@ -81,6 +81,7 @@ class RunFollower:
         self._discover()
         new: list[dict] = []
         for path, tail in self._tails.items():
+            source, vehicle = SOURCES.get(path.name, ""), path.parent.name
             for line_no, line in tail.new_lines():
                 try:
                     record = orjson.loads(line)
@@ -90,7 +91,6 @@ class RunFollower:
                 if not isinstance(record, dict) or not _finite(record.get("t_s")):
                     self._problem(f"{path.relative_to(self.run_dir)}:{line_no}: no t_s, skipped")
                     continue
-                source, vehicle = SOURCES.get(path.name, ""), path.parent.name
                 frame = self.add(source, vehicle, record)
                 if frame is not None:
                     new.append(frame)
