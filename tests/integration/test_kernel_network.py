@@ -233,8 +233,13 @@ def test_without_the_privileges_kernel_exits_2_quickly_and_sleep_still_runs(tmp_
     t0 = time.monotonic()
     command = [*unprivileged, sys.executable, "-m", "sitl.cli", "experiment", str(scenario), "--network", "kernel",
                "--out", str(tmp_path / "refused")]
-    with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV) as proc:
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+    try:
         stdout, stderr = proc.communicate(timeout=30)  # setpriv execs python: the run's pid names its namespaces
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
     refused = subprocess.CompletedProcess(command, proc.returncode, stdout, stderr)
     assert refused.returncode == 2 and time.monotonic() - t0 < 5.0, refused.stderr
     assert "--network kernel cannot build its network here" in refused.stderr, refused.stderr
