@@ -219,7 +219,7 @@ def test_a_wpl_mission_with_roi_spline_yaw_servo_turns_and_delay_flies_in_auto_t
     assert not sim.truth(0)["armed"], f"the mission ends; stuck at item {sim.truth(0)['mission_seq']}"
     centre = np.array([25.0, 30.0])
     off_roi_deg, circle_m, delay_t_s, seqs = [], [], [], set()
-    for t_s, seq, pos, yaw_deg in steps:
+    for t_s, seq, pos, yaw_deg in list(steps):  # a copy: the simulator goes on appending
         seqs.add(seq)
         if seq == 3 and np.hypot(*(centre - pos)) > 5.0:
             bearing_deg = np.degrees(np.arctan2(*(centre - pos)))

@@ -111,7 +111,8 @@ def test_mavsdk_uploads_arms_flies_and_sees_the_vehicle_land(start_sitl, mavsdk_
 
     # Each position MAVSDK reported is one the vehicle truly had in the 3 simulated seconds before it arrived:
     # the telemetry's values, whatever the machine's load made of its latency.
-    track_t, track_m = np.array([t for t, *_ in track]), np.array([p for _, *p in track])
+    steps = np.array(list(track))  # one copy: the simulator goes on appending to track
+    track_t, track_m = steps[:, 0], steps[:, 1:]
     errors_m = []
     for t_s, lat, lon, rel_alt_m in seen["positions"]:
         reported = lla_to_enu(lat, lon, home.alt_m + rel_alt_m, home)
