@@ -13,15 +13,13 @@ import argparse
 import sys
 from pathlib import Path
 
-from ground.operator import commands as ops
-from missions import load_mission
 from nac_onboard.errors import BadInput, run_cli
-from nac_onboard.mavlink.client import DEFAULT_URI, MavlinkClient
-from nac_onboard.mavlink.dialect import COPTER_MODES
-from nac_onboard.mavlink.signing import load_signing_key, state_path
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from nac_onboard.mavlink.client import DEFAULT_URI
+    from nac_onboard.mavlink.dialect import COPTER_MODES
+
     parser = argparse.ArgumentParser(prog="nac-ground", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--connect", action="append", metavar="URI",
@@ -59,6 +57,20 @@ def build_parser() -> argparse.ArgumentParser:
     monitor.add_argument("--refresh-s", type=float, default=1.0)
     monitor.add_argument("--duration-s", type=float, help="stop after this long (default: until Ctrl-C)")
     _add_logs_parser(sub)
+    _add_view_parser(sub)
+    return parser
+
+
+def view_parser() -> argparse.ArgumentParser:
+    """`nac-ground view ...` alone: parsing it imports no MAVLink stack (pymavlink is a quarter of a second of a
+    replay's start, and only --live uses it)."""
+    parser = argparse.ArgumentParser(prog="nac-ground", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    _add_view_parser(parser.add_subparsers(dest="command", required=True, metavar="COMMAND"))
+    return parser
+
+
+def _add_view_parser(sub) -> None:
     view = sub.add_parser("view", help="a run in a browser, replayed or live; or vehicles live over MAVLink")
     view.add_argument("run_dir", type=Path, nargs="?", help="run directory (optional with --live)")
     view.add_argument("--address", default="127.0.0.1:8765", help="HOST:PORT to serve on (default %(default)s; "
@@ -73,7 +85,6 @@ def build_parser() -> argparse.ArgumentParser:
                                                           "positions of every peer)")
     view.add_argument("--screenshot", type=Path, metavar="FILE",
                       help="save a PNG of the page at the end of the run (headless Chromium) and exit")
-    return parser
 
 
 def _add_logs_parser(sub) -> None:
@@ -157,6 +168,16 @@ def run(args: argparse.Namespace, out=None) -> int:
         if args.run_dir is None:
             raise BadInput("view: give a RUN_DIR, or --live with --connect URI and/or --feed HOST:PORT")
         return replay(args.run_dir, args.address, args.screenshot, out, live=args.follow)
+    return _run_vehicle_command(args, out)
+
+
+def _run_vehicle_command(args: argparse.Namespace, out) -> int:
+    from ground.operator import commands as ops
+    from missions import load_mission
+    from nac_onboard.mavlink.client import MavlinkClient
+    from nac_onboard.mavlink.dialect import COPTER_MODES
+    from nac_onboard.mavlink.signing import load_signing_key, state_path
+
     key = (args.command, getattr(args, "action", None))
     if key == ("mission", "validate"):
         ops.mission_validate(args.file, out)
@@ -204,7 +225,8 @@ def run(args: argparse.Namespace, out=None) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    args = (view_parser() if argv[:1] == ["view"] else build_parser()).parse_args(argv)
     return run_cli("nac-ground", lambda: run(args))
 
 

@@ -14,13 +14,16 @@ record without what it needs, is skipped and named in `problems` (file and line)
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import orjson
 
-from missions.geo import EnuFrame, Home, lla_to_enu
+from missions.geo import Home, lla_to_enu
 
 EVENT_KINDS = {"link_lost": "autopilot link lost", "link_restored": "autopilot link back", "peer_lost": "lost",
                "peer_seen": "seen", "mission_item_reached": "reached item", "landed_state": "landed state",
@@ -68,16 +71,20 @@ class RunFollower:
     vehicles: dict[str, dict] = field(default_factory=dict)  # id -> {"role": ...}
     problems: list[str] = field(default_factory=list)
     origin: Home | None = None  # the map's (0, 0): the first position heard, at ground level
-    _frame_m: EnuFrame | None = None
     mission_lla: dict[str, list] = field(default_factory=dict)  # vehicle -> [[lat, lon], ...] (experiment.json)
     _tails: dict[Path, _Tail] = field(default_factory=dict)
     _seen_kinds: set = field(default_factory=set)
+    _unplaced: list = field(default_factory=list)  # (frame, lat, lon, alt): positions not yet in map metres
 
     def __post_init__(self):
         self.run_dir = None if self.run_dir is None else Path(self.run_dir)
 
     def poll(self) -> list[dict]:
         """The frames appended since the last call (new files are picked up as they appear)."""
+        with _collector_paused():
+            return self._poll()
+
+    def _poll(self) -> list[dict]:
         self._discover()
         new: list[dict] = []
         for path, tail in self._tails.items():
@@ -91,20 +98,37 @@ class RunFollower:
                 if not isinstance(record, dict) or not _finite(record.get("t_s")):
                     self._problem(f"{path.relative_to(self.run_dir)}:{line_no}: no t_s, skipped")
                     continue
-                frame = self.add(source, vehicle, record)
+                frame = self._append(source, vehicle, record)
                 if frame is not None:
                     new.append(frame)
+        self._place()
         return new
 
     def add(self, source: str, vehicle: str, record: dict) -> dict | None:
         """One record as a file would hold it ("agent" telemetry or events of `vehicle`, "throughput",
         "compute", "network", "experiment"): its frame, appended, or None when it draws nothing. Live sources
         other than files (a MAVLink link, an agent's state feed) come in here too."""
+        frame = self._append(source, vehicle, record)
+        self._place()
+        return frame
+
+    def _append(self, source: str, vehicle: str, record: dict) -> dict | None:
         frame = self._frame(source, vehicle, record)
         if frame is not None:
             frame["s"] = len(self.records)
             self.records.append(frame)
         return frame
+
+    def _place(self) -> None:
+        """The positions read since the last call, in map metres: converted together, since a replay's hundred
+        thousand of them one at a time would be most of the time it takes to open."""
+        if not self._unplaced:
+            return
+        frames, lat, lon, alt = zip(*self._unplaced, strict=True)
+        self._unplaced = []
+        enu = np.round(lla_to_enu(np.array(lat), np.array(lon), np.array(alt), self.origin), 2).tolist()
+        for frame, (east, north, up) in zip(frames, enu, strict=True):
+            frame["e"], frame["n"], frame["u"] = east, north, up
 
     def finish(self) -> None:
         """After the run: a last line without its newline will not be completed now."""
@@ -192,22 +216,42 @@ class RunFollower:
         lat, lon, alt = r.get("lat_deg"), r.get("lon_deg"), r.get("alt_m")
         if not (_finite(lat) and _finite(lon) and _finite(alt)) or not (-90 <= lat <= 90 and -180 <= lon <= 180):
             return None
-        if self._frame_m is None:
+        if self.origin is None:
             rel = r.get("rel_alt_m")
             self.origin = Home(float(lat), float(lon), float(alt) - (float(rel) if _finite(rel) else 0.0))
-            self._frame_m = EnuFrame(self.origin)
-        east, north, up = self._frame_m.enu(lat, lon, alt)
         self._seen_kinds.add("pos")
         if vehicle not in self.vehicles:
             self.vehicles[vehicle] = {"role": "?"}
         boot_ms = r.get("time_boot_ms")
-        return {"k": "pos", "t": t_s, "v": vehicle, "e": round(east, 2), "n": round(north, 2), "u": round(up, 2),
-                "hdg": _num(r.get("yaw_deg")), "mode": r.get("mode"), "armed": r.get("armed"),
-                "batt": r.get("battery_pct"), "seq": r.get("mission_seq"), "tot": r.get("mission_total"),
-                "tb": round(boot_ms / 1000.0, 3) if _finite(boot_ms) else None}
+        frame = {"k": "pos", "t": t_s, "v": vehicle, "e": None, "n": None, "u": None,
+                 "hdg": _num(r.get("yaw_deg")), "mode": r.get("mode"), "armed": r.get("armed"),
+                 "batt": r.get("battery_pct"), "seq": r.get("mission_seq"), "tot": r.get("mission_total"),
+                 "tb": round(boot_ms / 1000.0, 3) if _finite(boot_ms) else None}
+        self._unplaced.append((frame, lat, lon, alt))
+        return frame
+
+
+@contextlib.contextmanager
+def _collector_paused():
+    """Python's cycle collector off while a batch of records is read: the frames hold no cycles, and a replay's
+    hundred thousand new dicts would set it scanning the growing heap again and again (a third of the time it
+    takes to open a 10-minute run)."""
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            gc.enable()
 
 
 def _finite(value) -> bool:
+    """A JSON number that is finite (not a bool, a string, None, NaN or infinity)."""
+    kind = type(value)
+    if kind is float:  # the usual case first: a replay asks this a million times
+        return value - value == 0.0
+    if kind is int:
+        return True
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 

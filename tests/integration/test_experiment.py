@@ -79,9 +79,9 @@ def short_run(tmp_path_factory):
     """One short experiment for the tests below: 30 s simulated at 4x, with the simulator's truth recorded."""
     folder = tmp_path_factory.mktemp("experiment")
     scenario = load_scenario(str(write_scenario(folder)))
-    os.environ.setdefault("NAC_DATA_DIR", str(SHARED_DATA))
     log_path = folder / "console.txt"
-    with open(log_path, "w") as console:
+    with pytest.MonkeyPatch.context() as patch, open(log_path, "w") as console:
+        patch.setenv("NAC_DATA_DIR", str(SHARED_DATA))
         experiment = Experiment(scenario, folder / "run", 4.0, allocate_base_port(3, slots=5), out=console)
         trace: list = []
         experiment.step_observers.append(lambda t, state: trace.append((time.time(), state.pos_m.copy())))
@@ -177,7 +177,6 @@ kind = "kill_worker"
 """
     scenario = load_scenario(str(write_scenario(tmp_path / "scenario", extra=faults)))
     console = io.StringIO()
-    os.environ.setdefault("NAC_DATA_DIR", str(SHARED_DATA))
     experiment = Experiment(scenario, tmp_path / "run", 4.0, allocate_base_port(3, slots=5), out=console)
     result = experiment.run()
     assert result.outcome is Outcome.COMPLETED, console.getvalue()

@@ -230,13 +230,14 @@ function showNotes(info) {
 }
 
 async function start() {
+  const records = fetch("/api/records").then((r) => r.json());  // both requests at once: a replay's records are most of the wait
   view.info = await (await fetch("/api/state")).json();
   $("title").textContent = view.info.title;
   $("mode").textContent = view.info.live ? "live" : "replay";
   $("mode").classList.toggle("live", view.info.live);
   showNotes(view.info);
   for (const points of Object.values(view.info.missions || {})) points.forEach((q) => grow(q[0], q[1]));
-  ingest(await (await fetch("/api/records")).json());
+  ingest(await records);
   const query = new URLSearchParams(location.search);
   const start = query.get("at");  // ?at=end or seconds from the start
   const snapshot = query.has("snapshot");  // no stream: what is there now (a screenshot's headless browser
