@@ -60,6 +60,7 @@ class World:
         self.t_s = 0.0
         self.boot_t_s = np.zeros(n)  # when each autopilot (re)started, simulated seconds
         self._last_fix_m = self.state.pos_m.copy()
+        self._home_now: dict[int, tuple[tuple, Home]] = {}  # vehicle -> (its home_m, home_of's answer)
         self.step_observers: list[Callable[[float, VehicleState], None]] = []  # (t_s, state) after every step
         self.param_listeners: list[Callable[[], None]] = []  # after every parameter change
         self._apply_params()
@@ -138,9 +139,14 @@ class World:
         return enu
 
     def home_of(self, vehicle: int) -> Home:
-        """Where vehicle's home is now (DO_SET_HOME and arming move it from the origin of its frame)."""
-        lat, lon, alt = enu_to_lla(self.fleet.home_m[vehicle], self.homes[vehicle])
-        return Home(float(lat), float(lon), float(alt))
+        """Where vehicle's home is now (DO_SET_HOME and arming move it from the origin of its frame). Kept until
+        the home moves: HOME_POSITION is streamed, and the geodesy on one point costs more than the message."""
+        home_m = tuple(self.fleet.home_m[vehicle].tolist())
+        known = self._home_now.get(vehicle)
+        if known is None or known[0] != home_m:
+            lat, lon, alt = enu_to_lla(self.fleet.home_m[vehicle], self.homes[vehicle])
+            known = self._home_now[vehicle] = (home_m, Home(float(lat), float(lon), float(alt)))
+        return known[1]
 
     def positions_ecef_m(self) -> np.ndarray:
         """Every vehicle's true position, earth-centred (N, 3): what the radio between them sees."""
