@@ -117,24 +117,6 @@ def lla_to_enu(lat_deg, lon_deg, alt_m, home: Home):
     return np.concatenate([east_north, (alt_m - home.alt_m)[..., None]], axis=-1)
 
 
-class EnuFrame:
-    """lla_to_enu about one home for one point at a time in plain floats (a reader of long logs converts each
-    record as it comes: 1 us a point, against 50 through numpy's small arrays)."""
-
-    def __init__(self, home: Home):
-        self.home = home
-        self._origin = ecef_m(home.lat_deg, home.lon_deg, home.alt_m)
-        lat, lon = math.radians(home.lat_deg), math.radians(home.lon_deg)
-        self._east = (-math.sin(lon), math.cos(lon))
-        self._north = (-math.sin(lat) * math.cos(lon), -math.sin(lat) * math.sin(lon), math.cos(lat))
-
-    def enu(self, lat_deg: float, lon_deg: float, alt_m: float) -> tuple[float, float, float]:
-        x, y, z = ecef_m(lat_deg, lon_deg, self.home.alt_m)
-        dx, dy, dz = x - self._origin[0], y - self._origin[1], z - self._origin[2]
-        (ex, ey), (nx, ny, nz) = self._east, self._north
-        return ex * dx + ey * dy, nx * dx + ny * dy + nz * dz, alt_m - self.home.alt_m
-
-
 def offset_home(home: Home, east_m: float, north_m: float) -> Home:
     lat, lon, alt = enu_to_lla(np.array([east_m, north_m, 0.0]), home)
     return Home(float(lat), float(lon), float(alt))

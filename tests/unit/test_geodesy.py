@@ -72,11 +72,3 @@ def test_offset_home_places_vehicles_apart():
     other = offset_home(home, 10.0, 0.0)
     assert vincenty_distance_m(home.lat_deg, home.lon_deg, other.lat_deg, other.lon_deg) == pytest.approx(10, abs=1e-3)
 
-
-def test_the_plain_float_enu_frame_agrees_with_the_array_one():
-    from missions.geo import EnuFrame, Home, lla_to_enu
-
-    home = Home(-35.363261, 149.165230, 584.0)
-    frame = EnuFrame(home)
-    for lat, lon, alt in [(-35.36, 149.17, 600.0), (-35.40, 149.10, 500.0), (home.lat_deg, home.lon_deg, 584.0)]:
-        assert frame.enu(lat, lon, alt) == pytest.approx(tuple(lla_to_enu(lat, lon, alt, home)), abs=1e-6)
