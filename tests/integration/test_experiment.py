@@ -250,7 +250,6 @@ def status_of(pid: int) -> str:
 def test_a_taken_port_or_missing_data_fails_the_run_with_a_sentence(tmp_path, monkeypatch):
     scenario = load_scenario(str(write_scenario(tmp_path / "scenario")))
     base = allocate_base_port(3, slots=5)
-    monkeypatch.setenv("NAC_DATA_DIR", str(SHARED_DATA))
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as squatter:
         squatter.bind(("127.0.0.1", base + 2))  # where the master's agent listens for its peers
         result = Experiment(scenario, tmp_path / "run", 4.0, base, out=io.StringIO()).run()

@@ -164,7 +164,7 @@ def _measured_matches_applied(summary: dict, run_dir: Path, solid_below_m: float
 @needs_kernel
 @pytest.mark.slow
 @pytest.mark.exclusive  # rates and times measured, the whole host's namespaces compared
-def test_the_moving_flight_on_a_kernel_network(tmp_path, monkeypatch):
+def test_the_moving_flight_on_a_kernel_network(tmp_path):
     """paper-flight-moving end to end at 4x: probes measure the shaped links, w1 flies out of range (its MPI
     transfers stall in the network, not in a model check), training goes on without it, and it comes back.
 
@@ -173,7 +173,6 @@ def test_the_moving_flight_on_a_kernel_network(tmp_path, monkeypatch):
     one that gets through can come up to about the outage's length after the link is steady again (measured with
     `ss -ti` in w1's namespace: back-off 7, 28.7 simulated seconds, then back at 108 s). One more failed
     retransmission (57 s) ends the research's 130 s before w1 answers: a clean-clone CI run saw that."""
-    monkeypatch.setenv("NAC_DATA_DIR", str(SHARED_DATA))
     before = host_state()
     scenario = load_scenario("paper-flight-moving")
     scenario = dataclasses.replace(scenario, duration_s=scenario.duration_s + 40.0)
@@ -201,13 +200,12 @@ def test_the_moving_flight_on_a_kernel_network(tmp_path, monkeypatch):
 @needs_kernel
 @pytest.mark.slow
 @pytest.mark.exclusive  # rates and times measured, the whole host's namespaces compared
-def test_results_in_simulated_time_do_not_depend_on_the_speedup(tmp_path, monkeypatch):
+def test_results_in_simulated_time_do_not_depend_on_the_speedup(tmp_path):
     """paper-flight-static shortened, at 1x and at 4x on a kernel network, its radio's median link (no shadowing
     or fading: both runs see the same rates) and a per-transfer software cost of 2 Mbit so the transfers, not
     this machine's CPU, set the pace: iterations per simulated minute and throughput per distance bin agree
     within 10 %, and the probes measured the rates the shaper applied. Without that cost the wifi-flight
     iterations last a few milliseconds, CPU-bound here, and the scenario allows only 1x."""
-    monkeypatch.setenv("NAC_DATA_DIR", str(SHARED_DATA))
     median_link = 'shadowing_sigma_db = 0.0\nrician_k_db = "none"\noverhead_bits = 2e6'
     scenario = load_scenario(str(shortened("paper-flight-static", tmp_path, 30.0, median_link)))
     assert scenario.radio.overhead_bits == 2e6 and not scenario.radio.fading
