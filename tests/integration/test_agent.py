@@ -19,7 +19,9 @@ from nac_onboard.mavlink.dialect import M
 from tests.conftest import free_port
 from tests.integration.agents import agent_toml, kind, wait_for_record
 
-LEGS_M = [(12, 0), (12, 12), (0, 12)]
+# 20 m legs: about 3.5 s of wall-clock flight at 10x, so "more than 30 records at 10 Hz" has a margin (12 m legs
+# flew exactly 3 s and logged 30 or 31 by the logger's phase, or an arm heard a batch later on a busy machine).
+LEGS_M = [(20, 0), (20, 20), (0, 20)]
 
 
 def companion_uri(sim, vehicle: int = 0) -> str:
