@@ -315,7 +315,7 @@ class VehicleProtocol:
     # ---- parameters ---------------------------------------------------------------------------------
     def param_value(self, index: int):
         definition = PARAM_DEFS[index]
-        value = self.world.params.get(self.i, definition.name)
+        value = self.world.params.reported(self.i, definition.name)
         # ArduPilot sends integers as their value in the float field ("C-cast"), typed as it stores them
         return M.MAVLink_param_value_message(definition.name.encode(), value, PARAM_TYPES[definition.kind],
                                              len(PARAM_DEFS), index)
@@ -339,9 +339,11 @@ class VehicleProtocol:
             self.statustext(Severity.WARNING, f"Param {name[:30]} unknown")
             return
         try:
-            self.world.set_param(self.i, name, float(msg.param_value))
+            note = self.world.store_param(self.i, name, float(msg.param_value))
         except ParamError as err:
-            self.statustext(Severity.WARNING, str(err)[:50])
+            note = str(err)
+        if note:
+            self.statustext(Severity.WARNING, note[:50])
         self.send_msg(self.param_value(index))  # always echo, changed or not, to every channel
 
     # ---- missions -----------------------------------------------------------------------------------

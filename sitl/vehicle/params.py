@@ -96,11 +96,14 @@ class ParamError(BadInput):
 
 
 class ParamTable:
-    """Values of every parameter for every vehicle, as a (N, P) array in PARAM_DEFS order."""
+    """Values of every parameter for every vehicle, as a (N, P) array in PARAM_DEFS order: the values the vehicle
+    acts on. A ground station's value outside a parameter's range is kept as sent (`reported`) as ArduPilot keeps it,
+    while the vehicle acts on the nearest value in range."""
 
     def __init__(self, n: int):
         self.values = np.tile(np.array([p.default for p in PARAM_DEFS], dtype=float), (n, 1))
         self.values[:, self.index("SYSID_THISMAV")] = np.arange(1, n + 1)
+        self._kept_out_of_range: dict[tuple[int, int], float] = {}  # (vehicle, column) -> the value a GCS sent
 
     @staticmethod
     def index(name: str) -> int:
@@ -126,7 +129,35 @@ class ParamTable:
         if not math.isfinite(value) or not definition.min <= value <= definition.max:
             raise ParamError(f"{name}={value:g} outside {definition.min:g}..{definition.max:g}")
         self.values[vehicle, self.index(name)] = value
+        self._kept_out_of_range.pop((vehicle, self.index(name)), None)
         return value
+
+    def store(self, vehicle: int, name: str, value: float) -> str | None:
+        """PARAM_SET as ArduPilot takes it: any finite value is kept (integer types rounded into their storage
+        range) and read back as kept, so a ground station that compares the echo with what it sent (MAVSDK) sees
+        its value; the vehicle acts on the nearest value in the parameter's range. Returns a sentence for the
+        operator when those differ. Read-only and unknown names, and values that are not finite, raise ParamError."""
+        definition = PARAMS_BY_NAME.get(name)
+        if definition is None:
+            raise ParamError(f"unknown parameter {name!r}")
+        if name in READ_ONLY:
+            raise ParamError(f"Param write denied ({name})")
+        if not math.isfinite(value):
+            raise ParamError(f"{name}={value} is not a number")
+        kept = stored_value(definition, value)
+        if definition.kind in INT_RANGES:
+            low, high = INT_RANGES[definition.kind]
+            kept = float(min(max(kept, low), high))
+        acted_on = min(max(kept, definition.min), definition.max)
+        self.set(vehicle, name, acted_on)
+        if acted_on == kept:
+            return None
+        self._kept_out_of_range[(vehicle, self.index(name))] = kept
+        return f"{name} {kept:g} outside {definition.min:g}..{definition.max:g}: using {acted_on:g}"
+
+    def reported(self, vehicle: int, name: str) -> float:
+        """The value a ground station reads: as it was sent, even outside the range the vehicle acts on."""
+        return self._kept_out_of_range.get((vehicle, self.index(name)), self.get(vehicle, name))
 
     def physics(self) -> PhysicsParams:
         n = self.values.shape[0]

@@ -86,6 +86,12 @@ class World:
         self.params.set(vehicle, name, value)
         self._apply_params()
 
+    def store_param(self, vehicle: int, name: str, value: float) -> str | None:
+        """A ground station's PARAM_SET, kept as ArduPilot keeps it (ParamTable.store), then the side effects."""
+        note = self.params.store(vehicle, name, value)
+        self._apply_params()
+        return note
+
     def _apply_params(self) -> None:
         p = self.params
         self.physics = p.physics()

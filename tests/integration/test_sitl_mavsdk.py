@@ -145,6 +145,8 @@ def test_mavsdk_reads_integer_parameters_rtl_altitude_and_armable_health(start_s
     assert action.get_return_to_launch_altitude() == pytest.approx(15.0)
     param.set_param_int("RTL_ALT", 2500)
     assert sim.world.params.get(0, "RTL_ALT") == 2500 and action.get_return_to_launch_altitude() == 25.0
+    param.set_param_float("WPNAV_SPEED", 3000.0)  # above the range: kept as sent, so MAVSDK's echo check passes
+    assert param.get_param_float("WPNAV_SPEED") == 3000.0 and sim.world.physics.speed_xy_max_mps[0] == 20.0
     deadline = time.monotonic() + 10.0
     while not telemetry.health().is_armable and time.monotonic() < deadline:
         time.sleep(0.05)

@@ -275,15 +275,25 @@ def test_connect_sequence_of_a_ground_station(start_sitl, gcs_for):
     assert home == M.MAV_RESULT_ACCEPTED and gcs.recv("HOME_POSITION", 3.0) is not None
 
 
-def test_param_set_echoes_and_out_of_range_keeps_the_old_value(start_sitl, gcs_for):
+def test_param_set_echoes_and_out_of_range_is_kept_as_sent_and_flown_within_range(start_sitl, gcs_for):
+    """As ArduPilot: a PARAM_SET outside the documented range is kept and read back as sent (integer types held in
+    their storage range); the vehicle acts on the nearest value in range and says so."""
     sim = start_sitl(speedup=2.0)
     gcs = gcs_for(sim)
     gcs.conn.mav.param_set_send(1, 1, b"NAC_KP_XY", 0.3, M.MAV_PARAM_TYPE_REAL32)
     msg = gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "NAC_KP_XY")
     assert abs(msg.param_value - 0.3) < 1e-6 and abs(sim.world.physics.k_xy[0] - 0.3) < 1e-6
     gcs.conn.mav.param_set_send(1, 1, b"WPNAV_SPEED", -100, M.MAV_PARAM_TYPE_REAL32)
+    text = gcs.recv("STATUSTEXT", 3.0, lambda m: "WPNAV_SPEED" in m.text)  # sent before the echo
+    assert text is not None and "using 20" in text.text
     msg = gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "WPNAV_SPEED")
-    assert msg.param_value == 500
+    assert msg.param_value == -100 and sim.world.physics.speed_xy_max_mps[0] == pytest.approx(0.2)
+    gcs.conn.mav.param_set_send(1, 1, b"DISARM_DELAY", 300, M.MAV_PARAM_TYPE_INT8)
+    assert gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "DISARM_DELAY").param_value == 127
+    gcs.conn.mav.param_request_read_send(1, 1, b"WPNAV_SPEED", -1)
+    assert gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "WPNAV_SPEED").param_value == -100
+    gcs.conn.mav.param_set_send(1, 1, b"SYSID_THISMAV", 9, M.MAV_PARAM_TYPE_INT16)
+    assert gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "SYSID_THISMAV").param_value == 1
     gcs.conn.mav.param_request_read_send(1, 1, b"NAC_KP_Z", -1)
     assert gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "NAC_KP_Z").param_value == 1.0
 
