@@ -7,8 +7,9 @@ logic above it decides goals and motions, the MAVLink layer only reads the resul
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from enum import IntEnum
+from functools import cached_property
 
 import numpy as np
 
@@ -21,6 +22,9 @@ class Motion(IntEnum):
     GOTO = 1  # position controller toward goal_m
     LAND = 2  # horizontal controller toward goal_m, descend at land speed until touchdown
     VELOCITY = 3  # follow velocity_mps (GUIDED velocity control), within the speed limits
+
+
+IDLE, GOTO, LAND, VELOCITY = (int(m) for m in Motion)  # plain ints: numpy compares an enum member far slower
 
 
 @dataclass(frozen=True)
@@ -44,6 +48,20 @@ class PhysicsParams:
     accel_z_mps2: np.ndarray | None = None  # WPNAV_ACCEL_Z
     land_speed_high_mps: np.ndarray | None = None  # LAND above land_alt_low_m (ArduCopter's law)
     land_alt_low_m: np.ndarray | None = None
+
+    @cached_property
+    def laws_in_use(self) -> tuple[bool, bool]:
+        """(any vehicle on the research's law, any on ArduCopter's): fixed for these parameters."""
+        if self.research_law is None:
+            return True, False
+        return bool(self.research_law.any()), not bool(self.research_law.all())
+
+    def response_alpha(self, dt_s: float) -> np.ndarray:
+        """How far the velocity moves toward its target in one step of dt_s (first-order response)."""
+        cache = self.__dict__.setdefault("_alpha_by_dt", {})  # frozen, so kept beside the fields
+        if dt_s not in cache:
+            cache[dt_s] = 1.0 - np.exp(-dt_s / self.vel_tau_s)
+        return cache[dt_s]
 
     @staticmethod
     def defaults(n: int) -> PhysicsParams:
@@ -97,7 +115,7 @@ class Command:
 
 def battery_voltage_v(soc: np.ndarray, current_a: np.ndarray, cells: np.ndarray) -> np.ndarray:
     """LiPo pack: 3.3 V per cell empty, 4.2 V full, linear between, 10 mOhm per cell internal resistance."""
-    open_circuit_v = cells * (3.3 + 0.9 * np.clip(soc, 0.0, 1.0))
+    open_circuit_v = cells * (3.3 + 0.9 * np.minimum(np.maximum(soc, 0.0), 1.0))
     return open_circuit_v - current_a * 0.010 * cells
 
 
@@ -177,15 +195,19 @@ def copter_velocity_mps(pos_m, goal_m, vel_mps, params: PhysicsParams, speed_xy_
     return vel_mps + change
 
 
-def goal_velocity_mps(state: VehicleState, cmd: Command, params: PhysicsParams) -> np.ndarray:
+def goal_velocity_mps(state: VehicleState, cmd: Command, params: PhysicsParams,
+                      to_goal: np.ndarray | None = None) -> np.ndarray:
     """The velocity each vehicle's law asks for toward its goal, each law computed only where it is in use (and
-    ArduCopter's, the dearer, only for vehicles flying to a goal: an idle one is held still by the step)."""
-    research = params.research_law
-    if research is None or research.all():
+    ArduCopter's, the dearer, only for vehicles flying to a goal, `to_goal`: an idle one is held still by the
+    step)."""
+    research_in_use, copter_in_use = params.laws_in_use
+    if not copter_in_use:
         return desired_velocity_mps(state.pos_m, cmd.goal_m, params, cmd.speed_xy_mps)
-    v_des = desired_velocity_mps(state.pos_m, cmd.goal_m, params, cmd.speed_xy_mps) if research.any() \
+    v_des = desired_velocity_mps(state.pos_m, cmd.goal_m, params, cmd.speed_xy_mps) if research_in_use \
         else np.zeros_like(state.pos_m)
-    copter = ~research & cmd.armed & ((cmd.motion == Motion.GOTO) | (cmd.motion == Motion.LAND))
+    if to_goal is None:
+        to_goal = cmd.armed & ((cmd.motion == GOTO) | (cmd.motion == LAND))
+    copter = to_goal & ~params.research_law if research_in_use else to_goal
     if not copter.any():
         return v_des
     v_des[copter] = copter_velocity_mps(state.pos_m[copter], cmd.goal_m[copter], state.vel_mps[copter], params,
@@ -202,45 +224,46 @@ def land_speed_mps(height_m, params: PhysicsParams) -> np.ndarray:
 
 
 def step(state: VehicleState, cmd: Command, params: PhysicsParams, dt_s: float) -> VehicleState:
-    v_des = goal_velocity_mps(state, cmd, params)
+    # Written for few numpy calls: at 100 Hz and tens of vehicles each call's fixed cost is most of the time.
+    motion = cmd.motion
+    landing = motion == LAND
+    idle = (motion == IDLE) | ~cmd.armed
+    v_des = goal_velocity_mps(state, cmd, params, ~idle & (landing | (motion == GOTO)))
     if cmd.velocity_mps is not None:
-        following = cmd.motion == Motion.VELOCITY
+        following = motion == VELOCITY
         if following.any():
             v_des[following] = clamp_velocity_mps(cmd.velocity_mps[following], params, cmd.speed_xy_mps, following)
-    landing = cmd.motion == Motion.LAND
-    v_des[:, 2] = np.where(landing, -land_speed_mps(state.pos_m[:, 2], params), v_des[:, 2])
-    idle = (cmd.motion == Motion.IDLE) | ~cmd.armed
+    if landing.any():
+        v_des[:, 2] = np.where(landing, -land_speed_mps(state.pos_m[:, 2], params), v_des[:, 2])
     v_des[idle] = 0.0
 
-    alpha = 1.0 - np.exp(-dt_s / params.vel_tau_s)
+    alpha = params.response_alpha(dt_s)
     vel = state.vel_mps + alpha[:, None] * (v_des - state.vel_mps)
     pos = state.pos_m + vel * dt_s
 
     # The ground stops descent; a vehicle idling on the ground does not slide.
     touching = pos[:, 2] <= 0.0
-    pos[:, 2] = np.maximum(pos[:, 2], 0.0)
-    vel[:, 2] = np.where(touching, np.maximum(vel[:, 2], 0.0), vel[:, 2])
     on_ground = touching & (landing | idle | (v_des[:, 2] <= 0.0))
-    vel[on_ground] = 0.0
-    pos[on_ground] = np.where(idle[on_ground, None], state.pos_m[on_ground], pos[on_ground])
-    pos[on_ground, 2] = 0.0
+    if touching.any():
+        pos[:, 2] = np.maximum(pos[:, 2], 0.0)
+        vel[:, 2] = np.where(touching, np.maximum(vel[:, 2], 0.0), vel[:, 2])
+        vel[on_ground] = 0.0
+        pos = np.where((on_ground & idle)[:, None], state.pos_m, pos)
+        pos[on_ground, 2] = 0.0
 
     accel = (vel - state.vel_mps) / dt_s
     speed_xy = np.hypot(vel[:, 0], vel[:, 1])
-    moving = speed_xy > 0.3
-    yaw = np.where(moving, np.arctan2(vel[:, 0], vel[:, 1]), state.yaw_rad)
+    yaw = np.where(speed_xy > 0.3, np.arctan2(vel[:, 0], vel[:, 1]), state.yaw_rad)
     if cmd.yaw_target_rad is not None and not (np.isnan(cmd.yaw_target_rad).all() and np.isnan(cmd.yaw_rate_rps).all()):
         yaw = commanded_yaw_rad(yaw, state.yaw_rad, cmd.yaw_target_rad, cmd.yaw_rate_rps, dt_s)
 
     flying = cmd.armed & ~on_ground
-    current_a = params.idle_current_a + np.where(
-        flying, params.hover_current_a + params.current_per_mps_a * speed_xy, 0.0)
-    used_mah = current_a * dt_s / 3.6
-    consumed = state.consumed_mah + used_mah
-    soc = np.clip(state.soc - used_mah / params.batt_capacity_mah, 0.0, 1.0)
-    return replace(
-        state, pos_m=pos, vel_mps=vel, accel_mps2=accel, yaw_rad=yaw, on_ground=on_ground, soc=soc,
-        current_a=current_a, voltage_v=battery_voltage_v(soc, current_a, params.batt_cells), consumed_mah=consumed,
+    current_a = params.idle_current_a + flying * (params.hover_current_a + params.current_per_mps_a * speed_xy)
+    used_mah = current_a * (dt_s / 3.6)
+    soc = np.maximum(state.soc - used_mah / params.batt_capacity_mah, 0.0)
+    return VehicleState(
+        pos_m=pos, vel_mps=vel, accel_mps2=accel, yaw_rad=yaw, on_ground=on_ground, soc=soc, current_a=current_a,
+        voltage_v=battery_voltage_v(soc, current_a, params.batt_cells), consumed_mah=state.consumed_mah + used_mah,
     )
 
 
