@@ -44,7 +44,7 @@ def telemetry(vehicle: int, t_s: float, t_rel_s: float) -> str:
                        "lat_deg": float(lat), "lon_deg": float(lon), "alt_m": float(alt), "rel_alt_m": 10.0,
                        "vel_ned_mps": [1.0, 0.5, 0.0], "roll_deg": 0.5, "pitch_deg": -1.0, "yaw_deg": 45.0,
                        "battery_pct": 80, "voltage_v": 15.9, "mode": "AUTO", "armed": True, "landed": 2,
-                       "mission_seq": 3}) + "\n"
+                       "mission_seq": 3, "mission_total": 6}) + "\n"
 
 
 def probe(t_s: float, worker: int, bps: float) -> str:
@@ -81,6 +81,11 @@ def start_view(run: Path, *extra: str) -> tuple[subprocess.Popen, str]:
     return proc, line.split()[1]
 
 
+def records_in(frames: list[dict]) -> int:
+    """Records the frames hold: a "pos" frame is a batch of positions, as columns."""
+    return sum(len(f["t"]) if f["k"] == "pos" else 1 for f in frames)
+
+
 def live(vehicles: int, seconds: float, folder: Path) -> dict:
     with contextlib.ExitStack() as stack:
         return _live(folder / "live", vehicles, seconds, open_logs(folder / "live", vehicles, stack))
@@ -96,8 +101,9 @@ def _live(run: Path, vehicles: int, seconds: float, files: dict) -> dict:
             for raw in stream:
                 if raw.startswith(b"data: ["):
                     batch = json.loads(raw[6:])
-                    received[0] += len(batch)
-                    lag_s.append(time.time() - batch[-1]["t"])
+                    received[0] += records_in(batch)
+                    newest = max(max(f["t"]) if f["k"] == "pos" else f["t"] for f in batch)
+                    lag_s.append(time.time() - newest)
 
     threading.Thread(target=client, daemon=True).start()
     t_start = time.time()
@@ -154,8 +160,9 @@ def replay(vehicles: int, minutes: float, folder: Path) -> dict:
         proc, url = start_view(run)
         try:
             state = json.loads(urllib.request.urlopen(url + "api/state", timeout=30).read())
-            records = json.loads(urllib.request.urlopen(url + "api/records", timeout=30).read())
-            ready_s = time.monotonic() - start
+            body = urllib.request.urlopen(url + "api/records", timeout=30).read()
+            ready_s = time.monotonic() - start  # every byte here; parsing them is the client's time
+            records = json.loads(body)
         finally:
             proc.terminate()
             proc.wait(10)
@@ -174,7 +181,7 @@ def replay(vehicles: int, minutes: float, folder: Path) -> dict:
     finally:
         if browser is not None:
             browser.quit()
-    return {"ready_s": ready_s, "page_s": page_s, "records": len(records), "state_records": state["records"],
+    return {"ready_s": ready_s, "page_s": page_s, "records": records_in(records), "state_records": state["records"],
             "mb": size_mb}
 
 

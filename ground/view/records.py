@@ -1,11 +1,15 @@
 """One reader for live and replay: the records of a run directory, read as they are appended, each turned into
 the small frame the page draws (positions in local metres, probes, iterations, link capacities, events).
 
-    RUN_DIR/<vehicle>/agent.jsonl       telemetry and events       -> "pos", "ev"
+    RUN_DIR/<vehicle>/agent.jsonl       telemetry and events       -> "pos" (a batch), "ev"
     RUN_DIR/<vehicle>/throughput.jsonl  the master's probes         -> "probe"
     RUN_DIR/**/compute.jsonl            the MPI job's iterations    -> "it"
     RUN_DIR/network.jsonl               the link model's capacities -> "cap"
     RUN_DIR/experiment.json             the runner's faults         -> "ev"
+
+A "pos" frame holds every position one read of a vehicle's file gave, as columns ("t", "e", "n", "u", "hdg",
+"mode", "armed", "batt", "seq", "tot", "tb", one entry per record): a replay's hundred thousand positions are
+sixteen frames, read, sent and parsed as arrays instead of one object each.
 
 Live, a file's last line may still be being written: it waits for its newline. A line that is not JSON, or a
 record without what it needs, is skipped and named in `problems` (file and line); what no file holds is in
@@ -17,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import math
+import operator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -72,9 +77,9 @@ class RunFollower:
     problems: list[str] = field(default_factory=list)
     origin: Home | None = None  # the map's (0, 0): the first position heard, at ground level
     mission_lla: dict[str, list] = field(default_factory=dict)  # vehicle -> [[lat, lon], ...] (experiment.json)
+    record_count: int = 0  # records drawn so far (a "pos" frame holds many)
     _tails: dict[Path, _Tail] = field(default_factory=dict)
     _seen_kinds: set = field(default_factory=set)
-    _unplaced: list = field(default_factory=list)  # (frame, lat, lon, alt): positions not yet in map metres
 
     def __post_init__(self):
         self.run_dir = None if self.run_dir is None else Path(self.run_dir)
@@ -87,6 +92,7 @@ class RunFollower:
     def _poll(self) -> list[dict]:
         self._discover()
         new: list[dict] = []
+        telemetry: dict[str, list[dict]] = {}  # vehicle -> its positions in this read, drawn together below
         for path, tail in self._tails.items():
             source, vehicle = SOURCES.get(path.name, ""), path.parent.name
             for line_no, line in tail.new_lines():
@@ -98,37 +104,31 @@ class RunFollower:
                 if not isinstance(record, dict) or not _finite(record.get("t_s")):
                     self._problem(f"{path.relative_to(self.run_dir)}:{line_no}: no t_s, skipped")
                     continue
-                frame = self._append(source, vehicle, record)
-                if frame is not None:
-                    new.append(frame)
-        self._place()
+                if source == "agent" and record.get("kind") == "telemetry":
+                    telemetry.setdefault(vehicle, []).append(record)
+                else:
+                    self._keep(self._frame(source, vehicle, record), new)
+        for frame in self._position_frames(list(telemetry.items())):
+            self._keep(frame, new)
         return new
 
     def add(self, source: str, vehicle: str, record: dict) -> dict | None:
         """One record as a file would hold it ("agent" telemetry or events of `vehicle`, "throughput",
         "compute", "network", "experiment"): its frame, appended, or None when it draws nothing. Live sources
         other than files (a MAVLink link, an agent's state feed) come in here too."""
-        frame = self._append(source, vehicle, record)
-        self._place()
-        return frame
+        if not isinstance(record, dict) or not _finite(record.get("t_s")):
+            return None
+        if source == "agent" and record.get("kind") == "telemetry":
+            return next((self._keep(f, []) for f in self._position_frames([(vehicle, [record])])), None)
+        return self._keep(self._frame(source, vehicle, record), [])
 
-    def _append(self, source: str, vehicle: str, record: dict) -> dict | None:
-        frame = self._frame(source, vehicle, record)
+    def _keep(self, frame: dict | None, new: list[dict]) -> dict | None:
         if frame is not None:
             frame["s"] = len(self.records)
             self.records.append(frame)
+            self.record_count += len(frame["t"]) if frame["k"] == "pos" else 1
+            new.append(frame)
         return frame
-
-    def _place(self) -> None:
-        """The positions read since the last call, in map metres: converted together, since a replay's hundred
-        thousand of them one at a time would be most of the time it takes to open."""
-        if not self._unplaced:
-            return
-        frames, lat, lon, alt = zip(*self._unplaced, strict=True)
-        self._unplaced = []
-        enu = np.round(lla_to_enu(np.array(lat), np.array(lon), np.array(alt), self.origin), 2).tolist()
-        for frame, (east, north, up) in zip(frames, enu, strict=True):
-            frame["e"], frame["n"], frame["u"] = east, north, up
 
     def finish(self) -> None:
         """After the run: a last line without its newline will not be completed now."""
@@ -174,8 +174,6 @@ class RunFollower:
         if source == "agent":
             if kind == "agent_started":
                 self.vehicles.setdefault(vehicle, {})["role"] = r.get("role", "?")
-            if kind == "telemetry":
-                return self._position(vehicle, t_s, r)
             if kind in EVENT_KINDS:
                 detail = next((r[k] for k in ("peer", "seq", "value", "text") if r.get(k) is not None), "")
                 return {"k": "ev", "t": t_s, "v": vehicle, "text": f"{vehicle}: {EVENT_KINDS[kind]} {detail}".strip()}
@@ -212,23 +210,58 @@ class RunFollower:
                     "text": f"fault: {r.get('fault')} {r.get('state')} for {r.get('vehicle')}"}
         return None
 
-    def _position(self, vehicle: str, t_s: float, r: dict) -> dict | None:
-        lat, lon, alt = r.get("lat_deg"), r.get("lon_deg"), r.get("alt_m")
-        if not (_finite(lat) and _finite(lon) and _finite(alt)) or not (-90 <= lat <= 90 and -180 <= lon <= 180):
-            return None
+    def _position_frames(self, batches: list[tuple[str, list[dict]]]) -> list[dict]:
+        """A "pos" frame for each (vehicle, telemetry records) batch, t_s already checked: the records with a
+        finite latitude, longitude and altitude on the globe, in map metres. Every batch of a read is converted
+        together: a live poll's one record per vehicle costs what one vehicle's does."""
+        columns = [_position_columns(records) for _, records in batches]
+
+        def joined(key: str) -> np.ndarray:
+            return _floats([value for c in columns for value in c[key]])
+
+        lat, lon, alt = joined("lat_deg"), joined("lon_deg"), joined("alt_m")
+        with np.errstate(invalid="ignore"):
+            placed = np.isfinite(alt) & (np.abs(lat) <= 90.0) & (np.abs(lon) <= 180.0)
+        if not placed.any():
+            return []
         if self.origin is None:
-            rel = r.get("rel_alt_m")
-            self.origin = Home(float(lat), float(lon), float(alt) - (float(rel) if _finite(rel) else 0.0))
-        self._seen_kinds.add("pos")
-        if vehicle not in self.vehicles:
-            self.vehicles[vehicle] = {"role": "?"}
-        boot_ms = r.get("time_boot_ms")
-        frame = {"k": "pos", "t": t_s, "v": vehicle, "e": None, "n": None, "u": None,
-                 "hdg": _num(r.get("yaw_deg")), "mode": r.get("mode"), "armed": r.get("armed"),
-                 "batt": r.get("battery_pct"), "seq": r.get("mission_seq"), "tot": r.get("mission_total"),
-                 "tb": round(boot_ms / 1000.0, 3) if _finite(boot_ms) else None}
-        self._unplaced.append((frame, lat, lon, alt))
-        return frame
+            first = int(np.argmax(placed))
+            rel = [r for _, records in batches for r in records][first].get("rel_alt_m")
+            self.origin = Home(float(lat[first]), float(lon[first]),
+                               float(alt[first]) - (float(rel) if _finite(rel) else 0.0))
+        with np.errstate(invalid="ignore"):
+            enu = np.round(lla_to_enu(lat, lon, alt, self.origin), 2)
+        drawn = {"t": joined("t_s").tolist(), "e": enu[:, 0].tolist(), "n": enu[:, 1].tolist(),
+                 "u": enu[:, 2].tolist(), "hdg": _or_none(np.round(joined("yaw_deg"), 4)),
+                 "tb": _or_none(np.round(joined("time_boot_ms") / 1000.0, 3))}
+        placed_list = placed.tolist()
+        frames, start = [], 0
+        for (vehicle, records), c in zip(batches, columns, strict=True):
+            end = start + len(records)
+            frame = {"k": "pos", "v": vehicle, **{key: values[start:end] for key, values in drawn.items()},
+                     "mode": _texts(c["mode"]), "armed": _bools(c["armed"]), "batt": _numbers(c["battery_pct"]),
+                     "seq": _numbers(c["mission_seq"]), "tot": _numbers(c["mission_total"])}
+            if not all(placed_list[start:end]):
+                keep = [k - start for k in range(start, end) if placed_list[k]]
+                frame = {key: [values[k] for k in keep] if isinstance(values, list) else values
+                         for key, values in frame.items()}
+            start = end
+            if frame["t"]:
+                self._seen_kinds.add("pos")
+                self.vehicles.setdefault(vehicle, {"role": "?"})
+                frames.append(frame)
+        return frames
+
+
+def positions(frames: list[dict]) -> list[dict]:
+    """Every position the "pos" frames hold, one dict each (keys as the columns, plus "v"): what the page draws."""
+    out = []
+    for frame in frames:
+        if frame["k"] == "pos":
+            columns = [key for key in frame if key not in ("k", "v", "s")]
+            out += [{"v": frame["v"], **dict(zip(columns, row, strict=True))}
+                    for row in zip(*(frame[key] for key in columns), strict=True)]
+    return out
 
 
 @contextlib.contextmanager
@@ -257,3 +290,53 @@ def _finite(value) -> bool:
 
 def _num(value) -> float | None:
     return round(float(value), 4) if _finite(value) else None
+
+
+POSITION_KEYS = ("t_s", "lat_deg", "lon_deg", "alt_m", "yaw_deg", "mode", "armed", "battery_pct", "mission_seq",
+                 "mission_total", "time_boot_ms")  # what the agent writes in every telemetry record
+_position_values = operator.itemgetter(*POSITION_KEYS)
+
+
+def _position_columns(records: list[dict]) -> dict[str, list]:
+    """The fields the page draws, as columns: taken whole from each record when it has them all, as the agent
+    writes them, else field by field (None where one is missing)."""
+    try:
+        rows = list(map(_position_values, records))
+    except KeyError:
+        rows = [tuple(r.get(key) for key in POSITION_KEYS) for r in records]
+    return dict(zip(POSITION_KEYS, map(list, zip(*rows, strict=True)), strict=True))
+
+
+# Each column is checked in one pass over its types; only an unusual column is walked value by value.
+def _numbers(values: list) -> list:
+    """Finite numbers as they are, anything else None."""
+    if set(map(type, values)) <= {int, type(None)}:
+        return values
+    return [value if _finite(value) else None for value in values]
+
+
+def _texts(values: list) -> list:
+    """Strings of at most 40 characters (longer ones cut), anything else None."""
+    if set(map(type, values)) <= {str, type(None)} and max(map(len, filter(None, values)), default=0) <= 40:
+        return values
+    return [value[:40] if type(value) is str else None for value in values]
+
+
+def _bools(values: list) -> list:
+    if set(map(type, values)) <= {bool, type(None)}:
+        return values
+    return [value if type(value) is bool else None for value in values]
+
+
+def _floats(values: list) -> np.ndarray:
+    """JSON values as floats: NaN for anything that is not a finite number (a string, a bool, null)."""
+    if set(map(type, values)) <= {float, int}:
+        out = np.array(values, dtype=float)
+    else:
+        out = np.array([value if _finite(value) else math.nan for value in values], dtype=float)
+    out[~np.isfinite(out)] = math.nan  # an integer too large for a float
+    return out
+
+
+def _or_none(values: np.ndarray) -> list:
+    return [None if value != value else value for value in values.tolist()]

@@ -84,7 +84,7 @@ def replay(run_dir: Path, address: str, screenshot_path: Path | None = None, out
     viewer = ViewThread(server, address)
     url = viewer.start()
     missing = server.follower.missing()
-    announce = (f"view: {url} ({'live' if live else f'{len(server.follower.records)} records'}"
+    announce = (f"view: {url} ({'live' if live else f'{server.follower.record_count} records'}"
                 + (f"; missing: {'; '.join(missing)}" if missing and not live else "") + ")")
     then = None
     if screenshot_path is not None:

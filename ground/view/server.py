@@ -104,7 +104,7 @@ class ViewServer:
                                                   "alt_m": f.origin.alt_m}
         return web.json_response({"title": self.title, "live": self.live, "vehicles": f.vehicles, "origin": origin,
                                   "missions": f.missions_m(), "problems": f.problems, "missing": f.missing(),
-                                  "records": len(f.records)})
+                                  "records": f.record_count})
 
     async def _records(self, request: web.Request) -> web.Response:
         after = _after(request)

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ground.view.records import RunFollower
+from ground.view.records import RunFollower, positions
 from ground.view.serve import CHROMIUM_FLAGS, ViewThread, chromium
 from ground.view.server import ViewServer
 from missions import save_mission
@@ -128,8 +128,8 @@ def test_the_live_page_follows_the_simulator_and_the_replay_scrubs_through_the_r
             drawn = {v["id"]: v for v in browser.execute_script(VEHICLES_JS)}
             assert set(drawn) == set(ids)
             for vid in ids:
-                frames = [f for f in follower.records if f["k"] == "pos" and f["v"] == vid and f["t"] <= t0 + offset_s]
-                last = max(frames, key=lambda f: f["t"])
+                held = [p for p in positions(follower.records) if p["v"] == vid and p["t"] <= t0 + offset_s]
+                last = max(held, key=lambda p: p["t"])
                 assert (drawn[vid]["e"], drawn[vid]["n"]) == (last["e"], last["n"]), f"{vid} at +{offset_s} s"
         assert browser.execute_script("return document.getElementById('mode').textContent") == "replay"
     finally:
@@ -168,21 +168,36 @@ def test_a_damaged_run_replays_what_is_there_and_lists_what_is_not(browser, tmp_
 
 
 def test_a_reconnecting_browser_resumes_after_the_last_record_it_had(tmp_path):
-    """The stream as EventSource reconnects: Last-Event-ID names the last record held; nothing before it is
-    sent again, nothing after it is skipped."""
+    """The stream as EventSource reconnects: Last-Event-ID names the last frame held; nothing before it is
+    sent again, nothing after it is skipped. The run is written in three parts, read as they come (a frame per
+    vehicle and part)."""
+    import json
     import urllib.request
 
-    run = write_damaged_run(tmp_path / "run")
+    from tests.unit.test_view_records import telemetry
+
+    run = tmp_path / "run"
+    for vid in ("master", "w1"):
+        (run / vid).mkdir(parents=True)
     viewer = ViewThread(ViewServer(run, live=True), "127.0.0.1:0")
     url = viewer.start()
     try:
-        request = urllib.request.Request(url + "api/stream", headers={"Last-Event-ID": "25"})
+        for part in range(3):
+            for vid in ("master", "w1"):
+                with (run / vid / "agent.jsonl").open("a") as f:
+                    f.write("".join(telemetry(100.0 * part + k, float(k), 0.0) for k in range(5)))
+            deadline = time.monotonic() + 10.0
+            while json.loads(urllib.request.urlopen(url + "api/state", timeout=5).read())["records"] < 10 * (part + 1):
+                assert time.monotonic() < deadline, f"part {part} not read"
+                time.sleep(0.05)
+        request = urllib.request.Request(url + "api/stream", headers={"Last-Event-ID": "3"})
         with urllib.request.urlopen(request, timeout=10) as stream:
             for raw in stream:
                 if raw.startswith(b"data: ["):
-                    batch = __import__("json").loads(raw[6:])
+                    batch = json.loads(raw[6:])
                     break
-        assert [f["s"] for f in batch] == list(range(26, 40)), "records 26 on (of 40), once each"
+        assert [f["s"] for f in batch] == [4, 5], "frames 4 on (of 6), once each"
+        assert sorted({p["t"] for p in positions(batch)}) == [200.0 + k for k in range(5)], "the third part"
     finally:
         viewer.stop()
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ground.view.records import positions
 from missions.geo import Home, enu_to_lla, lla_to_enu
 
 NAC_GROUND = str(Path(sys.executable).parent / "nac-ground")
@@ -46,7 +47,7 @@ def test_vehicles_over_one_link_are_drawn_where_the_simulator_has_them(start_sit
         while True:
             state = json.loads(urllib.request.urlopen(url + "api/state", timeout=5).read())
             frames = json.loads(urllib.request.urlopen(url + "api/records", timeout=5).read())
-            last = {f["v"]: f for f in frames if f["k"] == "pos"}
+            last = {p["v"]: p for p in positions(frames)}
             if set(last) == {"master", "w1"} or time.monotonic() > deadline:
                 break
             time.sleep(0.2)

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from ground.view.records import RunFollower
+from ground.view.records import RunFollower, positions
 from missions.geo import Home, enu_to_lla
 
 ORIGIN = Home(47.397742, 8.545594, 488.0)
@@ -28,14 +28,17 @@ def test_a_live_run_is_read_as_it_is_written_and_damage_is_named(tmp_path):
     frames = follower.poll()
     assert [f["k"] for f in frames] == ["ev", "pos"] and follower.vehicles == {"master": {"role": "master"}}
     assert frames[0]["text"] == "master: agent started"
-    frames = frames[1:]
-    assert frames[0]["e"] == pytest.approx(0.0, abs=0.01) and frames[0]["u"] == pytest.approx(10.0, abs=0.01)
+    first = positions(frames)
+    assert len(first) == 1 and first[0]["v"] == "master" and first[0]["t"] == 2.0
+    assert first[0]["e"] == pytest.approx(0.0, abs=0.01) and first[0]["u"] == pytest.approx(10.0, abs=0.01)
     with agent.open("a") as f:  # the rest of that line, a damaged one, another position
         f.write(telemetry(3.0, 12.0, -5.0)[40:] + "{not json\n" + telemetry(4.0, 20.0, 30.0, mode="RTL"))
     frames = follower.poll()
-    assert [(f["e"], f["n"], f["mode"]) for f in frames] == [(12.0, -5.0, "AUTO"), (20.0, 30.0, "RTL")]
+    assert len(frames) == 1, "one read of a vehicle's file: one batch of positions"
+    assert [(p["e"], p["n"], p["mode"], p["hdg"], p["armed"]) for p in positions(frames)] == \
+        [(12.0, -5.0, "AUTO", 90.0, True), (20.0, 30.0, "RTL", 90.0, True)]
     assert follower.problems == ["master/agent.jsonl:4: not a JSON record, skipped"]
-    assert [f["s"] for f in follower.records] == [0, 1, 2, 3]
+    assert [f["s"] for f in follower.records] == [0, 1, 2] and follower.record_count == 4
     assert follower.missing() == ["throughput probes (throughput.jsonl)", "compute iterations (compute.jsonl)",
                                   "link model capacities (network.jsonl, SITL)"]
 
@@ -68,3 +71,20 @@ def test_probes_iterations_faults_and_missions_become_frames(tmp_path):
     assert follower.missions_m()["master"][0] == pytest.approx([0.0, 50.0], abs=0.05)
     assert follower.problems == ["experiment.json:3: not a JSON record, skipped"], "NaN is not JSON"
     follower.finish()
+
+
+def test_positions_that_are_not_finite_numbers_on_the_globe_are_not_drawn_and_values_are_typed(tmp_path):
+    """Hostile or damaged fields: a position needs finite numbers (not strings, bools, null) within the globe;
+    the rest of a record is passed on only as the type the page expects."""
+    (tmp_path / "w1").mkdir()
+    good = json.loads(telemetry(1.0, 5.0, 5.0))
+    bad_values = [{"lat_deg": "47.4"}, {"lon_deg": True}, {"alt_m": None}, {"lat_deg": 91.0}, {"lon_deg": -181.0}]
+    lines = [json.dumps({**good, "t_s": 2.0 + k, **bad}) for k, bad in enumerate(bad_values)]
+    lines.append(json.dumps({**good, "t_s": 9.0, "mode": "<b>x</b>" * 20, "armed": "yes", "battery_pct": "full",
+                             "mission_seq": 3, "yaw_deg": "east", "time_boot_ms": None}))
+    (tmp_path / "w1" / "agent.jsonl").write_text(telemetry(1.0, 5.0, 5.0) + "\n".join(lines) + "\n")
+    drawn = positions(RunFollower(tmp_path).poll())
+    assert [p["t"] for p in drawn] == [1.0, 9.0]
+    last = drawn[-1]
+    assert (last["mode"], last["armed"], last["batt"], last["seq"], last["hdg"], last["tb"]) == \
+        (("<b>x</b>" * 5), None, None, 3, None, None)

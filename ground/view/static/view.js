@@ -31,18 +31,31 @@ function at(list, t) {  // the last frame at or before t
   }
   return best < 0 ? null : list[best];
 }
+const esc = (text) => String(text).replace(/[&<>"']/g, (c) => "&#" + c.charCodeAt(0) + ";");  // names come from files and links
 function colorOf(id) {
   if (!(id in view.color)) view.color[id] = COLORS[Object.keys(view.color).length % COLORS.length];
   return view.color[id];
 }
 
+const POS_COLUMNS = ["t", "e", "n", "u", "hdg", "mode", "armed", "batt", "seq", "tot", "tb"];
+function ingestPositions(f) {  // a batch of one vehicle's positions, as columns: one object per position
+  const list = (view.pos[f.v] = view.pos[f.v] || []);
+  for (let j = 0; j < f.t.length; j++) {
+    const p = { v: f.v };
+    for (const key of POS_COLUMNS) p[key] = f[key][j];
+    view.t0 = Math.min(view.t0, p.t);
+    view.t1 = Math.max(view.t1, p.t);
+    insertByTime(list, p);
+    grow(p.e, p.n);
+  }
+}
 function ingest(frames) {
   for (const f of frames) {
     view.lastSeq = Math.max(view.lastSeq, f.s);
+    if (f.k === "pos") { ingestPositions(f); continue; }
     view.t0 = Math.min(view.t0, f.t);
     view.t1 = Math.max(view.t1, f.t);
-    if (f.k === "pos") { (view.pos[f.v] = view.pos[f.v] || []); insertByTime(view.pos[f.v], f); grow(f.e, f.n); }
-    else if (f.k === "probe") { const key = f.a + ">" + f.b; (view.probes[key] = view.probes[key] || []); insertByTime(view.probes[key], f); }
+    if (f.k === "probe") { const key = f.a + ">" + f.b; (view.probes[key] = view.probes[key] || []); insertByTime(view.probes[key], f); }
     else if (f.k === "cap") insertByTime(view.caps, f);
     else if (f.k === "it") insertByTime(view.its, f);
     else if (f.k === "ev") insertByTime(view.events, f);
@@ -143,7 +156,7 @@ function drawPanels(t, here) {
   const rows = Object.keys({ ...roles, ...view.pos }).sort().map((vid) => {
     const p = here[vid] || {};
     const total = p.tot;  // MISSION_CURRENT's total, as the agent logged it
-    return `<tr><td style="color:${colorOf(vid)}">${vid}</td><td>${(roles[vid] || {}).role || "?"}</td><td>${p.mode || "-"}</td>` +
+    return `<tr><td style="color:${colorOf(vid)}">${esc(vid)}</td><td>${esc((roles[vid] || {}).role || "?")}</td><td>${esc(p.mode || "-")}</td>` +
            `<td>${p.armed == null ? "-" : p.armed ? "armed" : "disarmed"}</td><td>${p.batt == null ? "-" : p.batt + " %"}</td>` +
            `<td>${p.seq == null ? "-" : p.seq + (total ? "/" + total : "")}</td></tr>`;
   });
@@ -161,7 +174,7 @@ function drawPanels(t, here) {
     points: list.filter((p) => p.t <= t).map((p) => [p.t, p.bps / 1e6]),
   }));
   chart($("tp-chart"), series, t, "Mbit/s");
-  $("tp-legend").innerHTML = series.map((s) => `<span style="color:${s.color}">&#9632; ${s.label}</span>`).join("");
+  $("tp-legend").innerHTML = series.map((s) => `<span style="color:${s.color}">&#9632; ${esc(s.label)}</span>`).join("");
 }
 function chart(canvas, series, t, unit) {
   const ctx = canvas.getContext("2d"), w = canvas.width, h = canvas.height;
@@ -226,7 +239,7 @@ view.seek = seek;
 function showNotes(info) {
   const notes = [...info.missing.map((m) => "missing: " + m), ...info.problems];
   $("notes-summary").textContent = notes.length ? `${notes.length} thing(s) missing or damaged` : "nothing missing";
-  $("notes-list").innerHTML = notes.map((n) => `<li>${n.replace(/</g, "&lt;")}</li>`).join("");
+  $("notes-list").innerHTML = notes.map((n) => `<li>${esc(n)}</li>`).join("");
 }
 
 async function start() {
