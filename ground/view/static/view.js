@@ -37,12 +37,11 @@ function colorOf(id) {
   return view.color[id];
 }
 
-const POS_COLUMNS = ["t", "e", "n", "u", "hdg", "mode", "armed", "batt", "seq", "tot", "tb"];
 function ingestPositions(f) {  // a batch of one vehicle's positions, as columns: one object per position
   const list = (view.pos[f.v] = view.pos[f.v] || []);
   for (let j = 0; j < f.t.length; j++) {
-    const p = { v: f.v };
-    for (const key of POS_COLUMNS) p[key] = f[key][j];
+    const p = { v: f.v, t: f.t[j], e: f.e[j], n: f.n[j], u: f.u[j], hdg: f.hdg[j], mode: f.mode[j], armed: f.armed[j],
+                batt: f.batt[j], seq: f.seq[j], tot: f.tot[j], tb: f.tb[j] };
     view.t0 = Math.min(view.t0, p.t);
     view.t1 = Math.max(view.t1, p.t);
     insertByTime(list, p);
