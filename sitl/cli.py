@@ -88,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="serve the live page while the run goes on (default 127.0.0.1:8765; another address "
                           "only when given) and save its screenshot as RUN_DIR/view.png")
     exp.add_argument("-v", "--verbose", action="store_true")
-    radio = sub.add_parser("radio", help="a channel's throughput against distance: median, 95 % band, MCS, range")
+    radio = sub.add_parser("radio", help="a channel's throughput against distance: median, 95 %% band, MCS, range")
     radio.add_argument("channel", help="preset (paper-sim, wifi-flight, wifi-open-field) or channel TOML")
     radio.add_argument("--distances-m", default="1,2,5,8,10,12,15,18,20,22,25,28,30",
                        help="comma-separated distances (m)")
