@@ -173,7 +173,6 @@ def run(args: argparse.Namespace, out=None) -> int:
 
 def _run_vehicle_command(args: argparse.Namespace, out) -> int:
     from ground.operator import commands as ops
-    from missions import load_mission
     from nac_onboard.mavlink.client import MavlinkClient
     from nac_onboard.mavlink.dialect import COPTER_MODES
     from nac_onboard.mavlink.signing import load_signing_key, state_path
@@ -186,7 +185,7 @@ def _run_vehicle_command(args: argparse.Namespace, out) -> int:
         ops.mission_convert(args.source, args.target, out)
         return 0
     # Everything that can be refused offline is checked before any link opens: bad input sends nothing.
-    mission = load_mission(args.file) if key == ("mission", "upload") else None
+    mission = ops.load_for_flight(args.file) if key == ("mission", "upload") else None
     if args.command == "mode" and args.name.upper() not in COPTER_MODES:
         raise BadInput(f"unknown mode {args.name!r}; known: {', '.join(sorted(COPTER_MODES))}")
     signing_key = load_signing_key(args.signing_key_file) if args.signing_key_file else None

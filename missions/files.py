@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from missions.dialect import MODEL_CATALOGUE, CommandCatalogue
 from missions.errors import MissionFileError
 from missions.model import Mission
 from missions.plan import loads_plan, read_text, write_plan
@@ -26,11 +27,11 @@ def loads_mission(text: str, source: str = "<mission>") -> Mission:
                                              f"(JSON object) or a {HEADER!r} waypoint file")
 
 
-def load_mission(path: str | Path, flight: bool = True) -> Mission:
-    """Read and validate a mission file (for flight, or only as a file: validate's `flight`); MissionFileError
-    names the file, the item or line, and the problem."""
+def load_mission(path: str | Path, flight: bool = True, *, catalogue: CommandCatalogue = MODEL_CATALOGUE) -> Mission:
+    """Read and validate a mission file (for flight, or only as a file: validate's `flight` and `catalogue`, the
+    commands it may hold); MissionFileError names the file, the item or line, and the problem."""
     mission = loads_mission(read_text(path), str(path))
-    validate(mission, str(path), flight)
+    validate(mission, str(path), flight, catalogue=catalogue)
     return mission
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 
-from missions.dialect import dialect_commands, dialect_name, known_command
+from missions.dialect import MODEL_CATALOGUE, CommandCatalogue, DialectCommand
 from missions.errors import MissionFileError
 from missions.model import (
     FENCE_COMMANDS,
@@ -68,10 +68,13 @@ def _fmt(x: float) -> str:
     return "NaN" if math.isnan(x) else f"{x:g}" if abs(x) >= 1e6 else str(x)
 
 
-def validate(mission: Mission, source: str = "<mission>", flight: bool = True) -> None:
+def validate(mission: Mission, source: str = "<mission>", flight: bool = True, *,
+             catalogue: CommandCatalogue = MODEL_CATALOGUE) -> None:
     """Raise MissionFileError (`source: item ...: reason`) at the first problem; return None when fit to fly.
     With flight=False only what any file must hold is checked (numbering, values MAVLink can carry), as a
-    converter needs: a home-only file, or frames and commands this SITL does not fly, still convert."""
+    converter needs: a home-only file, or frames and commands this SITL does not fly, still convert.
+    `catalogue` is the commands a mission may hold (missions.dialect): NAC's commands pass the MAVLink dialect's,
+    nac_onboard.mavlink.dialect.mission_catalogue(); the default knows only the commands missions.model names."""
     def fail(mission_type: int, seq: int, reason: str) -> None:
         raise MissionFileError(source, mission.where(mission_type, seq), reason)
 
@@ -95,7 +98,8 @@ def validate(mission: Mission, source: str = "<mission>", flight: bool = True) -
                                       f"({MissionType(mission_type).name})")
             reason = _wire_problem(item)
             if flight and not reason:
-                reason = _altitude_left_to_qgc(mission, item) or _item_problem(item, mission_type, len(mission.items))
+                reason = (_altitude_left_to_qgc(mission, item)
+                          or _item_problem(item, mission_type, len(mission.items), catalogue))
             if reason:
                 fail(mission_type, k, reason)
     if flight:
@@ -125,19 +129,20 @@ def _check_home(mission: Mission, fail) -> None:
         fail(MissionType.MISSION, 0, f"home altitude {_fmt(h.alt_m)} m AMSL is outside {lo:g}..{hi:g} m")
 
 
-def _item_problem(item: MissionItem, mission_type: int, n_items: int) -> str | None:
+def _item_problem(item: MissionItem, mission_type: int, n_items: int, catalogue: CommandCatalogue) -> str | None:
     cmd = item.command
-    if not known_command(cmd):
+    if not catalogue.known(cmd):
         return (f"unknown command {cmd}: neither MAVLink's common nor its ardupilotmega dialect defines it "
                 f"(e.g. 16 NAV_WAYPOINT, 22 NAV_TAKEOFF, 21 NAV_LAND, 178 DO_CHANGE_SPEED)")
-    name = dialect_name(cmd)
+    name = catalogue.name(cmd)
     if mission_type == MissionType.MISSION and cmd in FENCE_COMMANDS | RALLY_COMMANDS:
         return f"{name} ({cmd}) is a fence/rally command; it belongs in the geofence or rally points, not the mission"
     if mission_type == MissionType.FENCE and cmd not in FENCE_COMMANDS:
         return f"{name} ({cmd}) in the fence; expected a fence command (5000-5004)"
     if mission_type == MissionType.RALLY and cmd not in RALLY_COMMANDS:
         return f"{name} ({cmd}) in the rally points; expected NAV_RALLY_POINT (5100)"
-    has_position = cmd in POSITION_COMMANDS or _navigates_to_location(cmd)
+    entry = catalogue.entry(cmd)
+    has_position = cmd in POSITION_COMMANDS or _navigates_to_location(cmd, entry)
     frames = POSITION_FRAMES if has_position else NON_POSITION_FRAMES
     if item.frame not in frames:
         allowed = ", ".join(f"{int(f)} {f.name}" for f in sorted(frames))
@@ -147,7 +152,7 @@ def _item_problem(item: MissionItem, mission_type: int, n_items: int) -> str | N
         problem = _position_problem(item, name)
         if problem:
             return problem
-    elif cmd in dialect_commands() and dialect_commands()[cmd].has_location:
+    elif entry is not None and entry.has_location:
         problem = _location_range_problem(item)  # a DO_ command's optional place (0, 0 or NaN: "here" or unset)
         if problem:
             return problem
@@ -193,9 +198,8 @@ def _altitude_left_to_qgc(mission: Mission, item: MissionItem) -> str | None:
             f"(nac-ground mission download), or set the item to a relative or AMSL altitude in QGroundControl")
 
 
-def _navigates_to_location(command: int) -> bool:
+def _navigates_to_location(command: int, entry: DialectCommand | None) -> bool:
     """A NAV_ command the dialect gives a position: its x/y/z get the same checks as a waypoint's."""
-    entry = dialect_commands().get(command)
     return entry is not None and entry.has_location and entry.name.startswith("NAV_") and command < 5000
 
 

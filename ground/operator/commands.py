@@ -12,7 +12,7 @@ from ground.operator.table import render
 from missions import convert_mission, load_mission, save_mission
 from missions.model import MavCmd, Mission, MissionType
 from nac_onboard.mavlink.client import LinkError, MavlinkClient
-from nac_onboard.mavlink.dialect import COPTER_MODES, M
+from nac_onboard.mavlink.dialect import COPTER_MODES, M, mission_catalogue
 from nac_onboard.mavlink.mission_transfer import MissionError
 
 
@@ -106,8 +106,14 @@ def mission_clear(client: MavlinkClient, out) -> None:
     print(f"vehicle {client.sysid}: mission cleared", file=out)
 
 
+def load_for_flight(path: str) -> Mission:
+    """Read a mission file and check it flies, any command of the MAVLink dialect allowed; MissionFileError names
+    the file, the item and the problem."""
+    return load_mission(path, catalogue=mission_catalogue())
+
+
 def mission_validate(path: str, out) -> Mission:
-    mission = load_mission(path)  # validates; raises MissionFileError naming file and item
+    mission = load_for_flight(path)
     print(f"{path}: valid, {len(mission.items)} mission items, {len(mission.fence)} fence items, "
           f"{len(mission.rally)} rally points", file=out)
     return mission

@@ -13,6 +13,8 @@
 
 A vehicle's home is its mission's planned home (so the plan and the simulator cannot disagree); a vehicle without
 a mission gives `home = [lat, lon, alt_m]` and stays on the ground. Paths are relative to the scenario file.
+[channel] is resolved here, once: its preset or file with the table's overrides becomes the scenario's one
+radio model (Scenario.channel), which the runner writes to the run directory for every process of the run.
 """
 
 from __future__ import annotations
@@ -26,7 +28,9 @@ from missions.geo import Home
 from missions.model import Mission
 from nac_onboard.compute.tasks import all_tasks
 from nac_onboard.errors import BadInput
-from nac_onboard.link.channel import ChannelError, ChannelModel, load_channel
+from nac_onboard.mavlink.dialect import mission_catalogue
+from nac_onboard.radio.channel import ChannelError, ChannelModel
+from nac_onboard.radio.files import load_channel
 from nac_onboard.tomlfile import get_value, read_toml, to_dataclass
 from sitl.experiment.faults import Fault, FaultKind
 from sitl.vehicle.params import PARAMS_BY_NAME
@@ -78,10 +82,9 @@ class Scenario:
     description: str
     duration_s: float
     vehicles: tuple[VehiclePlan, ...]
-    channel: str  # preset name or absolute path
+    channel: ChannelModel  # the radio between vehicles: [channel]'s preset or file, the table's overrides applied
     compute: ComputePlan | None
     throughput: ProbePlan | None
-    radio: ChannelModel | None = None  # the channel with the scenario's overrides (None: `channel` as it is)
     faults: tuple[Fault, ...] = ()
     network: NetworkPlan = NetworkPlan()
     max_speedup: float = 1.0
@@ -125,23 +128,11 @@ def load_scenario(name_or_path: str) -> Scenario:
     ids = [v.id for v in vehicles]
     if len(set(ids)) != len(ids):
         raise ScenarioError(f"{where}: vehicle ids must be unique, got {ids}")
-    channel_table = dict(data.get("channel", {}))
-    channel = get_value(channel_table, "preset", "str", f"{where}: [channel]", ScenarioError, "paper-sim")
-    channel_table.pop("preset", None)
-    relative = path.parent / channel
-    channel = str(relative) if relative.suffix == ".toml" else channel
-    try:
-        radio = load_channel(channel)
-        if channel_table:  # the preset's fields with the scenario's on top, checked as a channel file is
-            radio = to_dataclass(ChannelModel, {**dataclasses.asdict(radio), **channel_table},
-                                 f"{where}: [channel]", ScenarioError)
-    except ChannelError as err:
-        raise ScenarioError(f"{where}: [channel] {err}") from None
     speedup = data.get("max_speedup", 1.0)
     scenario = Scenario(
         name=get_value(data, "name", "str", where, ScenarioError, path.stem), path=path,
         description=data.get("description", ""),
-        duration_s=duration_s, vehicles=vehicles, channel=channel, radio=radio,
+        duration_s=duration_s, vehicles=vehicles, channel=_channel(data.get("channel", {}), path, where),
         compute=_compute(data["compute"], f"{where}: [compute]") if "compute" in data else None,
         throughput=_probes(data["throughput"], f"{where}: [throughput]") if "throughput" in data else None,
         faults=tuple(_fault(f, ids, f"{where}: fault {k + 1}") for k, f in enumerate(data.get("fault", []))),
@@ -175,6 +166,24 @@ def _params(table: dict, where: str) -> tuple[tuple[str, float], ...]:
     return tuple(out)
 
 
+def _channel(table: dict, scenario_path: Path, where: str) -> ChannelModel:
+    """[channel]: `preset` (a name, or a channel TOML relative to the scenario; paper-sim by default), any other
+    key a ChannelModel field overriding the preset's, checked as a channel file is."""
+    overrides = dict(table)
+    source = get_value(overrides, "preset", "str", f"{where}: [channel]", ScenarioError, "paper-sim")
+    overrides.pop("preset", None)
+    relative = scenario_path.parent / source
+    source = str(relative) if relative.suffix == ".toml" else source
+    try:
+        channel = load_channel(source)
+        if overrides:
+            channel = to_dataclass(ChannelModel, {**dataclasses.asdict(channel), **overrides},
+                                   f"{where}: [channel]", ScenarioError)
+    except ChannelError as err:
+        raise ScenarioError(f"{where}: [channel] {err}") from None
+    return channel
+
+
 def _vehicle(table: dict, scenario_path: Path, where: str) -> VehiclePlan:
     vehicle_id = get_value(table, "id", "str", where, ScenarioError)
     role = get_value(table, "role", "str", where, ScenarioError)
@@ -183,7 +192,7 @@ def _vehicle(table: dict, scenario_path: Path, where: str) -> VehiclePlan:
     if "mission" in table:
         mission_path = scenario_path.parent / get_value(table, "mission", "str", where, ScenarioError)
         try:
-            mission = load_mission(mission_path)
+            mission = load_mission(mission_path, catalogue=mission_catalogue())
         except MissionFileError as err:
             raise ScenarioError(f"{where} ({vehicle_id}): {err}") from None
         if mission.home is None:

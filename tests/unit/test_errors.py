@@ -1,6 +1,7 @@
 """CLIs turn the one error base into exit codes, and show a bug as a bug."""
 
-from nac_onboard.errors import BadInput, OperationFailed, run_cli
+from missions.errors import MissionFileError
+from nac_onboard.errors import EXIT_BAD_INPUT, BadInput, OperationFailed, exit_code_of, run_cli
 
 
 def _raise(error):
@@ -15,6 +16,15 @@ def test_operator_errors_become_their_exit_codes(capsys):
     assert run_cli("nac-x", lambda: 0) == 0
     err = capsys.readouterr().err
     assert "nac-x: plan.plan: item 3" in err and "Traceback" not in err
+
+
+def test_the_mission_librarys_own_error_is_bad_input(capsys):
+    """missions imports the standard library only, so its error is not a NacError: the CLIs still exit 2 with it."""
+    err = MissionFileError("x.plan", "item 4 (doJumpId 4)", "latitude 95.0 is outside -90..90")
+    assert exit_code_of(err) == MissionFileError.exit_code == EXIT_BAD_INPUT and isinstance(err, ValueError)
+    assert run_cli("nac-x", _raise(err)) == 2
+    assert capsys.readouterr().err == "nac-x: x.plan: item 4 (doJumpId 4): latitude 95.0 is outside -90..90\n"
+    assert exit_code_of(RuntimeError("bug")) is None
 
 
 def test_a_programming_error_is_a_traceback_asking_to_be_reported(capsys):

@@ -1,28 +1,36 @@
 """The layout holds: no import cycles between modules, and imports point down the layers of DESIGN.md section 1."""
 
 import ast
+import sys
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 PACKAGES = ("missions", "nac_onboard", "sitl", "ground")
-#: the one error base: every layer may raise its kinds, so it imports nothing of the project itself
-SHARED_LEAVES = {"nac_onboard.errors"}
+#: the error bases every layer may raise (NAC's, and the mission library's own, which the CLIs map to exit 2): they
+#: import nothing of the project but each other's leaf.
+SHARED_LEAVES = {"nac_onboard.errors": {"missions.errors"}, "missions.errors": set()}
+#: package -> what it may import besides the standard library and itself (not even a shared leaf of another package)
+SELF_CONTAINED = {"missions": {"missions.geo": ("numpy",)}}
 
 #: module prefix -> prefixes it must never import (a layer above it, or I/O a pure core must not do).
 FORBIDDEN = {
     "missions": ("nac_onboard", "sitl", "ground", "pymavlink", "socket"),
     "nac_onboard": ("sitl", "ground"),
     "nac_onboard.compute.kernels": ("mpi4py", "socket", "nac_onboard.mavlink", "nac_onboard.agent"),
-    "nac_onboard.link.channel": ("socket", "nac_onboard.mavlink", "nac_onboard.agent", "nac_onboard.compute"),
-    "nac_onboard.mavlink": ("nac_onboard.agent", "nac_onboard.compute", "nac_onboard.link"),
+    # the radio between vehicles is pure: no sockets, processes, clocks or sleeping, nothing above it
+    "nac_onboard.radio": ("socket", "selectors", "subprocess", "threading", "time", "nac_onboard.clock",
+                          "nac_onboard.agent", "nac_onboard.compute", "nac_onboard.mavlink", "nac_onboard.link",
+                          "pymavlink", "mpi4py"),
+    "nac_onboard.mavlink": ("nac_onboard.agent", "nac_onboard.compute", "nac_onboard.link", "nac_onboard.radio"),
     "nac_onboard.link": ("nac_onboard.agent", "nac_onboard.compute", "nac_onboard.mavlink"),
     "nac_onboard.agent": ("nac_onboard.compute",),
     "sitl.vehicle": ("sitl.mavlink", "sitl.server", "sitl.experiment", "pymavlink", "socket", "nac_onboard",
                      "ground"),
     "sitl.mavlink": ("sitl.server", "sitl.experiment", "socket", "ground"),
     "sitl.server": ("sitl.experiment", "ground"),
+    "sitl.telemetry_radio": ("socket", "pymavlink", "sitl.server", "sitl.experiment", "nac_onboard.link", "ground"),
     "ground.logs": ("ground.operator", "sitl"),
     "ground.operator": ("ground.logs", "sitl"),
 }
@@ -98,10 +106,36 @@ def test_imports_point_down_the_layers(graph):
     for name, deps in graph.items():
         for prefix, banned in FORBIDDEN.items():
             if name == prefix or name.startswith(prefix + "."):
-                wrong += [f"{name} imports {dep}" for dep in deps - SHARED_LEAVES for b in banned
+                wrong += [f"{name} imports {dep}" for dep in deps - set(SHARED_LEAVES) for b in banned
                           if dep == b or dep.startswith(b + ".")]
-    for leaf in SHARED_LEAVES:
-        wrong += [f"{leaf} imports {dep}" for dep in graph[leaf] if dep.split(".")[0] in PACKAGES]
+    for leaf, allowed in SHARED_LEAVES.items():
+        wrong += [f"{leaf} imports {dep}" for dep in graph[leaf] - allowed if dep.split(".")[0] in PACKAGES]
+    assert not wrong, "\n".join(sorted(wrong))
+
+
+def test_self_contained_packages_import_the_standard_library_only(graph):
+    """missions is a library of its own: the standard library (numpy for its geodesy), nothing of NAC's, not even
+    its error base (its MissionFileError is its own, mapped to exit 2 by nac_onboard.errors.run_cli)."""
+    wrong = []
+    for package, extra in SELF_CONTAINED.items():
+        for name, deps in graph.items():
+            if name != package and not name.startswith(package + "."):
+                continue
+            allowed = {package, *sys.stdlib_module_names, *extra.get(name, ())}
+            wrong += [f"{name} imports {dep}" for dep in deps if dep.split(".")[0] not in allowed]
+    assert not wrong, "\n".join(sorted(wrong))
+
+
+#: the radio package's one edge: the only module of nac_onboard.radio that reads or writes files
+RADIO_EDGE = "nac_onboard.radio.files"
+FILE_IO = ("os", "io", "json", "tomllib", "tomli", "pathlib", "shutil", "nac_onboard.tomlfile")
+
+
+def test_the_radio_touches_files_only_at_its_edge(graph):
+    radio = [name for name in graph if name.startswith("nac_onboard.radio.")]
+    assert RADIO_EDGE in radio and len(radio) > 1
+    wrong = [f"{name} imports {dep}" for name in radio if name != RADIO_EDGE for dep in graph[name]
+             for banned in FILE_IO if dep == banned or dep.startswith(banned + ".")]
     assert not wrong, "\n".join(sorted(wrong))
 
 

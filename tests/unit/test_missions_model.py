@@ -147,3 +147,24 @@ def test_error_carries_source_where_reason():
     assert (err.source, err.where, err.reason) == ("a.plan", "item 2 (doJumpId 2)", "latitude 95.0 is outside -90..90")
     assert str(err) == "a.plan: item 2 (doJumpId 2): latitude 95.0 is outside -90..90"
     assert str(MissionFileError("a.plan", "", "cannot read")) == "a.plan: cannot read"
+
+
+def test_the_command_catalogue_is_an_argument_not_an_import_side_effect():
+    """Commands beyond missions.model's are the caller's catalogue's: importing the MAVLink adapter registers
+    nothing, so a mission validates the same whatever was imported before."""
+    from missions.dialect import MODEL_CATALOGUE, CommandCatalogue, DialectCommand
+    from nac_onboard.mavlink.dialect import mission_catalogue
+
+    aux = flyable(wp(command=218, frame=Frame.MISSION, lat_deg=0.0, lon_deg=0.0, p1=1.0))  # DO_AUX_FUNCTION
+    assert "unknown command 218: neither MAVLink's common nor its ardupilotmega dialect" in problem(aux)
+    validate(aux, "m.plan", catalogue=mission_catalogue())
+    assert mission_catalogue().name(218) == "DO_AUX_FUNCTION" and MODEL_CATALOGUE.name(218) == "command 218"
+    assert mission_catalogue().name(16) == MODEL_CATALOGUE.name(16) == "NAV_WAYPOINT"
+
+    mine = CommandCatalogue({4321: DialectCommand("NAV_TEST", has_location=True)})
+    with pytest.raises(MissionFileError, match="item 2: latitude 95.0 is outside -90..90"):
+        validate(flyable(wp(command=4321, lat_deg=95.0)), "m.plan", catalogue=mine)
+    with pytest.raises(MissionFileError, match=r"NAV_TEST has frame 2 \(MISSION\), which is not flown here"):
+        validate(flyable(wp(command=4321, frame=Frame.MISSION)), "m.plan", catalogue=mine)
+    with pytest.raises(TypeError):
+        mine.commands[1] = DialectCommand("X", False)  # a catalogue is read-only once made
