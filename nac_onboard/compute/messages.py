@@ -24,7 +24,7 @@ def work_header(kind: float, iteration: float = 0.0, rate_bps: float = 0.0, extr
                 loss: float = 0.0) -> tuple[float, ...]:
     return (kind, iteration, rate_bps, extra_rows, loss)
 
-# worker -> master: [iteration, compute_s, up_s, rows, sse | result...]
+# worker -> master: [iteration, compute_s, up_s, rows, sse | result...] (rows, sse, result: the task's Answer)
 RESULT_ITERATION, RESULT_COMPUTE_S, RESULT_UP_S, RESULT_ROWS, RESULT_SSE = 0, 1, 2, 3, 4
 RESULT_HEADER = 5
 WARMUP_ANSWER = (-1.0, 0.0, 0.0, 0.0, 0.0)

@@ -2,17 +2,19 @@
 
     mpiexec -n N+1 -bind-to core python -m mpi4py -m nac_onboard.compute --task matmul|linreg [options]
 
-Each iteration the master sends every worker in range its input (B for matmul, the weights for linreg), waits
-for the results until --timeout-s, and combines what arrived. With --emulate sleep (the research's method) the
-master sleeps I/C before each send and tells the worker the link's capacity C, so the worker sleeps before its
-answer too; C comes from the channel model at the two vehicles' distance, and below the model's minimum rate
-the worker is out of range: nothing is sent. A worker that misses an iteration is absent for it (linreg carries
-on with the gradients that arrived, weighted by shard size; matmul re-assigns the missing rows to live workers or
-marks the iteration incomplete, --on-missing) and takes part again as soon as it answers. A worker that misses
-UNRESPONSIVE_AFTER iterations in a row (out of range, stopped, or dead) is no longer waited for and is pinged
-until it answers; a worker process that dies leaves the others training (MPI errors are returned, not fatal, and
-sends give up at their deadline; launch.py starts the job so that hydra does not kill the rest). A master that
-raises aborts the job (exit code != 0): its records, one line each, and its last checkpoint are on disk by then.
+Each iteration the master sends every worker in range its input (B for matmul, the weights for linreg), waits for
+the results until --timeout-s, and combines what arrived. The task (task.py) gives only the input, the work, the
+combination and what to send again for blocks that did not arrive; this module does all the sending, waiting and
+bookkeeping. With --emulate sleep (the research's method) the master sleeps I/C before each send and tells the
+worker the link's capacity C, so the worker sleeps before its answer too; C comes from the channel model at the two
+vehicles' distance, and below the model's minimum rate the worker is out of range: nothing is sent. A worker that
+misses an iteration is absent for it (linreg carries on with the gradients that arrived, weighted by shard size;
+matmul re-assigns the missing rows to live workers or marks the iteration incomplete, --on-missing) and takes part
+again as soon as it answers. A worker that misses UNRESPONSIVE_AFTER iterations in a row (out of range, stopped, or
+dead) is no longer waited for and is pinged until it answers; a worker process that dies leaves the others training
+(MPI errors are returned, not fatal, and sends give up at their deadline; launch.py starts the job so that hydra
+does not kill the rest). A master that raises aborts the job (exit code != 0): its records, one line each, and its
+last checkpoint are on disk by then.
 
 Records (JSON Lines, --out DIR/compute.jsonl): run_started, one `iteration` record per iteration, run_summary.
 """
@@ -41,6 +43,8 @@ from nac_onboard.compute.messages import (
     RESULT_COMPUTE_S,
     RESULT_HEADER,
     RESULT_ITERATION,
+    RESULT_ROWS,
+    RESULT_SSE,
     RESULT_UP_S,
     TAG_RESULT,
     TAG_WORK,
@@ -51,7 +55,7 @@ from nac_onboard.compute.messages import (
 )
 from nac_onboard.compute.messages import message as message_buffer
 from nac_onboard.compute.options import ComputeOptions, build_source, parse_args
-from nac_onboard.compute.task import Task
+from nac_onboard.compute.task import Answer, Extra, Task
 from nac_onboard.errors import NacError
 from nac_onboard.flight_log import JsonlLog
 from nac_onboard.link.emulation import SleepEmulation
@@ -141,9 +145,10 @@ def run_worker(comm, mpi, options: ComputeOptions) -> bool:
     rank = comm.Get_rank()
     bounds = comm.bcast(None, root=0)
     task = options.task_class(options)
-    task.take_block(*bounds[rank - 1])
+    task.split(bounds)
+    task.take_block(rank)
     pad = pad_floats(options.pad_bits)
-    inbox = Inbox(comm, mpi, [0], TAG_WORK, WORK_HEADER + task.largest_input(bounds), pad)
+    inbox = Inbox(comm, mpi, [0], TAG_WORK, WORK_HEADER + task.largest_input(), pad)
     emulation = SleepEmulation(options.channel, options.clock)
     warmup_answer = message_buffer(WARMUP_ANSWER, 0, pad)
     answers = {}  # reused answer buffers by result size: no allocation per iteration
@@ -160,7 +165,7 @@ def run_worker(comm, mpi, options: ComputeOptions) -> bool:
             comm.Send([warmup_answer, mpi.DOUBLE], dest=0, tag=TAG_RESULT)
             continue
         t0 = time.perf_counter()
-        result, rows, sse = task.work(kind == KIND_EXTRA, message[WORK_HEADER:], int(extra_rows))
+        result, rows, sse = task.work(message[WORK_HEADER:], int(extra_rows) if kind == KIND_EXTRA else None)
         compute_s = time.perf_counter() - t0
         up_s = emulation.delay(result.size * BITS_PER_FLOAT, rate_bps, loss)
         answer = answers.get(result.size)
@@ -334,20 +339,49 @@ class Master:
         for rank in ranks:
             message = self.send(rank, KIND_WORK, iteration, payload, links, message=message)
 
-    def send_extra(self, rank: int, iteration: int, payload: np.ndarray, extra_rows: int,
-                   links: IterationLinks) -> None:
-        self.send(rank, KIND_EXTRA, iteration, payload, links, extra_rows=extra_rows)
-
     def deadline(self, t_start: float, timeouts: int = 1) -> float:
         """The monotonic time at which `timeouts` x --timeout-s (simulated seconds) have passed since t_start, not
         counting the time spent on sends that missed their deadline: that is not the other workers' lateness."""
         return t_start + self.clock.wall_s(timeouts * self.options.timeout_s) + self._stalled_s
 
-    def receive_from(self, rank: int, deadline: float) -> np.ndarray | None:
-        return self.inbox.receive(deadline, source=rank)[1]
+    def iterate(self, iteration: int, present: list[int], links: IterationLinks, t_start: float) -> dict:
+        """One iteration of Algorithm 1: the task's input to the present workers, their answers until the deadline,
+        the task's plan for the blocks that did not arrive, and the task's combination; the record's task fields."""
+        task = self.task
+        payload = task.next_input(iteration)
+        self.send_all(present, iteration, payload, links)
+        self.write_pending()
+        answers = self.collect(iteration, set(present), links, self.deadline(t_start))
+        record = {}
+        missing = [r for r in self.workers if r not in answers]
+        plan = task.plan_missing(iteration, payload, missing, [r for r in self.workers if r in answers]) \
+            if missing else []
+        if plan:
+            record["reassigned"] = self.send_again(iteration, plan, answers, links, self.deadline(t_start, 2))
+        record.update(task.combine(iteration, payload, answers))
+        return record
+
+    def send_again(self, iteration: int, plan: list[Extra], answers: dict[int, Answer], links: IterationLinks,
+                   deadline: float) -> list[dict]:
+        """Send the planned blocks, then take each one's answer from its worker (which answers in order) into
+        `answers`; what came back, as the record's `reassigned`."""
+        by_worker: dict[int, list[Extra]] = {}
+        for extra in plan:
+            self.send(extra.by, KIND_EXTRA, iteration, extra.payload, links, extra_rows=extra.rows)
+            by_worker.setdefault(extra.by, []).append(extra)
+        done = []
+        for rank, extras in by_worker.items():
+            for extra in extras:
+                buf = self.inbox.receive(deadline, source=rank)[1]
+                if buf is not None and int(buf[RESULT_ITERATION]) == iteration:
+                    answers[extra.rows_of] = answer_of(buf)
+                    done.append({"rows_of": extra.rows_of, "by": rank})
+        return done
 
     def collect(self, iteration: int, waiting: set[int], links: IterationLinks,
-                deadline: float) -> dict[int, np.ndarray]:
+                deadline: float) -> dict[int, Answer]:
+        """Each waited-for worker's answer to this iteration, in arrival order, until the deadline; the others are
+        absent ("timeout")."""
         results, waited = {}, set(waiting)
         while waiting:
             rank, buf = self.inbox.receive(deadline)
@@ -362,7 +396,7 @@ class Master:
             k = rank - 1
             links.compute_s[k], links.up_s[k] = float(buf[RESULT_COMPUTE_S]), float(buf[RESULT_UP_S])
             links.bytes_up[k] += buf.nbytes
-            results[rank] = buf
+            results[rank] = answer_of(buf)
         for rank in waiting:
             links.absent[rank - 1] = "timeout"
         self._note_answers(iteration, waited, set(results))
@@ -372,8 +406,9 @@ class Master:
         o, task = self.options, self.task
         self.bounds = self.allocation(task.rows())
         self.comm.bcast(self.bounds, root=0)
-        self.inbox = Inbox(self.comm, self.mpi, self.workers, TAG_RESULT,
-                           RESULT_HEADER + task.largest_result(self.bounds), self.pad)
+        task.split(self.bounds)
+        self.inbox = Inbox(self.comm, self.mpi, self.workers, TAG_RESULT, RESULT_HEADER + task.largest_result(),
+                           self.pad)
         warmup_s = self.warm_up(task.input_floats())
         emulating = self.emulation is not None
         self.log.write("run_started", warmup_s=warmup_s, task=task.name, workers=len(self.workers),
@@ -407,7 +442,7 @@ class Master:
             else:  # nobody reachable: wait, longer each time, instead of spinning through empty iterations
                 idle_s = min(max(2 * idle_s, IDLE_FIRST_S), IDLE_MAX_S)
                 time.sleep(idle_s)
-            record = task.iterate(self, iteration, present, links, t_start)
+            record = self.iterate(iteration, present, links, t_start)
             self.pending = (iteration, start_unix, time.monotonic() - t_start, start_sim, self.clock.now_s(), links,
                             record)
             iteration += 1
@@ -506,6 +541,11 @@ class Master:
             if self.inbox.receive(deadline, source=rank)[0] is None:
                 raise TimeoutError(f"worker {rank} did not answer the warm-up within {self.options.timeout_s:g} s")
         return time.monotonic() - t0
+
+
+def answer_of(buf: np.ndarray) -> Answer:
+    """A worker's answer as its task's `work` returned it (the result message without its header)."""
+    return Answer(buf[RESULT_HEADER:], int(buf[RESULT_ROWS]), float(buf[RESULT_SSE]))
 
 
 def read_start_file(path: str) -> float | None:

@@ -1,38 +1,35 @@
-"""The Task interface of the MPI job: one module per task in nac_onboard/compute/tasks/ implements it, and the
-runner (master and workers, sends, deadlines, absences, records) works for any of them.
+"""The Task contract of the MPI job. A task is one module in nac_onboard/compute/tasks/ (found there by name, the
+--task value) and touches no MPI: the runner owns sending, deadlines, absences, retries and collecting.
 
-A task splits `rows()` rows among the workers (contiguous blocks, `bounds`). Each iteration the master sends
-every present worker the same input (`next_input`), each worker answers with `work()` on its block, and the
-task's `iterate` combines what arrived (it may send more, as matmul's re-assignment does).
+The runner splits `rows()` into one block per worker (`split(bounds)` on every rank; worker rank r holds block
+r - 1, `take_block`). Each iteration the master sends `next_input()` to the workers present, each answers with
+`work()` on its block, and after the deadline the master asks `plan_missing()` what to send again for the blocks
+that did not arrive (by default nothing), collects those answers too, and `combine()`s everything that arrived.
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import ClassVar, Protocol
+from typing import ClassVar, NamedTuple
 
 import numpy as np
 
-from nac_onboard.compute.iteration import IterationLinks
+
+class Answer(NamedTuple):
+    """A worker's result on one block: what `work` returns and, for each block that arrived, `combine` receives."""
+
+    values: np.ndarray
+    rows: int  # data rows it covers
+    sse: float = 0.0  # sum of squared errors, for a task that reports a cost
 
 
-class Master(Protocol):
-    """What a task's master side may ask of the runner."""
+class Extra(NamedTuple):
+    """A block sent again after it did not arrive: to worker `by`, which answers in place of worker `rows_of`."""
 
-    workers: list[int]  # worker ranks
-    bounds: list[tuple[int, int]]  # each worker's rows [start, stop), by rank - 1
-
-    def send_all(self, ranks: list[int], iteration: int, payload: np.ndarray, links: IterationLinks) -> None: ...
-
-    def send_extra(self, rank: int, iteration: int, payload: np.ndarray, extra_rows: int,
-                   links: IterationLinks) -> None: ...
-
-    def collect(self, iteration: int, waiting: set[int], links: IterationLinks,
-                deadline: float) -> dict[int, np.ndarray]: ...
-
-    def receive_from(self, rank: int, deadline: float) -> np.ndarray | None: ...
-
-    def write_pending(self) -> None: ...
+    by: int
+    rows_of: int
+    payload: np.ndarray
+    rows: int  # travels with the payload; `work` gets it back as extra_rows
 
 
 class Task(ABC):
@@ -42,47 +39,61 @@ class Task(ABC):
 
     def __init__(self, options):
         self.options = options  # ComputeOptions
+        self.bounds: list[tuple[int, int]] = []  # each worker's rows [start, stop), by rank - 1
 
     @classmethod
     @abstractmethod
     def check(cls, options) -> None:
         """Refuse bad options or data before MPI starts (raise BadInput naming the file, line or option)."""
 
-    # ---- both sides ---------------------------------------------------------------------------------------------
+    # ---- both sides -----------------------------------------------------------------------------------------
     @abstractmethod
     def rows(self) -> int:
         """Rows shared out among the workers."""
+
+    def split(self, bounds: list[tuple[int, int]]) -> None:
+        """The run's blocks, one per worker (rank r: bounds[r - 1]); called once on every rank, before the rest."""
+        self.bounds = list(bounds)
 
     @abstractmethod
     def input_floats(self) -> int:
         """Floats in one iteration's input (what the warm-up exchange sends)."""
 
     @abstractmethod
-    def largest_input(self, bounds: list[tuple[int, int]]) -> int:
-        """Floats in the largest payload a worker can receive."""
+    def largest_input(self) -> int:
+        """Floats in the largest payload a worker can receive (an input or an Extra's)."""
 
     @abstractmethod
-    def largest_result(self, bounds: list[tuple[int, int]]) -> int:
+    def largest_result(self) -> int:
         """Floats in the largest result a worker can send."""
 
-    # ---- worker -----------------------------------------------------------------------------------------------
+    # ---- worker ---------------------------------------------------------------------------------------------
     @abstractmethod
-    def take_block(self, start: int, stop: int) -> None:
-        """Keep this worker's rows [start, stop)."""
+    def take_block(self, rank: int) -> None:
+        """Keep worker `rank`'s block of the data (rows bounds[rank - 1])."""
 
     @abstractmethod
-    def work(self, extra: bool, payload: np.ndarray, extra_rows: int) -> tuple[np.ndarray, int, float]:
-        """(result, rows used, sum of squared errors or 0) for one input; `extra`: re-assigned rows in payload."""
+    def work(self, payload: np.ndarray, extra_rows: int | None = None) -> Answer:
+        """The work on this worker's block for one input; with extra_rows, on an Extra's payload instead."""
 
-    # ---- master -----------------------------------------------------------------------------------------------
+    # ---- master ---------------------------------------------------------------------------------------------
     @abstractmethod
-    def iterate(self, master: Master, iteration: int, present: list[int], links: IterationLinks,
-                t_start: float) -> dict:
-        """Send this iteration's input to the present workers, combine what arrives; the iteration record's
-        task fields, with `complete` (every row's result arrived)."""
+    def next_input(self, iteration: int) -> np.ndarray:
+        """What every present worker gets this iteration (asked once per iteration, workers present or not)."""
+
+    @abstractmethod
+    def combine(self, iteration: int, payload: np.ndarray, answers: dict[int, Answer]) -> dict:
+        """Combine the answers that arrived (by the rank whose block each covers, in arrival order); the
+        iteration record's task fields, with `complete` (every row's result arrived)."""
+
+    def plan_missing(self, iteration: int, payload: np.ndarray, missing: list[int],
+                     answered: list[int]) -> list[Extra]:
+        """What to send again for the blocks of the `missing` ranks, to ranks that `answered`: the runner sends
+        these in order and waits for their answers until twice the timeout. Default: nothing."""
+        return []
 
     def results(self) -> dict[str, np.ndarray]:
-        """Arrays for results.npz at the end (empty: no file)."""
+        """Arrays for results.npz (checkpoints and the end; empty: no file)."""
         return {}
 
     def final(self) -> dict:

@@ -7,9 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from nac_onboard.compute import forestfires, kernels
-from nac_onboard.compute.iteration import IterationLinks
-from nac_onboard.compute.messages import RESULT_HEADER, RESULT_ROWS, RESULT_SSE
-from nac_onboard.compute.task import Master, Task
+from nac_onboard.compute.task import Answer, Task
 
 
 class Linreg(Task):
@@ -34,29 +32,28 @@ class Linreg(Task):
     def input_floats(self) -> int:
         return self.x.shape[1]
 
-    def largest_input(self, bounds: list[tuple[int, int]]) -> int:
+    def largest_input(self) -> int:
         return self.x.shape[1]
 
-    def largest_result(self, bounds: list[tuple[int, int]]) -> int:
+    def largest_result(self) -> int:
         return self.x.shape[1]
 
-    def take_block(self, start: int, stop: int) -> None:
+    def take_block(self, rank: int) -> None:
+        start, stop = self.bounds[rank - 1]
         self.x, self.y = self.x[start:stop], self.y[start:stop]
 
-    def work(self, extra: bool, payload: np.ndarray, extra_rows: int) -> tuple[np.ndarray, int, float]:
+    def work(self, payload: np.ndarray, extra_rows: int | None = None) -> Answer:
         gradient, sse, rows = kernels.local_gradient(self.x, self.y, payload)
-        return gradient, rows, sse
+        return Answer(gradient, rows, sse)
 
-    def iterate(self, master: Master, iteration: int, present: list[int], links: IterationLinks,
-                t_start: float) -> dict:
-        master.send_all(present, iteration, self.w, links)
-        master.write_pending()
-        results = master.collect(iteration, set(present), links, master.deadline(t_start))
-        if not results:
+    def next_input(self, iteration: int) -> np.ndarray:
+        return self.w
+
+    def combine(self, iteration: int, payload: np.ndarray, answers: dict[int, Answer]) -> dict:
+        if not answers:
             return {"cost": None, "rows_used": 0, "complete": False}
-        parts = [(buf[RESULT_HEADER:], float(buf[RESULT_SSE]), int(buf[RESULT_ROWS])) for buf in results.values()]
-        gradient, cost, rows = kernels.combine_gradients(parts)
-        self.w = self.w - self.options.learning_rate * gradient
+        gradient, cost, rows = kernels.combine_gradients([(a.values, a.sse, a.rows) for a in answers.values()])
+        self.w = payload - self.options.learning_rate * gradient
         self.cost = cost
         return {"cost": cost, "rows_used": rows, "complete": rows == self.total_rows}
 

@@ -9,9 +9,7 @@ import os
 import numpy as np
 
 from nac_onboard.compute import kernels
-from nac_onboard.compute.iteration import IterationLinks
-from nac_onboard.compute.messages import RESULT_HEADER, RESULT_ITERATION
-from nac_onboard.compute.task import Master, Task
+from nac_onboard.compute.task import Answer, Extra, Task
 from nac_onboard.errors import BadInput
 
 
@@ -47,60 +45,46 @@ class Matmul(Task):
     def input_floats(self) -> int:
         return self.options.n * self.options.l
 
-    def largest_input(self, bounds: list[tuple[int, int]]) -> int:
-        return max(stop - start for start, stop in bounds) * self.options.n + self.input_floats()
+    def largest_input(self) -> int:
+        return max(stop - start for start, stop in self.bounds) * self.options.n + self.input_floats()
 
-    def largest_result(self, bounds: list[tuple[int, int]]) -> int:
-        return max(stop - start for start, stop in bounds) * self.options.l
+    def largest_result(self) -> int:
+        return max(stop - start for start, stop in self.bounds) * self.options.l
 
-    def take_block(self, start: int, stop: int) -> None:
+    def take_block(self, rank: int) -> None:
+        start, stop = self.bounds[rank - 1]
         self.block = self.a[start:stop]
 
-    def work(self, extra: bool, payload: np.ndarray, extra_rows: int) -> tuple[np.ndarray, int, float]:
+    def work(self, payload: np.ndarray, extra_rows: int | None = None) -> Answer:
         n, l = self.options.n, self.options.l  # noqa: E741 (the research's name for B's columns)
-        if extra:
+        if extra_rows is not None:  # another worker's rows of A, then B
             a_rows, b = payload[:extra_rows * n].reshape(extra_rows, n), payload[extra_rows * n:]
-            return kernels.matmul_block(a_rows, b.reshape(n, l)).ravel(), extra_rows, 0.0
-        return kernels.matmul_block(self.block, payload.reshape(n, l)).ravel(), len(self.block), 0.0
+            return Answer(kernels.matmul_block(a_rows, b.reshape(n, l)).ravel(), extra_rows)
+        return Answer(kernels.matmul_block(self.block, payload.reshape(n, l)).ravel(), len(self.block))
 
-    def iterate(self, master: Master, iteration: int, present: list[int], links: IterationLinks,
-                t_start: float) -> dict:
-        o = self.options
-        b = self.b_rng.standard_normal((o.n, o.l))
-        master.send_all(present, iteration, b.ravel(), links)
-        master.write_pending()
-        results = master.collect(iteration, set(present), links, master.deadline(t_start))
-        blocks = {r: results[r][RESULT_HEADER:].reshape(-1, o.l) for r in results}
-        record = {}
-        missing = [r for r in master.workers if r not in blocks]
-        if missing and o.on_missing == "reassign" and blocks:
-            record["reassigned"] = self.reassign(master, iteration, b, missing, blocks, links,
-                                                 master.deadline(t_start, 2))
-        record["complete"] = all(r in blocks for r in master.workers)
-        if record["complete"] and o.save_results:
-            self.saved[f"B_{iteration}"] = b
-            self.saved[f"C_{iteration}"] = kernels.stack_blocks([blocks[r] for r in master.workers])
-        return record
+    def next_input(self, iteration: int) -> np.ndarray:
+        return self.b_rng.standard_normal((self.options.n, self.options.l)).ravel()
 
-    def reassign(self, master: Master, iteration: int, b: np.ndarray, missing: list[int], blocks: dict,
-                 links: IterationLinks, deadline: float) -> list[dict]:
-        """Send each missing block's rows of A, with B, to a worker that answered; wait for those answers."""
-        helpers = [r for r in master.workers if r in blocks]
-        plan: dict[int, list[int]] = {}
+    def plan_missing(self, iteration: int, payload: np.ndarray, missing: list[int],
+                     answered: list[int]) -> list[Extra]:
+        """--on-missing reassign: each missing block's rows of A, with B, to the workers that answered in turn."""
+        if self.options.on_missing != "reassign" or not answered:
+            return []
+        plan = []
         for k, rank in enumerate(missing):
-            helper = helpers[k % len(helpers)]
-            start, stop = master.bounds[rank - 1]
-            master.send_extra(helper, iteration, np.concatenate([self.a[start:stop].ravel(), b.ravel()]),
-                              stop - start, links)
-            plan.setdefault(helper, []).append(rank)
-        done = []
-        for helper, ranks in plan.items():
-            for rank in ranks:
-                answer = master.receive_from(helper, deadline)
-                if answer is not None and int(answer[RESULT_ITERATION]) == iteration:
-                    blocks[rank] = answer[RESULT_HEADER:].reshape(-1, self.options.l)
-                    done.append({"rows_of": rank, "by": helper})
-        return done
+            start, stop = self.bounds[rank - 1]
+            plan.append(Extra(answered[k % len(answered)], rank, np.concatenate([self.a[start:stop].ravel(), payload]),
+                              stop - start))
+        return plan
+
+    def combine(self, iteration: int, payload: np.ndarray, answers: dict[int, Answer]) -> dict:
+        ranks = range(1, len(self.bounds) + 1)
+        complete = all(r in answers for r in ranks)
+        if complete and self.options.save_results:
+            self.saved[f"B_{iteration}"] = payload.reshape(self.options.n, self.options.l)
+            self.saved[f"C_{iteration}"] = kernels.stack_blocks([answers[r].values.reshape(-1, self.options.l)
+                                                                 for r in ranks])
+        return {"complete": complete}
 
     def results(self) -> dict[str, np.ndarray]:
         return self.saved
