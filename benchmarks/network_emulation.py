@@ -34,7 +34,7 @@ import numpy as np
 
 from missions import save_mission
 from nac_onboard.flight_log import JsonlLog
-from nac_onboard.link.channel import PRESETS, ChannelModel
+from nac_onboard.radio.channel import PRESETS, ChannelModel
 from sitl.experiment.runner import Outcome, run_scenario
 from sitl.experiment.scenario import load_scenario
 from sitl.network.air import AirNetwork

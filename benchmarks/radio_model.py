@@ -12,8 +12,8 @@ import time
 
 import numpy as np
 
-from nac_onboard.link.channel import PRESETS
-from nac_onboard.link.radio import AirRadio
+from nac_onboard.radio.air_link import AirRadio
+from nac_onboard.radio.channel import PRESETS
 
 import _common  # (benchmarks/_common.py, beside this script)
 

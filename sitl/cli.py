@@ -99,8 +99,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def radio_table(channel: str, distances_text: str, draws: int, out=None) -> None:
     out = out or sys.stdout  # looked up per call: a caller may have replaced sys.stdout since import
-    from nac_onboard.link.channel import load_channel
-    from nac_onboard.link.radio import rate_band
+    from nac_onboard.radio.air_link import rate_band
+    from nac_onboard.radio.files import load_channel
 
     try:
         distances = [float(x) for x in distances_text.split(",")]

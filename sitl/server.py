@@ -19,12 +19,12 @@ import numpy as np
 from missions.geo import Home, lla_to_enu
 from nac_onboard.address import is_loopback
 from nac_onboard.errors import OperationFailed
-from nac_onboard.link.radio import TELEMETRY_RADIOS
 from nac_onboard.mavlink.signing import SigningState
 from sitl.mavlink.codec import new_parser, parse_datagram
 from sitl.mavlink.telemetry import Streams, TelemetrySource
 from sitl.mavlink.vehicle_protocol import VehicleProtocol
 from sitl.network.netns import socket_in_netns
+from sitl.telemetry_radio import TELEMETRY_RADIOS
 from sitl.vehicle.world import COMPANION, GROUND, World
 
 log = logging.getLogger(__name__)
@@ -62,7 +62,7 @@ class SitlConfig:
     # One network namespace per vehicle (a simulated companion computer): its companion link is a UDP socket on
     # that namespace's loopback, as a serial or UDP link between a Pixhawk and a Jetson is off the Wi-Fi.
     companion_netns: tuple[str, ...] = ()
-    # The ground link's radio (nac_onboard.link.radio.TELEMETRY_RADIOS, e.g. "sik-915"): frames are lost with
+    # The ground link's radio (sitl.telemetry_radio.TELEMETRY_RADIOS, e.g. "sik-915"): frames are lost with
     # the distance to the ground station, as over a telemetry radio; "" = a lossless link (SITL's default).
     telemetry_radio: str = ""
     ground_station: Home | None = None  # where the ground station's antenna is (None: at each vehicle's home)

@@ -20,8 +20,8 @@ import numpy as np
 from scipy import optimize, special
 
 from nac_onboard.errors import BadInput
-from nac_onboard.link.channel import ChannelModel
-from nac_onboard.link.radio import complex_normal, link_rates, rician_fade_db
+from nac_onboard.radio.air_link import complex_normal, link_rates, rician_fade_db
+from nac_onboard.radio.channel import ChannelModel
 
 SNR_GRID_DB = np.arange(-20.0, 60.0, 0.05)
 # A probe within 2 % of nothing, or within 10 % of the top rate, only says the SNR was below or above: a

@@ -104,7 +104,7 @@ def draw_calibration(probes, model, path: Path) -> Path:
     """Measured probes against the fitted radio's median and 95 % band by distance."""
     import numpy as np
 
-    from nac_onboard.link.radio import rate_band
+    from nac_onboard.radio.air_link import rate_band
 
     fig, ax = plt.subplots(figsize=(6.4, 4.8))
     d = probes["distance_m"].astype(float)

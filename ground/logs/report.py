@@ -14,7 +14,8 @@ from ground.logs import figures
 from ground.logs.analysis import DEFAULT_BIN_M, DEFAULT_THRESHOLD_MBPS, RunTables, analyze
 from ground.logs.calibration import CalibrationError, fit_channel, fitted_model
 from ground.logs.runlog import read_run
-from nac_onboard.link.channel import ChannelModel, load_channel, save_channel
+from nac_onboard.radio.channel import ChannelModel
+from nac_onboard.radio.files import load_channel, save_channel
 
 SUMMARY_LABELS = {
     "vehicles": "vehicles", "master": "master", "iterations": "iterations done",

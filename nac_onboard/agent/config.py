@@ -14,8 +14,9 @@ from pathlib import Path
 from nac_onboard.address import is_loopback, parse_host_port
 from nac_onboard.agent.peers import FleetKey
 from nac_onboard.errors import BadInput
-from nac_onboard.link.channel import ChannelModel, load_channel
 from nac_onboard.mavlink.signing import load_signing_key
+from nac_onboard.radio.channel import ChannelModel
+from nac_onboard.radio.files import load_channel
 from nac_onboard.tomlfile import read_toml, to_dataclass
 
 ROLES = ("master", "worker")

@@ -1,6 +1,7 @@
 """What the experiment runner starts, as data: the ports of each vehicle, each agent's config, the MPI job's
 command line (loopback with sleeps, or across the kernel network's namespaces) and which network a run gets.
-Pure apart from writing the MPI launcher and hostfile into the run's config folder."""
+Pure apart from writing the MPI launcher and hostfile into the run's config folder. The children name the run's
+radio by its file (run_channel_path), which the runner writes once before any of them starts."""
 
 from __future__ import annotations
 
@@ -10,7 +11,6 @@ from pathlib import Path
 
 from nac_onboard import clock
 from nac_onboard.compute import launch
-from nac_onboard.link.channel import load_channel
 from nac_onboard.tomlfile import dumps_toml
 from sitl.experiment.scenario import Scenario
 from sitl.network.air import AirNetwork
@@ -19,6 +19,12 @@ from sitl.network.netns import NetworkUnavailable, check_kernel_network
 PORTS_PER_VEHICLE = 10  # ground, companion, peers, throughput server, (master) state feed
 FLEET_KEY_FILE = "fleet.key"
 START_FILE = "start"  # the MPI job's go, written once the vehicles are in the air
+CHANNEL_FILE = "channel.toml"  # the run's radio, in its config folder: what every child of the run loads
+REPLAY_FILE = "replay.json"  # beside it, the replay table the run's radio names (sleep network, --links replay)
+
+
+def run_channel_path(run_dir: Path) -> Path:
+    return run_dir / "config" / CHANNEL_FILE
 
 
 @dataclass(frozen=True)
@@ -59,7 +65,7 @@ def agent_config(scenario: Scenario, index: int, run_dir: Path, ports: Ports,
         p = scenario.throughput
         throughput.update(probe=True, period_s=p.period_s, duration_s=p.duration_s, interval_s=p.interval_s,
                           tool=p.tool,
-                          emulate_channel="" if addresses else scenario.channel,
+                          emulate_channel="" if addresses else str(run_channel_path(run_dir)),
                           targets=[f"{scenario.vehicles[k].id}={air[k]}:{ports.throughput(k)}" for k in others
                                    if scenario.vehicles[k].role == "worker"])
     return dumps_toml({
@@ -82,12 +88,12 @@ def compute_args(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: 
     # without a number of iterations the runner's go (START_FILE) says when to end
     stop = ["--iterations", str(c.iterations)] if c.iterations else ["--end-at-s", f"{end_at_sim_s:.3f}"]
     if kernel:
-        link = ["--emulate", "none", "--pad-bits", f"{load_channel(scenario.channel).overhead_bits:g}"]
+        link = ["--emulate", "none", "--pad-bits", f"{scenario.channel.overhead_bits:g}"]
     else:
         link = ["--emulate", "sleep"]
     return ["--task", c.task, *stop, "--start-file", str(run_dir / "compute" / START_FILE), "--out",
             str(run_dir / "compute"), *link,
-            "--channel", scenario.channel, "--positions", "feed", "--feed", f"127.0.0.1:{ports.feed()}",
+            "--channel", str(run_channel_path(run_dir)), "--positions", "feed", "--feed", f"127.0.0.1:{ports.feed()}",
             "--vehicles", ",".join(ids), "--timeout-s", str(c.timeout_s), "--on-missing", c.on_missing,
             "--allocation", c.allocation, *c.args]
 

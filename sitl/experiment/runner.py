@@ -29,15 +29,16 @@ from nac_onboard.child_process import AgentProcess, ChildStartError
 from nac_onboard.compute.options import options_from_argv
 from nac_onboard.errors import NacError, OperationFailed
 from nac_onboard.flight_log import JsonlLog, read_jsonl
-from nac_onboard.link.channel import load_channel, save_channel
 from nac_onboard.link.iperf3 import iperf3_server
-from nac_onboard.link.replay import ReplayError, ReplayLinks
 from nac_onboard.mavlink.client import CommandError, LinkError, VehicleClient
 from nac_onboard.mavlink.dialect import M
 from nac_onboard.mavlink.mission_transfer import MissionError
+from nac_onboard.radio.files import save_channel, save_replay
+from nac_onboard.radio.replay import ReplayError, ReplayLinks
 from sitl.experiment.commands import (
     FLEET_KEY_FILE,
     PORTS_PER_VEHICLE,
+    REPLAY_FILE,
     START_FILE,
     Ports,
     agent_config,
@@ -45,6 +46,7 @@ from sitl.experiment.commands import (
     compute_args,
     kernel_mpi_command,
     mpi_command,
+    run_channel_path,
 )
 from sitl.experiment.faults import Fault, FaultInjector, FaultKind
 from sitl.experiment.progress import VehicleProgress, follow, render_progress
@@ -165,18 +167,19 @@ class Experiment:
         return result
 
     def _write_channel(self) -> None:
-        """The run's radio, overrides applied, as a channel file every process of the run reads: the run
-        directory says exactly which model made it."""
-        radio = self.scenario.radio or load_channel(self.scenario.channel)
-        path = self.run_dir / "config" / "channel.toml"
+        """The run's radio (the scenario's channel; on the sleep network naming the replay table written beside
+        it), written once as the channel file every child of the run loads (run_channel_path: agents, MPI
+        ranks): the run directory says exactly which model made it. The shaper, in this process, gets the same
+        model (self.radio); the scenario stays as it was loaded."""
+        radio = self.scenario.channel
+        path = run_channel_path(self.run_dir)
         path.parent.mkdir(parents=True, exist_ok=True)
         if self.replay is not None and self.network == "sleep":  # the kernel shaper holds the table itself
-            table = path.with_name("replay.json")
-            self.replay.save(table)
+            table = path.with_name(REPLAY_FILE)
+            save_replay(self.replay, table)
             radio = dataclasses.replace(radio, replay_file=str(table))
         save_channel(radio, path)
         self.radio = radio
-        self.scenario = dataclasses.replace(self.scenario, channel=str(path), radio=radio)
 
     def _speedup_note(self) -> str:
         if self.speedup == 1.0:

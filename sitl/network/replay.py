@@ -1,4 +1,4 @@
-"""`--links replay:RUN`: a recorded run's links as a replay table (nac_onboard.link.replay), so a real flight's
+"""`--links replay:RUN`: a recorded run's links as a replay table (nac_onboard.radio.replay), so a real flight's
 links can be re-run against new computing schemes.
 
 A recording is a run directory whose probes say who measured whom, when and how much: NAC's own runs (SITL or
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from nac_onboard.link.replay import ReplayError, ReplayLinks
+from nac_onboard.radio.replay import ReplayError, ReplayLinks
 
 REPLAY_PREFIX = "replay:"
 

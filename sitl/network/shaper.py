@@ -13,8 +13,8 @@ import time
 from collections.abc import Callable
 
 from nac_onboard.flight_log import JsonlLog
-from nac_onboard.link.channel import ChannelModel
-from nac_onboard.link.radio import AirRadio
+from nac_onboard.radio.air_link import AirRadio
+from nac_onboard.radio.channel import ChannelModel
 from sitl.network.air import NFT_TABLE, AirNetwork
 from sitl.network.netns import NetworkError
 from sitl.network.shaping import AirState, air_state, with_replay
@@ -27,7 +27,7 @@ class Shaper:
     def __init__(self, air: AirNetwork, positions: Callable[[], tuple], channel: ChannelModel,
                  speedup: float | Callable[[], float], period_s: float, out: JsonlLog, replay=None):
         """positions: () -> (simulated time, earth-centred positions (N, 3)[, heights above ground (N,)]).
-        replay: a nac_onboard.link.replay.ReplayLinks whose recorded pairs override the model's rates.
+        replay: a nac_onboard.radio.replay.ReplayLinks whose recorded pairs override the model's rates.
         speedup: the simulator's pace, or what measures it (nac_onboard.clock.Pace.value): rates on the
         wire are the model's times the pace at each update."""
         self.air, self.positions, self.channel = air, positions, channel

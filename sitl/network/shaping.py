@@ -11,7 +11,7 @@ Probe traffic from the access point to a station's throughput port has its own c
 outside the budget: a probe then measures the link, not what the MPI job leaves of it (the research measured
 throughput in flights of its own).
 
-Rates and losses are the radio model's (nac_onboard.link.radio: path loss, shadowing, fading, the 802.11n rate
+Rates and losses are the radio model's (nac_onboard.radio.air_link: path loss, shadowing, fading, the 802.11n rate
 and the packets its errors cost), times the speed-up on the wire (time dilation: a transfer of B bits at rate C
 lasts B / C simulated seconds at any speed-up). Out of range: every packet is dropped. Sharing is by airtime:
 each station's guaranteed share is its rate over the number of stations (equal airtime), and what borrowing
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nac_onboard.link.radio import AirRadio
+from nac_onboard.radio.air_link import AirRadio
 
 DEFAULT_CLASS, BUDGET_CLASS = 0x1, 0x2
 PAIR_BASE, PROBE_BASE = 0x100, 0x800

@@ -16,7 +16,8 @@ import pytest
 from nac_onboard.compute import forestfires, kernels, launch
 from nac_onboard.compute.tasks.matmul import matmul_inputs
 from nac_onboard.flight_log import read_jsonl
-from nac_onboard.link.channel import PRESETS, save_channel
+from nac_onboard.radio.channel import PRESETS
+from nac_onboard.radio.files import save_channel
 from tests.conftest import SHARED_DATA
 
 MPIEXEC = Path(sys.executable).parent / "mpiexec"

@@ -19,8 +19,10 @@ from ground import cli as ground_cli
 from missions import save_mission
 from missions.geo import enu_to_lla, lla_to_ecef
 from nac_onboard.flight_log import read_jsonl
-from nac_onboard.link.channel import PRESETS, load_channel, save_channel
+from nac_onboard.radio.channel import PRESETS
+from nac_onboard.radio.files import load_channel, save_channel
 from sitl import cli as sitl_cli
+from sitl.experiment.commands import run_channel_path
 from sitl.experiment.runner import Experiment, Outcome
 from sitl.experiment.scenario import load_scenario
 from sitl.scenarios.generate import at, hover, route
@@ -150,7 +152,7 @@ def test_calibrate_recovers_the_channel_the_run_was_made_with(short_run, tmp_pat
     preset = tmp_path / "fitted.toml"
     out = io.StringIO()
     args = ground_cli.build_parser().parse_args(["logs", "calibrate", str(result.run_dir), "--base",
-                                                 scenario.channel, "--out", str(preset)])
+                                                 str(run_channel_path(result.run_dir)), "--out", str(preset)])
     assert ground_cli.run(args, out) == 0
     fitted = load_channel(str(preset))
     # The run's link has no shadowing: most probes sit at three places (w2 hovering, w1 before and after its
@@ -316,7 +318,8 @@ def test_on_the_sleep_network_the_replay_table_reaches_every_process(short_run, 
     experiment = Experiment(scenario, tmp_path / "replayed", 4.0, 14550, out=io.StringIO(),
                             network=("sleep", "test"), replay=replay)
     experiment._write_channel()
-    channel = load_channel(experiment.scenario.channel)
+    channel = load_channel(str(run_channel_path(experiment.run_dir)))
+    assert experiment.scenario is scenario and channel == experiment.radio, "one radio, written once"
     assert channel.replay_file == str(tmp_path / "replayed" / "config" / "replay.json")
 
     class At(Clock):

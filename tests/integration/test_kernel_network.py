@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from nac_onboard.flight_log import JsonlLog, read_jsonl
-from nac_onboard.link.channel import PRESETS
+from nac_onboard.radio.channel import PRESETS
 from sitl.experiment.runner import Outcome, run_scenario
 from sitl.experiment.scenario import load_scenario
 from sitl.network import netns
@@ -208,7 +208,7 @@ def test_results_in_simulated_time_do_not_depend_on_the_speedup(tmp_path):
     iterations last a few milliseconds, CPU-bound here, and the scenario allows only 1x."""
     median_link = 'shadowing_sigma_db = 0.0\nrician_k_db = "none"\noverhead_bits = 2e6'
     scenario = load_scenario(str(shortened("paper-flight-static", tmp_path, 30.0, median_link)))
-    assert scenario.radio.overhead_bits == 2e6 and not scenario.radio.fading
+    assert scenario.channel.overhead_bits == 2e6 and not scenario.channel.fading
     summaries = {}
     for speedup in (1.0, 4.0):
         result = run_scenario(scenario, tmp_path / f"run-{speedup:g}x", speedup, allocate_base_port(3, slots=5),

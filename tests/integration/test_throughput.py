@@ -18,10 +18,10 @@ from nac_onboard.agent.config import ThroughputSection
 from nac_onboard.agent.probes import ProbeScheduler
 from nac_onboard.flight_log import JsonlLog, read_jsonl
 from nac_onboard.link import iperf3
-from nac_onboard.link.channel import PRESETS
 from nac_onboard.link.emulation import SleepEmulation
 from nac_onboard.link.iperf3 import compare, iperf3_result, iperf3_server, nac_server
 from nac_onboard.link.throughput import ThroughputServer
+from nac_onboard.radio.channel import PRESETS
 from tests.conftest import free_port
 
 needs_iperf3 = pytest.mark.skipif(not iperf3.available(), reason="iperf3 not installed (.ci/run installs it)")

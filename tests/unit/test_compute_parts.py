@@ -13,7 +13,8 @@ from nac_onboard.compute import forestfires, kernels
 from nac_onboard.compute.launch import core_binding, cpu_per_host, mpiexec_command
 from nac_onboard.compute.positions import ScriptedDistances
 from nac_onboard.errors import BadInput
-from nac_onboard.link.channel import PRESETS, ChannelError, ChannelModel, load_channel, save_channel
+from nac_onboard.radio.channel import PRESETS, ChannelError, ChannelModel
+from nac_onboard.radio.files import load_channel, save_channel
 from tests.conftest import SHARED_DATA
 
 CSV = SHARED_DATA / "forestfires.csv"

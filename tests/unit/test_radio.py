@@ -9,9 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from nac_onboard.link import radio
-from nac_onboard.link.channel import PRESETS, ChannelModel
 from nac_onboard.link.emulation import SleepEmulation
+from nac_onboard.radio import air_link
+from nac_onboard.radio.channel import PRESETS, ChannelModel
+from sitl.telemetry_radio import TELEMETRY_RADIOS
 
 
 def model(**fields) -> ChannelModel:
@@ -30,51 +31,51 @@ def test_two_ray_matches_the_phasor_sum_and_its_far_field_asymptote():
     field = cmath.exp(-2j * math.pi * 20.0 / lam) / 20.0 + gamma * cmath.exp(-2j * math.pi * d_ref / lam) / d_ref
     by_hand = -20 * math.log10(lam / (4 * math.pi) * abs(field))
     assert gamma == pytest.approx(0.06915, abs=1e-4), "just past the Brewster angle: a weak reflection"
-    assert radio.two_ray_db(20.0, 3.0, 3.0, 2437.0) == pytest.approx(by_hand, abs=1e-9)
+    assert air_link.two_ray_db(20.0, 3.0, 3.0, 2437.0) == pytest.approx(by_hand, abs=1e-9)
     # far beyond the breakpoint 4 h_a h_b / lambda (~300 m), horizontal polarization: 40 log d - 20 log(h_a h_b)
-    assert radio.two_ray_db(20_000.0, 3.0, 3.0, 2437.0, polarization="horizontal") == pytest.approx(
+    assert air_link.two_ray_db(20_000.0, 3.0, 3.0, 2437.0, polarization="horizontal") == pytest.approx(
         40 * math.log10(20_000.0) - 20 * math.log10(9.0), abs=0.3)
     # heights are live: a vehicle on the ground (0.1 m) hears its peer worse than one hovering at 3 m, far away
-    assert radio.two_ray_db(500.0, 0.1, 3.0, 2437.0) > radio.two_ray_db(500.0, 3.0, 3.0, 2437.0) + 20
+    assert air_link.two_ray_db(500.0, 0.1, 3.0, 2437.0) > air_link.two_ray_db(500.0, 3.0, 3.0, 2437.0) + 20
 
 
 def test_dual_slope_bends_at_its_breakpoint():
-    assert radio.dual_slope_db(5.0, 40.0, 2.0, 10.0, 4.0) == pytest.approx(40 + 20 * math.log10(5))
-    assert radio.dual_slope_db(10.0, 40.0, 2.0, 10.0, 4.0) == pytest.approx(60.0)
-    assert radio.dual_slope_db(100.0, 40.0, 2.0, 10.0, 4.0) == pytest.approx(100.0)
+    assert air_link.dual_slope_db(5.0, 40.0, 2.0, 10.0, 4.0) == pytest.approx(40 + 20 * math.log10(5))
+    assert air_link.dual_slope_db(10.0, 40.0, 2.0, 10.0, 4.0) == pytest.approx(60.0)
+    assert air_link.dual_slope_db(100.0, 40.0, 2.0, 10.0, 4.0) == pytest.approx(100.0)
     assert model(path_loss="dual-slope", ref_loss_db=40.0, exponent=2.0, breakpoint_m=10.0,
                  exponent_far=4.0).path_loss_db(100.0) == pytest.approx(100.0)
 
 
 def test_mcs_selection_at_the_thresholds():
     m = model(rate_model="802.11n", min_rate_bps=1e5)
-    thresholds = radio.HT_SNR_THRESHOLDS_DB
-    assert radio.frame_error_rate(thresholds, thresholds, 1.0) == pytest.approx(np.full(8, 0.1))
+    thresholds = air_link.HT_SNR_THRESHOLDS_DB
+    assert air_link.frame_error_rate(thresholds, thresholds, 1.0) == pytest.approx(np.full(8, 0.1))
     for k in (0, 2, 3, 4):  # the next threshold 3 dB or more away: just above one, that MCS; 3 dB below, lower
-        assert radio.link_rates(m, thresholds[k] + 0.5).mcs[0] == k
+        assert air_link.link_rates(m, thresholds[k] + 0.5).mcs[0] == k
     for k in range(1, 8):
-        assert radio.link_rates(m, thresholds[k] - 3.0).mcs[0] < k
-    top = radio.link_rates(m, 40.0)
+        assert air_link.link_rates(m, thresholds[k] - 3.0).mcs[0] < k
+    top = air_link.link_rates(m, 40.0)
     assert top.mcs[0] == 7 and top.phy_bps[0] == 65e6 and top.loss[0] < 1e-12
-    wide = radio.link_rates(dataclasses.replace(m, channel_width_mhz=40, short_guard_interval=True), 40.0)
+    wide = air_link.link_rates(dataclasses.replace(m, channel_width_mhz=40, short_guard_interval=True), 40.0)
     assert wide.phy_bps[0] == 150e6
-    assert not radio.link_rates(m, 0.0).in_range[0], "below MCS 0 nothing gets through"
-    edge = radio.link_rates(m, thresholds[0] - 2.0)
+    assert not air_link.link_rates(m, 0.0).in_range[0], "below MCS 0 nothing gets through"
+    edge = air_link.link_rates(m, thresholds[0] - 2.0)
     assert 0 < edge.loss[0] < 1 and edge.per[0] > 0.3, "near MCS 0's threshold frames fail and some packets are lost"
 
 
 def test_median_throughput_against_distance_steps_through_the_mcs_table():
     wifi = PRESETS["wifi-flight"]
     distances = np.linspace(1.0, 24.0, 200)
-    mcs = radio.link_rates(wifi, wifi.median_snr_db(distances)).mcs
+    mcs = air_link.link_rates(wifi, wifi.median_snr_db(distances)).mcs
     assert set(mcs.tolist()) == set(range(8)) and np.all(np.diff(mcs) <= 0)
-    band = radio.rate_band(wifi, [10.0, 20.0], draws=4000)
+    band = air_link.rate_band(wifi, [10.0, 20.0], draws=4000)
     assert np.all(band["low_bps"] < band["median_bps"]) and np.all(band["median_bps"] < band["high_bps"])
 
 
 def test_gudmundson_shadowing_decorrelates_with_the_distance_moved():
     sigma, d_corr, step_m = 4.0, 10.0, 2.0
-    r = radio.Radio(model(shadowing_sigma_db=sigma, shadowing_decorrelation_m=d_corr), 1, seed=3)
+    r = air_link.Radio(model(shadowing_sigma_db=sigma, shadowing_decorrelation_m=d_corr), 1, seed=3)
     values = []
     for _ in range(20_000):
         r.step(0.1, [10.0], moved_m=[step_m])
@@ -90,27 +91,28 @@ def test_gudmundson_shadowing_decorrelates_with_the_distance_moved():
 
 def test_rician_power_has_the_textbook_mean_and_variance():
     k_db = 6.0
-    r = radio.Radio(model(rician_k_db=k_db), 10_000, seed=5)
+    r = air_link.Radio(model(rician_k_db=k_db), 10_000, seed=5)
     sample = r.step(0.0, np.full(10_000, 10.0))
     power = 10 ** ((sample.snr_db - model().median_snr_db(10.0)) / 10)
-    mean, variance = radio.rician_power_moments(10 ** (k_db / 10))
+    mean, variance = air_link.rician_power_moments(10 ** (k_db / 10))
     assert power.mean() == pytest.approx(mean, rel=0.03)
     assert power.var() == pytest.approx(variance, rel=0.03)
 
 
 def test_fading_decorrelates_faster_when_the_pair_moves():
     def lag_one(speed_mps: float) -> float:
-        r = radio.Radio(model(rician_k_db=3.0, hover_speed_mps=0.2), 1, seed=11)
+        r = air_link.Radio(model(rician_k_db=3.0, hover_speed_mps=0.2), 1, seed=11)
         snr = [r.step(0.1, [10.0], speed_mps=[speed_mps]).snr_db[0] for _ in range(5000)]
         return float(np.corrcoef(snr[:-1], snr[1:])[0, 1])
 
     assert lag_one(0.0) > 0.6 > 0.3 > lag_one(1.34)
-    assert radio.bessel_j0(np.array([0.0, 2.404825557695773, 5.0])) == pytest.approx([1.0, 0.0, -0.1775968], abs=1e-6)
+    assert air_link.bessel_j0(np.array([0.0, 2.404825557695773, 5.0])) == pytest.approx([1.0, 0.0, -0.1775968],
+                                                                                        abs=1e-6)
 
 
 def _probe_std_mbps(moving: bool, seconds: int = 400, seed: int = 2) -> tuple[float, float]:
     """1-second probes of a pair 12 m apart: one vehicle still, the other hovering or circling it at 0.67 m/s."""
-    air = radio.AirRadio(PRESETS["wifi-flight"], 2, seed=seed)
+    air = air_link.AirRadio(PRESETS["wifi-flight"], 2, seed=seed)
     rates, distances = [], []
     for step in range(seconds * 10):
         t = step / 10
@@ -159,23 +161,27 @@ def test_nac_sitl_radio_prints_the_curve_with_its_band_and_steps(capsys):
 
 
 def test_a_replay_table_round_trips_interpolates_and_names_a_bad_file(tmp_path):
-    from nac_onboard.link.replay import ReplayError, ReplayLinks
+    from nac_onboard.radio.files import load_replay, save_replay
+    from nac_onboard.radio.replay import ReplayError, ReplayLinks
 
     table = ReplayLinks("run-x", {("master", "w1"): (np.array([0.0, 10.0]), np.array([20e6, 10e6]))})
-    table.save(tmp_path / "replay.json")
-    back = ReplayLinks.load(tmp_path / "replay.json")
+    save_replay(table, tmp_path / "replay.json")
+    back = load_replay(tmp_path / "replay.json")
     assert back.rate_bps("w1", "master", 5.0) == pytest.approx(15e6) and back.rate_bps("w1", "w2", 5.0) is None
     assert back.rate_bps("master", "w1", -3.0) == 20e6 and back.rate_bps("master", "w1", 99.0) == 10e6
     (tmp_path / "bad.json").write_text('{"pairs": [{"a": "m", "b": "w", "t_s": [2, 1], "rate_bps": [1, 2]}]}')
     with pytest.raises(ReplayError, match="bad.json: not a replay table .*pair 1: .*times rising"):
-        ReplayLinks.load(tmp_path / "bad.json")
+        load_replay(tmp_path / "bad.json")
+    (tmp_path / "list.json").write_text("[1, 2]")
+    with pytest.raises(ReplayError, match="list.json: not a replay table"):
+        load_replay(tmp_path / "list.json")
 
 
 def test_the_telemetry_radio_loses_more_frames_further_out_and_lower_down():
-    sik = radio.TELEMETRY_RADIOS["sik-915"]
+    sik = TELEMETRY_RADIOS["sik-915"]
     loss = sik.frame_loss(np.array([100.0, 1000.0, 3000.0, 10_000.0]), 30.0)
     assert loss[0] < 1e-6 and np.all(np.diff(loss) > 0) and loss[-1] > 0.99
     assert 1000 < sik.range_m(30.0) < 5000, "stock SiK radios reach a few kilometres"
     assert sik.range_m(3.0) < sik.range_m(30.0), "two-ray: a low antenna hears less far"
     assert sik.received_dbm(500.0, 30.0) == pytest.approx(
-        20.0 + 4.0 - 25.0 - radio.two_ray_db(500.0, 1.5, 30.0, 915.0))
+        20.0 + 4.0 - 25.0 - air_link.two_ray_db(500.0, 1.5, 30.0, 915.0))

@@ -4,7 +4,7 @@
 import pytest
 
 from missions.geo import distance_m
-from nac_onboard.link.channel import PRESETS
+from nac_onboard.radio.channel import PRESETS
 from sitl import cli
 from sitl.experiment.scenario import SCENARIO_DIR, ScenarioError, load_scenario
 
@@ -75,10 +75,49 @@ def test_a_scenario_overrides_its_channel_and_can_add_background_load(tmp_path):
     path.write_text("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\n"
                     "id = 'b'\nrole = 'worker'\nhome = [47, 8, 500]\n[channel]\npreset = 'wifi-flight'\n"
                     "background_airtime = 0.25\nrician_k_db = 'none'\n")
-    radio = load_scenario(str(path)).radio
+    radio = load_scenario(str(path)).channel
     wifi = PRESETS["wifi-flight"]
     assert radio.background_airtime == 0.25 and radio.rician_k_db is None and radio.exponent == wifi.exponent
     assert radio.capacity_bps(10.0) == pytest.approx(0.75 * wifi.capacity_bps(10.0))
+
+
+def test_the_run_writes_its_radio_once_and_the_children_are_pointed_at_that_file(tmp_path):
+    """The scenario's one radio model goes to the run directory once (with the replay table it names on the
+    sleep network); the agents' and the MPI job's command lines name that file; the scenario is left alone."""
+    import io
+
+    import numpy as np
+
+    from nac_onboard.radio.files import load_channel, load_replay
+    from nac_onboard.radio.replay import ReplayLinks
+    from sitl.experiment.commands import Ports, agent_config, compute_args, run_channel_path
+    from sitl.experiment.runner import Experiment
+
+    text = (SCENARIO_DIR / "paper-flight-static.toml").read_text().replace('mission = "', f'mission = "{SCENARIO_DIR}/')
+    path = tmp_path / "busy.toml"
+    path.write_text(text.replace('preset = "wifi-flight"', 'preset = "wifi-flight"\nbackground_airtime = 0.25', 1))
+    scenario = load_scenario(str(path))
+    assert scenario.channel.background_airtime == 0.25
+    replay = ReplayLinks("run-x", {("master", "w1"): (np.array([0.0, 10.0]), np.array([20e6, 10e6]))})
+    for network, table in (("sleep", replay), ("kernel", replay), ("sleep", None)):
+        run_dir = tmp_path / f"run-{network}-{table is not None}"
+        experiment = Experiment(scenario, run_dir, 1.0, 14550, out=io.StringIO(), analyze=False,
+                                network=(network, "test"), replay=table)
+        experiment._write_channel()
+        written = load_channel(str(run_channel_path(run_dir)))
+        assert experiment.scenario is scenario and written == experiment.radio
+        if network == "sleep" and table is not None:
+            assert written.replay_file == str(run_dir / "config" / "replay.json")
+            assert load_replay(written.replay_file).rate_bps("w1", "master", 5.0) == 15e6
+        else:
+            assert written == scenario.channel and not (run_dir / "config" / "replay.json").exists()
+        args = compute_args(scenario, run_dir, Ports(14550), 10.0, kernel=network == "kernel")
+        assert args[args.index("--channel") + 1] == str(run_channel_path(run_dir))
+        if network == "kernel":
+            assert args[args.index("--pad-bits") + 1] == f"{scenario.channel.overhead_bits:g}"
+        master = agent_config(scenario, 0, run_dir, Ports(14550), None if network == "sleep" else ["10.0.0.1"] * 3)
+        emulated = f'emulate_channel = "{run_channel_path(run_dir)}"' if network == "sleep" else 'emulate_channel = ""'
+        assert emulated in master
 
 
 def test_the_cli_refuses_bad_scenarios_and_speedups_with_exit_2(tmp_path, capsys):

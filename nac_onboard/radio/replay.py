@@ -1,7 +1,8 @@
 """Links replayed from a recorded flight: each pair's measured throughput over time, interpolated, in place of
 the radio model where the recording has the pair (`nac-sitl experiment --links replay:RUN`; the runner builds
 the table from the run's probes, sitl.network.replay). Both networks read it: the kernel shaper, and the sleep
-emulation through the channel's `replay_file` (a JSON file the runner writes beside the run's channel).
+emulation through the channel's `replay_file` (a JSON file the runner writes beside the run's channel; read and
+written by nac_onboard.radio.files, as the JSON this module turns into a table and back).
 
 Times are simulated seconds (both SITL runs count from the simulator's start) or, for a recording without
 them, seconds since its first probe. Before a pair's first probe and after its last the end value holds.
@@ -9,13 +10,13 @@ them, seconds since its first probe. Before a pair's first probe and after its l
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from nac_onboard.errors import BadInput
+
+EXPECTED_JSON = '{"source": "...", "pairs": [{"a": "master", "b": "w1", "t_s": [...], "rate_bps": [...]}]}'
 
 
 class ReplayError(BadInput):
@@ -40,15 +41,14 @@ class ReplayLinks:
             return None
         return float(np.interp(t_s, found[0], found[1]))
 
-    def save(self, path: str | Path) -> None:
+    def to_json(self) -> dict:
         pairs = [{"a": a, "b": b, "t_s": t.tolist(), "rate_bps": r.tolist()} for (a, b), (t, r) in self.series.items()]
-        Path(path).write_text(json.dumps({"source": self.source, "pairs": pairs}) + "\n")
+        return {"source": self.source, "pairs": pairs}
 
     @classmethod
-    def load(cls, path: str | Path) -> ReplayLinks:
-        expected = '{"source": "...", "pairs": [{"a": "master", "b": "w1", "t_s": [...], "rate_bps": [...]}]}'
+    def from_json(cls, data, where: str) -> ReplayLinks:
+        """A table from its JSON (as to_json gives it); where: what to name in an error (the file)."""
         try:
-            data = json.loads(Path(path).read_text())
             series = {}
             for k, pair in enumerate(data["pairs"]):
                 t, rate = np.asarray(pair["t_s"], float), np.asarray(pair["rate_bps"], float)
@@ -58,6 +58,6 @@ class ReplayLinks:
                     raise ValueError(f"pair {k + 1}: t_s and rate_bps must be equal-length lists of finite "
                                      "numbers, times rising, rates >= 0")
                 series[(a, b)] = (t, rate)
-            return cls(str(data.get("source", path)), series)
-        except (OSError, ValueError, KeyError, TypeError) as err:
-            raise ReplayError(f"{path}: not a replay table (expected {expected}): {err}") from None
+            return cls(str(data.get("source", where)), series)
+        except (ValueError, KeyError, TypeError, AttributeError) as err:
+            raise ReplayError(f"{where}: not a replay table (expected {EXPECTED_JSON}): {err}") from None

@@ -1,6 +1,6 @@
-"""Channel models: what a radio between two vehicles is, as data (presets and TOML files), and its median
-behaviour (no shadowing, no fading) at a distance. nac_onboard.link.radio holds the formulas and the stepping of
-the time-varying parts (DESIGN.md 6).
+"""Channel models: what a radio between two vehicles is, as data (presets; TOML files are read and written by
+nac_onboard.radio.files), and its median behaviour (no shadowing, no fading) at a distance.
+nac_onboard.radio.air_link holds the formulas and the stepping of the time-varying parts (DESIGN.md 6).
 
 Path-loss models:
   free-space        20 log10(d_m) + 20 log10(f_Hz) - 147.55
@@ -19,13 +19,11 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from nac_onboard.errors import BadInput
-from nac_onboard.link import radio
-from nac_onboard.tomlfile import read_toml, to_dataclass, write_toml
+from nac_onboard.radio import air_link
 
 PATH_LOSS_MODELS = ("free-space", "log-distance", "dual-slope", "two-ray", "hata-urban", "hata-large-city",
                     "hata-suburban", "hata-rural")
@@ -76,7 +74,7 @@ class ChannelModel:
     # model a measured stack cost; the radio itself is all above.
     overhead_bits: float = 0.0
     seed: int = 0
-    # A replay table (nac_onboard.link.replay, JSON): its recorded pairs' throughput replaces the model's rate
+    # A replay table (nac_onboard.radio.replay, JSON): its recorded pairs' throughput replaces the model's rate
     # in the sleep emulation (the runner writes it for `--links replay:RUN`); "" = the model everywhere.
     replay_file: str = ""
     notes: str = ""
@@ -123,24 +121,24 @@ class ChannelModel:
     @property
     def reference_loss_db(self) -> float:
         return self.ref_loss_db if self.ref_loss_db is not None else float(
-            radio.free_space_db(self.ref_distance_m, self.freq_mhz))
+            air_link.free_space_db(self.ref_distance_m, self.freq_mhz))
 
     def path_loss_db(self, distance_m, height_a_m=None, height_b_m=None):
         """Loss at distance (scalar or array); heights above ground matter to two-ray only."""
         d = distance_m
         if self.path_loss == "free-space":
-            loss = radio.free_space_db(d, self.freq_mhz)
+            loss = air_link.free_space_db(d, self.freq_mhz)
         elif self.path_loss == "log-distance":
-            loss = radio.log_distance_db(d, self.reference_loss_db, self.exponent, self.ref_distance_m)
+            loss = air_link.log_distance_db(d, self.reference_loss_db, self.exponent, self.ref_distance_m)
         elif self.path_loss == "dual-slope":
-            loss = radio.dual_slope_db(d, self.reference_loss_db, self.exponent, self.breakpoint_m,
+            loss = air_link.dual_slope_db(d, self.reference_loss_db, self.exponent, self.breakpoint_m,
                                        self.exponent_far, self.ref_distance_m)
         elif self.path_loss == "two-ray":
             ha = self.antenna_height_m if height_a_m is None else height_a_m
             hb = self.antenna_height_m if height_b_m is None else height_b_m
-            loss = radio.two_ray_db(d, ha, hb, self.freq_mhz, self.ground_permittivity, self.polarization)
+            loss = air_link.two_ray_db(d, ha, hb, self.freq_mhz, self.ground_permittivity, self.polarization)
         else:
-            loss = radio.hata_db(d, self.freq_mhz, self.base_height_m, self.mobile_height_m,
+            loss = air_link.hata_db(d, self.freq_mhz, self.base_height_m, self.mobile_height_m,
                                  self.path_loss.removeprefix("hata-"))
         return float(loss) if np.ndim(loss) == 0 else loss
 
@@ -152,7 +150,7 @@ class ChannelModel:
 
     def capacity_bps(self, distance_m: float) -> float:
         """The median rate at a distance: no shadowing, no fading, the rate adaptation settled."""
-        return float(radio.link_rates(self, self.median_snr_db(distance_m)).goodput_bps[0])
+        return float(air_link.link_rates(self, self.median_snr_db(distance_m)).goodput_bps[0])
 
     def usable(self, rate_bps: float) -> bool:
         """The one out-of-range rule: below min_rate_bps there is no link."""
@@ -166,8 +164,8 @@ class ChannelModel:
         far: two-ray's nulls can make a link come back further out)."""
         if self.in_range(limit_m):
             return math.inf
-        d = np.geomspace(radio.MIN_DISTANCE_M, limit_m, 4000)
-        rates = radio.link_rates(self, self.median_snr_db(d)).goodput_bps
+        d = np.geomspace(air_link.MIN_DISTANCE_M, limit_m, 4000)
+        rates = air_link.link_rates(self, self.median_snr_db(d)).goodput_bps
         first_out = int(np.argmax(rates < max(self.min_rate_bps, 1.0)))
         lo, hi = float(d[max(first_out - 1, 0)]), float(d[first_out])
         while hi - lo > step_m:
@@ -251,19 +249,3 @@ PRESETS["wifi-open-field"] = dataclasses.replace(
     sources="n 2.2 and sigma 4 dB: inside the published open-field air-to-ground ranges (n about 2.0-2.5, "
             "shadowing sigma 2.8-5.3 dB); PL(1 m) free space; Rician K 10 dB (clear line of sight); 20 dBm (the "
             "2.4 GHz EIRP limit of 100 mW); the rate side as wifi-flight")
-
-
-def load_channel(name_or_path: str) -> ChannelModel:
-    """A preset by name, or a TOML file of ChannelModel fields (what `nac-ground logs calibrate` writes)."""
-    if name_or_path in PRESETS:
-        return PRESETS[name_or_path]
-    path = Path(name_or_path)
-    if not path.exists():
-        raise ChannelError(f"channel {name_or_path!r}: not a preset ({', '.join(PRESETS)}) nor a file")
-    values = read_toml(path, "channel model", ChannelError)
-    values.setdefault("name", path.stem)
-    return to_dataclass(ChannelModel, values, str(path), ChannelError)
-
-
-def save_channel(model: ChannelModel, path: str | Path) -> None:
-    write_toml(path, dataclasses.asdict(model))

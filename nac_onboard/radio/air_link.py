@@ -1,6 +1,7 @@
-"""The air-to-air radio between vehicles (pure, vectorised over pairs, seeded): path loss, shadowing, fading,
-802.11n rate selection and packet errors (DESIGN.md 6). No I/O: the kernel shaper, the sleep emulation and the
-SITL's telemetry radio step it with positions and read rates and losses.
+"""The air-to-air link between vehicles (pure, vectorised over pairs, seeded): path loss, shadowing, fading,
+802.11n rate selection and packet errors (DESIGN.md 6). No I/O: the kernel shaper and the sleep emulation step
+it with positions and read rates and losses; the SITL's telemetry radio (sitl.telemetry_radio) shares its
+formulas.
 
 Per pair and step (time step dt, the pair's motion since the last step):
   SNR (dB)   = P_t - PL(d, h_a, h_b) + shadowing + fading - noise
@@ -155,7 +156,7 @@ class Sample:
 
 class Radio:
     """The time-varying part of a set of pairs (shadowing, fading, rate adaptation), stepped by the caller.
-    model is a nac_onboard.link.channel.ChannelModel."""
+    model is a nac_onboard.radio.channel.ChannelModel."""
 
     def __init__(self, model, pairs: int, seed: int | None = None):
         self.model, self.pairs = model, pairs
@@ -263,45 +264,3 @@ def rate_band(model, distance_m, draws: int = 2000, seed: int = 0) -> dict[str, 
     return {"distance_m": d, "mcs": median.mcs, "median_bps": np.median(rates, axis=1),
             "low_bps": np.percentile(rates, 2.5, axis=1), "high_bps": np.percentile(rates, 97.5, axis=1),
             "in_range_fraction": sample.in_range.reshape(len(d), draws).mean(axis=1)}
-
-
-@dataclass(frozen=True)
-class TelemetryRadio:
-    """The MAVLink ground link's radio (a 915 MHz SiK-class modem): each frame is lost with the frame error rate
-    at the received power, over two-ray ground reflection between the ground station's antenna and the
-    vehicle's. Sensitivity is where 10 % of frames fail."""
-
-    name: str
-    freq_mhz: float
-    tx_power_dbm: float
-    antenna_gain_dbi: float  # each end
-    system_loss_db: float  # cables, antenna orientation, the airframe, interference: a field fade margin
-    sensitivity_dbm: float
-    slope_db: float
-    ground_antenna_m: float
-    sources: str = ""
-
-    def received_dbm(self, distance_m, vehicle_height_m):
-        return (self.tx_power_dbm + 2 * self.antenna_gain_dbi - self.system_loss_db
-                - two_ray_db(distance_m, self.ground_antenna_m, vehicle_height_m, self.freq_mhz))
-
-    def frame_loss(self, distance_m, vehicle_height_m):
-        return frame_error_rate(self.received_dbm(distance_m, vehicle_height_m), self.sensitivity_dbm,
-                                self.slope_db)
-
-    def range_m(self, vehicle_height_m: float, loss: float = 0.5) -> float:
-        """The first distance (1 m steps) where `loss` of the frames fail."""
-        d = np.arange(1.0, 100_000.0, 1.0)
-        beyond = self.frame_loss(d, vehicle_height_m) >= loss
-        return float(d[np.argmax(beyond)]) if beyond.any() else math.inf
-
-
-TELEMETRY_RADIOS = {
-    "sik-915": TelemetryRadio(
-        name="sik-915", freq_mhz=915.0, tx_power_dbm=20.0, antenna_gain_dbi=2.0, system_loss_db=25.0,
-        sensitivity_dbm=-105.0, slope_db=1.5, ground_antenna_m=1.5,
-        sources="SiK firmware radios (3DR / Holybro / RFD900-class at 100 mW): 20 dBm, 2 dBi dipoles, about "
-                "-105 dBm sensitivity at the default 64 kbit/s air rate (-121 dBm at 2 kbit/s in the modem's "
-                "data sheet, ~8 dB lost per doubling of the rate); a 25 dB field margin so stock radios reach "
-                "the 1-2 km that users report rather than the free-space tens of kilometres"),
-}
