@@ -88,6 +88,8 @@ def test_the_run_writes_its_radio_once_and_the_children_are_pointed_at_that_file
 
     import numpy as np
 
+    from nac_onboard.agent.config import load_agent_config
+    from nac_onboard.compute.options import options_from_argv
     from nac_onboard.radio.files import load_channel, load_replay
     from nac_onboard.radio.replay import ReplayLinks
     from sitl.experiment.commands import Ports, agent_config, compute_args, run_channel_path
@@ -113,11 +115,17 @@ def test_the_run_writes_its_radio_once_and_the_children_are_pointed_at_that_file
             assert written == scenario.channel and not (run_dir / "config" / "replay.json").exists()
         args = compute_args(scenario, run_dir, Ports(14550), 10.0, kernel=network == "kernel")
         assert args[args.index("--channel") + 1] == str(run_channel_path(run_dir))
+        assert options_from_argv(args).channel == experiment.radio, "what the MPI ranks load"
         if network == "kernel":
             assert args[args.index("--pad-bits") + 1] == f"{scenario.channel.overhead_bits:g}"
         master = agent_config(scenario, 0, run_dir, Ports(14550), None if network == "sleep" else ["10.0.0.1"] * 3)
         emulated = f'emulate_channel = "{run_channel_path(run_dir)}"' if network == "sleep" else 'emulate_channel = ""'
         assert emulated in master
+        if network == "sleep":
+            (run_dir / "config" / "fleet.key").write_text("ab" * 32 + "\n")
+            (run_dir / "config" / "master.toml").write_text(master)
+            agent = load_agent_config(run_dir / "config" / "master.toml")
+            assert agent.emulated_channel == experiment.radio, "what the master's agent loads for its probes"
 
 
 def test_the_cli_refuses_bad_scenarios_and_speedups_with_exit_2(tmp_path, capsys):
