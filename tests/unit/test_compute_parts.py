@@ -1,9 +1,12 @@
 """The computing model's pure parts: channel models against hand-computed values, kernels, the data set."""
 
+import dataclasses
 import hashlib
 import io
 import math
 import os
+import sys
+import threading
 import zipfile
 
 import numpy as np
@@ -11,6 +14,8 @@ import pytest
 
 from nac_onboard.compute import forestfires, kernels
 from nac_onboard.compute.launch import core_binding, cpu_per_host, mpiexec_command
+from nac_onboard.compute.messages import KIND_WORK
+from nac_onboard.compute.options import ComputeOptions
 from nac_onboard.compute.positions import ScriptedDistances
 from nac_onboard.errors import BadInput
 from nac_onboard.radio.channel import PRESETS, ChannelError, ChannelModel
@@ -184,3 +189,288 @@ def test_host_names_that_would_break_the_launcher_are_refused(tmp_path, hosts):
     with pytest.raises(BadInput, match="MPI host"):
         mpiexec_command(hosts, tmp_path)
 
+
+# ---- the Task contract, in one process ---------------------------------------------------------------------------
+TOY_TASK = '''
+"""A toy task, known to the job by this module alone: the sum of 0..9 times each iteration's input."""
+import numpy as np
+
+from nac_onboard.compute.task import Answer, Extra, Task
+
+
+class Toy(Task):
+    name, default_iterations, summary = "toy", 4, "sum of 0..9 times the input, blocks of rows among the workers"
+
+    def __init__(self, options):
+        super().__init__(options)
+        self.data, self.block, self.totals = np.arange(10.0), None, []
+
+    @classmethod
+    def check(cls, options):
+        pass
+
+    def rows(self):
+        return len(self.data)
+
+    def input_floats(self):
+        return 1
+
+    def largest_input(self):
+        return max(b - a for a, b in self.bounds) + 1
+
+    def largest_result(self):
+        return 1
+
+    def take_block(self, rank):
+        start, stop = self.bounds[rank - 1]
+        self.block = self.data[start:stop]
+
+    def work(self, payload, extra_rows=None):
+        block, x = (self.block, payload) if extra_rows is None else (payload[:extra_rows], payload[extra_rows:])
+        return Answer(np.array([block.sum() * x[0]]), len(block))
+
+    def next_input(self, iteration):
+        return np.array([iteration + 1.0])
+
+    def plan_missing(self, iteration, payload, missing, answered):
+        if not answered:
+            return []
+        return [Extra(answered[0], r, np.concatenate([self.data[slice(*self.bounds[r - 1])], payload]),
+                      self.bounds[r - 1][1] - self.bounds[r - 1][0]) for r in missing]
+
+    def combine(self, iteration, payload, answers):
+        rows = sum(a.rows for a in answers.values())
+        total = float(sum(a.values[0] for a in answers.values()))
+        self.totals.append(total)
+        return {"total": total, "complete": rows == len(self.data)}
+
+    def results(self):
+        return {"totals": np.array(self.totals)}
+'''
+
+
+class _FakeRequest:
+    def __init__(self, done: bool = False):
+        self.done, self.count = done, 0
+
+    def Test(self):  # noqa: N802 (mpi4py's names)
+        return self.done
+
+    def Cancel(self):  # noqa: N802
+        self.done = True
+
+
+class FakeMPI:
+    """Just what the runner uses of mpi4py, between threads of one process: sends are delivered at once, in order
+    (as MPI keeps the order of one sender's messages), into the receiver's earliest matching posted receive."""
+
+    DOUBLE, UNDEFINED = "double", -32766
+    REQUEST_NULL = _FakeRequest(done=True)
+
+    class Exception(Exception):  # noqa: N818 (mpi4py's name)
+        pass
+
+    class Status:
+        count = 0
+
+        def Get_count(self, datatype):  # noqa: N802
+            return self.count
+
+    class Request:
+        @staticmethod
+        def Testany(requests, status):  # noqa: N802
+            for k, request in enumerate(requests):
+                if request is not FakeMPI.REQUEST_NULL and request.done:
+                    status.count = request.count
+                    return k, True
+            return FakeMPI.UNDEFINED, False
+
+        @staticmethod
+        def Waitall(requests):  # noqa: N802
+            pass
+
+
+class FakeWorld:
+    def __init__(self, size: int, drop=lambda dest, message: False):
+        self.size, self.drop = size, drop  # drop(dest, message): lose this message on the way
+        self.lock, self.posted, self.queued = threading.Lock(), [], []
+        self.shared, self.broadcast = None, threading.Event()
+
+    def comm(self, rank: int) -> "FakeComm":
+        return FakeComm(self, rank)
+
+    def deliver(self, source: int, dest: int, tag: int, data: np.ndarray) -> None:
+        if self.drop(dest, data):
+            return
+        with self.lock:
+            for item in self.posted:
+                owner, want_source, want_tag, buf, request = item
+                if (owner, want_source, want_tag) == (dest, source, tag) and not request.done:
+                    self.posted.remove(item)
+                    self._fill(buf, request, data)
+                    return
+            self.queued.append((source, dest, tag, data.copy()))
+
+    @staticmethod
+    def _fill(buf: np.ndarray, request: _FakeRequest, data: np.ndarray) -> None:
+        assert len(data) <= len(buf), f"a {len(data)}-float message into a {len(buf)}-float receive (MPI: truncate)"
+        buf[:len(data)] = data
+        request.count, request.done = len(data), True
+
+    def post(self, owner: int, source: int, tag: int, buf: np.ndarray) -> _FakeRequest:
+        request = _FakeRequest()
+        with self.lock:
+            for item in self.queued:
+                if item[:3] == (source, owner, tag):
+                    self.queued.remove(item)
+                    self._fill(buf, request, item[3])
+                    return request
+            self.posted.append((owner, source, tag, buf, request))
+        return request
+
+
+class FakeComm:
+    def __init__(self, world: FakeWorld, rank: int):
+        self.world, self.rank = world, rank
+
+    def Get_rank(self):  # noqa: N802
+        return self.rank
+
+    def Get_size(self):  # noqa: N802
+        return self.world.size
+
+    def bcast(self, obj, root=0):
+        if self.rank == root:
+            self.world.shared = obj
+            self.world.broadcast.set()
+            return obj
+        assert self.world.broadcast.wait(10.0)
+        return self.world.shared
+
+    def Irecv(self, spec, source, tag):  # noqa: N802
+        return self.world.post(self.rank, source, tag, spec[0])
+
+    def Isend(self, spec, dest, tag):  # noqa: N802
+        self.world.deliver(self.rank, dest, tag, spec[0])
+        return _FakeRequest(done=True)
+
+    def Send(self, spec, dest, tag):  # noqa: N802
+        self.world.deliver(self.rank, dest, tag, spec[0])
+
+    def Abort(self, code):  # noqa: N802
+        raise RuntimeError(f"rank {self.rank} aborted ({code})")
+
+
+@pytest.fixture
+def toy_task(tmp_path, monkeypatch):
+    """The toy task's module in a folder of its own, added to where the job looks for tasks: nothing else knows it."""
+    from nac_onboard.compute import tasks
+
+    folder = tmp_path / "more_tasks"
+    folder.mkdir()
+    (folder / "toy.py").write_text(TOY_TASK)
+    monkeypatch.setattr(tasks, "__path__", [*tasks.__path__, str(folder)])
+    yield
+    sys.modules.pop(f"{tasks.__name__}.toy", None)
+
+
+class RecordingLog:
+    """The master's log in memory: each record as the runner wrote it (kind by name)."""
+
+    def __init__(self):
+        self.records: list[dict] = []
+
+    def write(self, kind, t_s=None, **fields) -> dict:
+        record = {"t_s": t_s, "kind": getattr(kind, "name", kind), **fields}
+        self.records.append(record)
+        return record
+
+
+def run_job(options, drop=lambda dest, message: False) -> tuple[int, list[dict]]:
+    """The runner's real master and workers, each rank a thread, over FakeMPI; (exit code, the master's records)."""
+    from nac_onboard.compute.runner import Master, run_worker
+
+    size = 4
+    world = FakeWorld(size, drop)
+    workers = [threading.Thread(target=run_worker, args=(world.comm(r), FakeMPI, options), daemon=True)
+               for r in range(1, size)]
+    for thread in workers:
+        thread.start()
+    log = RecordingLog()
+    code = Master(world.comm(0), FakeMPI, options, log).run()
+    for thread in workers:
+        thread.join(10.0)
+        assert not thread.is_alive(), "every worker stopped"
+    return code, log.records
+
+
+def test_a_new_task_is_one_module_and_the_runner_sends_collects_and_resends_for_it(toy_task, tmp_path):
+    from nac_onboard.compute.options import build_parser, options_from_argv
+    from nac_onboard.compute.tasks import all_tasks
+
+    assert "toy" in all_tasks() and "toy: sum of 0..9" in " ".join(build_parser().format_help().split())
+    options = options_from_argv(["--task", "toy", "--out", str(tmp_path), "--timeout-s", "0.3",
+                                 "--idle-timeout-s", "10"])
+    assert options.iterations == 4, "its default"
+    # Rank 3's input of iteration 2 is lost: its block [7, 10) is sent again, to rank 1, and arrives.
+    lost = lambda dest, message: dest == 3 and message[0] == KIND_WORK and message[1] == 2  # noqa: E731
+    code, written = run_job(options, drop=lost)
+    assert code == 0
+    started, *its, summary = [r for r in written if r["kind"] in ("run_started", "iteration", "run_summary")]
+    assert started["shards"] == [(0, 3), (3, 7), (7, 10)] and started["task"] == "toy"
+    assert [r["total"] for r in its] == [45.0 * (k + 1) for k in range(4)] and all(r["complete"] for r in its)
+    assert [r.get("reassigned") for r in its] == [None, None, [{"rows_of": 3, "by": 1}], None]
+    assert its[2]["workers"]["absent"] == [None, None, "timeout"]
+    assert summary["iterations"] == summary["complete_iterations"] == 4
+    assert summary["absent_iterations"] == {"1": 0, "2": 0, "3": 1}
+    assert list(np.load(tmp_path / "results.npz")["totals"]) == [45.0, 90.0, 135.0, 180.0]
+
+
+def drive(task_class, options, blocks: int, lost: frozenset = frozenset()):
+    """One iteration of the contract as the runner drives it, without MPI: a task per worker, one for the master;
+    the blocks of the `lost` ranks do not arrive and the master's plan for them is worked by the ranks it names."""
+    bounds = kernels.split_rows(task_class(options).rows(), [1.0] * blocks)
+    workers = {}
+    for rank in range(1, blocks + 1):
+        workers[rank] = task_class(options)
+        workers[rank].split(bounds)
+        workers[rank].take_block(rank)
+    master = task_class(options)
+    master.split(bounds)
+    payload = master.next_input(0)
+    answers = {r: w.work(payload.copy()) for r, w in workers.items() if r not in lost}
+    plan = master.plan_missing(0, payload, sorted(lost), sorted(answers)) if lost else []
+    for extra in plan:
+        assert extra.payload.size <= master.largest_input()
+        answers[extra.rows_of] = workers[extra.by].work(extra.payload, extra.rows)
+    assert all(a.values.size <= master.largest_result() for a in answers.values())
+    return master, payload, plan, master.combine(0, payload, answers)
+
+
+def test_matmul_stacks_the_blocks_and_plans_the_missing_rows_for_the_workers_that_answered(tmp_path):
+    from nac_onboard.compute.tasks.matmul import Matmul, matmul_inputs
+
+    options = ComputeOptions(task="matmul", iterations=1, duration_s=None, out=str(tmp_path), m=10, n=6, l=2,
+                             on_missing="reassign", save_results=True)
+    master, payload, plan, record = drive(Matmul, options, 3, lost=frozenset({2, 3}))
+    assert record == {"complete": True} and [(e.by, e.rows_of, e.rows) for e in plan] == [(1, 2, 4), (1, 3, 3)]
+    a, _ = matmul_inputs(0, 10, 6)
+    assert np.allclose(master.results()["C_0"], a @ payload.reshape(6, 2))
+    incomplete = dataclasses.replace(options, on_missing="incomplete")
+    _, _, plan, record = drive(Matmul, incomplete, 3, lost=frozenset({2}))
+    assert plan == [] and record == {"complete": False}
+
+
+def test_linreg_steps_on_the_shards_that_arrived(tmp_path):
+    from nac_onboard.compute.tasks.linreg import Linreg
+
+    options = ComputeOptions(task="linreg", iterations=1, duration_s=None, out=str(tmp_path), data=str(CSV))
+    master, payload, plan, record = drive(Linreg, options, 2)
+    x, y = forestfires.load(CSV)
+    w, costs = kernels.gradient_descent(x, y, np.zeros(x.shape[1]), 0.05, 1)
+    assert plan == [] and record["rows_used"] == 517 and record["complete"]
+    assert record["cost"] == pytest.approx(costs[0], rel=1e-12) and np.allclose(master.results()["weights"], w)
+    master, _, _, record = drive(Linreg, options, 2, lost=frozenset({2}))
+    assert record["rows_used"] == 258 and not record["complete"]
+    _, _, _, record = drive(Linreg, options, 2, lost=frozenset({1, 2}))
+    assert record == {"cost": None, "rows_used": 0, "complete": False}
