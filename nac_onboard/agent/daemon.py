@@ -34,8 +34,9 @@ from nac_onboard.agent.peers import (
     encode_peer_state,
 )
 from nac_onboard.agent.probes import ProbeScheduler
+from nac_onboard.agent.snapshot import AgentSnapshot, OwnState
 from nac_onboard.agent.state_feed import REQUEST as FEED_REQUEST
-from nac_onboard.agent.state_feed import encode_answer
+from nac_onboard.agent.state_feed import encode_snapshot
 from nac_onboard.agent.systemd_notify import SystemdNotifier
 from nac_onboard.clock import from_env
 from nac_onboard.flight_log import JsonlLog, TlogWriter
@@ -139,7 +140,7 @@ class Agent:
         if t.probe:
             clock = from_env()
             emulation = SleepEmulation(c.emulated_channel, clock) if c.emulated_channel else None
-            self.scheduler = ProbeScheduler(t, c.vehicle.id, self._probe_targets, self.positions,
+            self.scheduler = ProbeScheduler(t, c.vehicle.id, self._probe_targets, self.snapshot,
                                             self.throughput_log, self.stop_event, emulation, clock).start()
         self.log.write("agent_ready", peers_listen=c.peers.listen, state_feed=c.state_feed.listen,
                        throughput_port=self.throughput_server.port if self.throughput_server else None,
@@ -381,15 +382,12 @@ class Agent:
             self._rejects_logged = dict(self.peer_rejects)
             self._last_reject_log_s = now
 
-    def positions(self) -> dict:
-        """The state feed's answer: this vehicle and every peer, with ages."""
-        own = self.own_state()
+    def snapshot(self) -> AgentSnapshot:
+        """This vehicle and every peer, with ages: what the state feed answers and the probes log."""
+        own = OwnState.of(self.own_state(), self.autopilot.up)
         with self._state_lock:
-            peers = self.peers.snapshot(time.monotonic())
-        me = {k: getattr(own, k) for k in ("id", "role", "sysid", "lat_deg", "lon_deg", "alt_m", "vel_ned_mps",
-                                           "battery_pct", "mpi_build")}
-        me["link_up"] = self.autopilot.up
-        return {"t_s": time.time(), "self": me, "peers": peers}
+            peers = tuple(self.peers.snapshot(time.monotonic()).values())
+        return AgentSnapshot(time.time(), own, peers)
 
     def _answer_feed(self, now: float) -> None:
         while True:
@@ -402,7 +400,7 @@ class Agent:
                 continue
             self.counters["feed_requests"] += 1
             try:
-                self.feed_sock.sendto(encode_answer(self.positions()), sender)
+                self.feed_sock.sendto(encode_snapshot(self.snapshot()), sender)
             except (OSError, ValueError) as err:
                 log.warning("state feed answer to %s failed: %s", sender, err)
 

@@ -164,6 +164,15 @@ def _check(body: dict, host: str) -> PeerState:
         mpi_build=mpi_build, host=host)
 
 
+@dataclass(frozen=True)
+class HeardPeer:
+    """A peer as the table holds it: its last message, how long ago it came and whether the peer is lost."""
+
+    state: PeerState
+    age_s: float  # since its last message, to the millisecond
+    lost: bool
+
+
 @dataclass
 class _Entry:
     state: PeerState
@@ -215,14 +224,10 @@ class PeerTable:
     def live(self) -> list[PeerState]:
         return [e.state for e in self._entries.values() if not e.lost]
 
-    def snapshot(self, now_mono_s: float) -> dict[str, dict]:
-        """Every peer in the table: its last state, age_s and whether it is lost."""
-        out = {}
-        for peer_id, e in self._entries.items():
-            record = asdict(e.state)
-            record.update(age_s=round(now_mono_s - e.heard_mono_s, 3), lost=e.lost)
-            out[peer_id] = record
-        return out
+    def snapshot(self, now_mono_s: float) -> dict[str, HeardPeer]:
+        """Every peer in the table by id: its last state, its age and whether it is lost."""
+        return {peer_id: HeardPeer(e.state, round(now_mono_s - e.heard_mono_s, 3), e.lost)
+                for peer_id, e in self._entries.items()}
 
 
 class SenderMute:

@@ -17,9 +17,10 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 
 from nac_onboard.agent.config import ThroughputSection
-from nac_onboard.agent.state_feed import distance_between, position_of
+from nac_onboard.agent.snapshot import AgentSnapshot, position
 from nac_onboard.clock import Clock
 from nac_onboard.flight_log import JsonlLog
 from nac_onboard.link import iperf3
@@ -27,14 +28,14 @@ from nac_onboard.link.emulation import SleepEmulation
 from nac_onboard.link.throughput import LINK, MIN_INTERVAL_S, ProbeError, probe
 
 log = logging.getLogger(__name__)
-_POSITION_KEYS = ("lat_deg", "lon_deg", "alt_m")
 
 
 class ProbeScheduler:
-    def __init__(self, settings: ThroughputSection, self_id: str, targets, positions, out: JsonlLog,
-                 stop: threading.Event, emulation: SleepEmulation | None = None, clock: Clock | None = None):
+    def __init__(self, settings: ThroughputSection, self_id: str, targets: Callable[[], list[tuple[str, str, int]]],
+                 snapshot: Callable[[], AgentSnapshot], out: JsonlLog, stop: threading.Event,
+                 emulation: SleepEmulation | None = None, clock: Clock | None = None):
         self.settings, self.self_id = settings, self_id
-        self.targets, self.positions = targets, positions  # callables: [(id, host, port)], state-feed answer
+        self.targets, self.snapshot = targets, snapshot  # [(id, host, port)] to probe; where everyone is now
         self.out, self.stop_event = out, stop
         self.rounds = 0
         self.emulation = emulation  # SITL: pace each probe at the channel model's rate for the pair's distance
@@ -61,10 +62,10 @@ class ProbeScheduler:
 
     def probe_once(self, peer_id: str, host: str, port: int) -> dict:
         s = self.settings
-        before = self.positions()
+        before = self.snapshot()
         fields: dict = {"client": self.self_id, "server": peer_id, "host": host, "port": port,
                         "t_sim_s": self.clock.now_s(), "speedup": self.clock.speedup}
-        distance_m = distance_between(before, self.self_id, peer_id)
+        distance_m = before.distance_m(self.self_id, peer_id)
         if self.emulation is not None and distance_m is None:
             # no distance, no emulated link: nothing was measured, so it is not a failed probe either
             return self.out.write("probe_skipped", **fields, reason="no position for one of the pair yet")
@@ -87,10 +88,10 @@ class ProbeScheduler:
             result = {"error": str(err), "error_kind": err.kind}
         except iperf3.Iperf3Error as err:
             result = {"error": str(err), "error_kind": LINK}
-        after = self.positions()
+        after = self.snapshot()
         fields["positions"] = {"start": self._pair(before, peer_id), "end": self._pair(after, peer_id)}
         fields["distance_m"] = distance_m
-        fields["distance_end_m"] = distance_between(after, self.self_id, peer_id)
+        fields["distance_end_m"] = after.distance_m(self.self_id, peer_id)
         return self.out.write("throughput", **fields, **result)
 
     def _emulated_rate_bps(self, peer_id: str, distance_m: float, cap_bps: float | None) -> float:
@@ -103,9 +104,9 @@ class ProbeScheduler:
                              f"{distance_m:.1f} m (minimum {channel.min_rate_bps / 1e6:g})")
         return min(link.capacity_bps, cap_bps) if cap_bps else link.capacity_bps
 
-    def _pair(self, state: dict, peer_id: str) -> dict:
+    def _pair(self, snapshot: AgentSnapshot, peer_id: str) -> dict:
         out = {}
         for who in (self.self_id, peer_id):
-            entry = position_of(state, who)
-            out[who] = None if entry is None else {k: entry.get(k) for k in _POSITION_KEYS}
+            vehicle = snapshot.vehicle(who)
+            out[who] = None if vehicle is None else position(vehicle)
         return out

@@ -2,6 +2,8 @@
 
 One UDP datagram each way on the companion itself (default 127.0.0.1:47200). The answer is JSON:
 {"t_s", "self": {id, role, lat_deg, lon_deg, alt_m, vel_ned_mps, link_up, ...}, "peers": {id: {..., age_s, lost}}}.
+The agent hands a typed AgentSnapshot (nac_onboard.agent.snapshot); this module alone writes it as JSON, and
+`position_of`/`distance_between` read the JSON answer back, for the processes that ask.
 """
 
 from __future__ import annotations
@@ -9,9 +11,11 @@ from __future__ import annotations
 import json
 import math
 import socket
+from dataclasses import asdict
 
 from missions.geo import distance_m
 from nac_onboard.address import parse_host_port
+from nac_onboard.agent.snapshot import AgentSnapshot
 from nac_onboard.errors import OperationFailed
 
 REQUEST = b'{"get":"state"}'  # the only request answered: anything else is dropped, unanswered
@@ -37,6 +41,17 @@ def fetch_state(address: str = "127.0.0.1:47200", timeout_s: float = 1.0) -> dic
         return json.loads(data)
     except ValueError:
         raise StateFeedError(f"the state feed at {address} answered something that is not JSON") from None
+
+
+def answer_of(snapshot: AgentSnapshot) -> dict:
+    """The answer's JSON object: "self" is the own state, each peer its last message with age_s and lost."""
+    peers = {p.state.id: {**asdict(p.state), "age_s": p.age_s, "lost": p.lost} for p in snapshot.peers}
+    return {"t_s": snapshot.t_s, "self": asdict(snapshot.own), "peers": peers}
+
+
+def encode_snapshot(snapshot: AgentSnapshot) -> bytes:
+    """The datagram answering a state request."""
+    return encode_answer(answer_of(snapshot))
 
 
 def encode_answer(state: dict) -> bytes:

@@ -15,7 +15,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from nac_onboard.agent.config import ThroughputSection
+from nac_onboard.agent.peers import HeardPeer, PeerState
 from nac_onboard.agent.probes import ProbeScheduler
+from nac_onboard.agent.snapshot import AgentSnapshot, OwnState
 from nac_onboard.flight_log import JsonlLog, read_jsonl
 from nac_onboard.link import iperf3
 from nac_onboard.link.emulation import SleepEmulation
@@ -107,10 +109,10 @@ def test_emulated_probes_follow_the_channel_model_at_the_live_distance(tmp_path)
     east_m = {"value": 10.0}
 
     def positions():
-        peer = None if east_m["value"] is None else {"lat_deg": 47.0, "lon_deg": 8.0 + east_m["value"] / 75_840.0,
-                                                      "alt_m": 500.0}
-        return {"self": {"id": "m", "lat_deg": 47.0, "lon_deg": 8.0, "alt_m": 500.0},
-                "peers": {"w": peer} if peer else {}}
+        peers = () if east_m["value"] is None else (
+            HeardPeer(PeerState("w", "worker", 0.0, lat_deg=47.0, lon_deg=8.0 + east_m["value"] / 75_840.0,
+                                alt_m=500.0), 0.1, False),)
+        return AgentSnapshot(0.0, _own_state(), peers)
 
     settings = ThroughputSection(probe=True, duration_s=0.5, interval_s=0.1, emulate_channel="wifi-flight")
     wifi = dataclasses.replace(PRESETS["wifi-flight"], shadowing_sigma_db=0.0, rician_k_db=None)  # the median link
@@ -135,13 +137,17 @@ def test_emulated_probes_follow_the_channel_model_at_the_live_distance(tmp_path)
     assert kinds == ["throughput", "throughput", "probe_skipped"]
 
 
+def _own_state() -> OwnState:
+    return OwnState("m", "master", 1, 47.0, 8.0, 500.0, None, None, "", True)
+
+
 @needs_iperf3
 def test_probes_can_run_the_real_iperf3_and_log_its_json(tmp_path):
     """throughput.tool = "iperf3": the agent's probe schedule runs `iperf3 --client --json` (whole seconds) and
     logs iperf3's own result; a target without a server is a failed probe, logged, not a crash."""
     port, closed = free_port(), free_port()
     settings = ThroughputSection(probe=True, duration_s=0.5, interval_s=0.1, tool="iperf3")
-    positions = {"self": {"id": "m", "lat_deg": 47.0, "lon_deg": 8.0, "alt_m": 500.0}, "peers": {}}
+    positions = AgentSnapshot(0.0, _own_state())
     with iperf3_server(port), JsonlLog(tmp_path / "throughput.jsonl") as out:
         scheduler = ProbeScheduler(settings, "m", lambda: [], lambda: positions, out, threading.Event())
         measured = scheduler.probe_once("w", "127.0.0.1", port)

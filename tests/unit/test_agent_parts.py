@@ -12,7 +12,8 @@ import pytest
 from missions.geo import Home, distance_m, enu_to_lla
 from nac_onboard.agent.config import ConfigError, load_agent_config, parse_agent_config
 from nac_onboard.agent.peers import PeerMessageError, PeerState, PeerTable, decode_peer_state, encode_peer_state
-from nac_onboard.agent.state_feed import distance_between
+from nac_onboard.agent.snapshot import AgentSnapshot, OwnState
+from nac_onboard.agent.state_feed import distance_between, encode_snapshot
 from nac_onboard.agent.systemd_notify import SystemdNotifier
 from nac_onboard.flight_log import JsonlLog, TlogWriter, read_jsonl
 
@@ -92,7 +93,7 @@ def test_peer_table_seen_lost_and_back():
     lost = table.expire(1.6)
     assert [(p.id, round(s, 1)) for p, s in lost] == [("uav2", 1.1)]
     assert table.expire(3.0) == [], "lost is reported once"
-    assert table.snapshot(3.0)["uav2"]["lost"] and table.live() == []
+    assert table.snapshot(3.0)["uav2"].lost and table.live() == []
     assert table.update(other, 3.1, 3.1) == "peer_seen", "a peer that comes back is seen again"
 
 
@@ -150,6 +151,48 @@ def test_state_feed_distance_between_self_and_peers():
              "peers": {"w1": {"lat_deg": 47.0, "lon_deg": 8.0, "alt_m": 510.0}}}
     assert math.isclose(distance_between(state, "m", "w1"), 10.0, rel_tol=1e-9)
     assert distance_between(state, "m", "w9") is None
+
+
+def _snapshot() -> AgentSnapshot:
+    table = PeerTable("m", timeout_s=3.0)
+    table.update(PeerState("w1", "worker", 1000.0, 2, 47.0, 8.0, 510.0, (1.0, 0.5, -0.25), 80, 5201, "MPICH 5",
+                           "10.0.0.2"), 10.0, 1000.0)
+    table.update(PeerState("w2", "worker", 1000.5, 3, probe_port=5201), 10.5, 1000.5)
+    table.expire(13.2)  # w1 silent 3.2 s: lost; w2 2.7 s
+    own = OwnState.of(PeerState("m", "master", 1001.0, 1, 47.0, 8.0, 500.0, (0.0, 0.0, 0.0), 95, 5201, "MPICH 5"),
+                      link_up=True)
+    return AgentSnapshot(1001.25, own, tuple(table.snapshot(14.0).values()))
+
+
+def test_the_agents_snapshot_is_typed_and_finds_everyone():
+    snapshot = _snapshot()
+    assert [(p.state.id, p.age_s, p.lost) for p in snapshot.peers] == [("w1", 4.0, True), ("w2", 3.5, False)]
+    assert snapshot.vehicle("m") is snapshot.own and snapshot.vehicle("w1").alt_m == 510.0
+    assert snapshot.vehicle("w9") is None
+    assert math.isclose(snapshot.distance_m("m", "w1"), 10.0, rel_tol=1e-9)
+    assert snapshot.distance_m("m", "w2") is None and snapshot.distance_m("m", "w9") is None  # w2: no position yet
+
+
+def test_the_state_feed_writes_the_snapshot_in_its_wire_format_byte_for_byte():
+    """The MPI job and `nac-onboard state` read this JSON (nac_onboard/compute/positions.py): its keys, their order
+    and values are the wire format."""
+    snapshot = _snapshot()
+    data = encode_snapshot(snapshot)
+    assert data == (
+        b'{"t_s":1001.25,"self":{"id":"m","role":"master","sysid":1,"lat_deg":47.0,"lon_deg":8.0,"alt_m":500.0,'
+        b'"vel_ned_mps":[0.0,0.0,0.0],"battery_pct":95,"mpi_build":"MPICH 5","link_up":true},"peers":{'
+        b'"w1":{"id":"w1","role":"worker","t_s":1000.0,"sysid":2,"lat_deg":47.0,"lon_deg":8.0,"alt_m":510.0,'
+        b'"vel_ned_mps":[1.0,0.5,-0.25],"battery_pct":80,"probe_port":5201,"mpi_build":"MPICH 5","host":"10.0.0.2",'
+        b'"age_s":4.0,"lost":true},'
+        b'"w2":{"id":"w2","role":"worker","t_s":1000.5,"sysid":3,"lat_deg":null,"lon_deg":null,"alt_m":null,'
+        b'"vel_ned_mps":null,"battery_pct":null,"probe_port":5201,"mpi_build":"","host":"","age_s":3.5,'
+        b'"lost":false}}}')
+    answer = json.loads(data)
+    assert distance_between(answer, "m", "w1") == snapshot.distance_m("m", "w1")
+    unknown = OwnState.of(PeerState("m", "master", 1001.0), link_up=False)
+    assert encode_snapshot(AgentSnapshot(5.0, unknown)) == (
+        b'{"t_s":5.0,"self":{"id":"m","role":"master","sysid":0,"lat_deg":null,"lon_deg":null,"alt_m":null,'
+        b'"vel_ned_mps":null,"battery_pct":null,"mpi_build":"","link_up":false},"peers":{}}')
 
 
 def test_systemd_notifier_speaks_the_notify_protocol(tmp_path):
