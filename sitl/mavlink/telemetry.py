@@ -134,9 +134,9 @@ class TelemetrySource:
         roll, pitch, yaw = attitude_rad(s)
         hdg = np.mod(np.degrees(yaw), 360.0)
         landed = np.where(s.on_ground, M.MAV_LANDED_STATE_ON_GROUND,
-                          np.where(w.fleet.motion == Motion.LAND, M.MAV_LANDED_STATE_LANDING,
+                          np.where(w.autopilots.motion == Motion.LAND, M.MAV_LANDED_STATE_LANDING,
                                    M.MAV_LANDED_STATE_IN_AIR))
-        climbing = (w.fleet.check == Check.ALTITUDE) & ~s.on_ground
+        climbing = (w.autopilots.check == Check.ALTITUDE) & ~s.on_ground
         landed = np.where(climbing, M.MAV_LANDED_STATE_TAKEOFF, landed)
 
         def ints(values) -> list:
@@ -146,7 +146,7 @@ class TelemetrySource:
             state=s, time_boot_ms=int(w.t_s * 1000), boot_ms=ints(np.maximum(w.t_s - w.boot_t_s, 0.0) * 1000),
             time_usec=int(self.unix_time_s() * 1e6),
             lat_e7=ints(fix.lat_deg * 1e7), lon_e7=ints(fix.lon_deg * 1e7), alt_mm=ints(fix.alt_m * 1000),
-            rel_alt_mm=ints((fix.pos_m[:, 2] - w.fleet.home_m[:, 2]) * 1000), vn_cms=ints(s.vel_mps[:, 1] * 100),
+            rel_alt_mm=ints((fix.pos_m[:, 2] - w.autopilots.home_m[:, 2]) * 1000), vn_cms=ints(s.vel_mps[:, 1] * 100),
             ve_cms=ints(s.vel_mps[:, 0] * 100), vd_cms=ints(-s.vel_mps[:, 2] * 100), hdg_cdeg=ints(hdg * 100),
             roll=roll.tolist(), pitch=pitch.tolist(), yaw=yaw.tolist(), landed_state=landed.tolist(),
         )
@@ -154,7 +154,7 @@ class TelemetrySource:
 
 # ---- one builder per streamed message: (encoder, vehicle, world, snapshot) -> frame ----------------------------
 def heartbeat_fields(world: World, i: int) -> tuple:
-    f = world.fleet
+    f = world.autopilots
     mode = int(f.mode[i])
     base = M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | M.MAV_MODE_FLAG_STABILIZE_ENABLED
     if f.armed[i]:
@@ -193,7 +193,7 @@ def _attitude(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
 def _vfr_hud(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
     v = t.state.vel_mps[i]
     speed = float(math.hypot(v[0], v[1]))
-    throttle = 50 if w.fleet.armed[i] and not t.state.on_ground[i] else 0
+    throttle = 50 if w.autopilots.armed[i] and not t.state.on_ground[i] else 0
     return enc.fields(M.MAVLink_vfr_hud_message, speed, speed, int(t.hdg_cdeg[i] // 100), throttle,
                       t.alt_mm[i] / 1000.0, float(v[2]))
 
@@ -203,10 +203,10 @@ def _sys_status(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
     PREARM_CHECK is healthy while the pre-arm checks pass (MAVSDK's is_armable)."""
     present = SENSORS | M.MAV_SYS_STATUS_GEOFENCE | M.MAV_SYS_STATUS_PREARM_CHECK
     enabled = present if w.params.get(i, "FENCE_ENABLE") else present & ~M.MAV_SYS_STATUS_GEOFENCE
-    health = present if w.fleet.gps_ok[i] else present & ~M.MAV_SYS_STATUS_SENSOR_GPS
-    if w.fleet.fence_breach[i] is not None:
+    health = present if w.autopilots.gps_ok[i] else present & ~M.MAV_SYS_STATUS_SENSOR_GPS
+    if w.autopilots.fence_breach[i] is not None:
         health &= ~M.MAV_SYS_STATUS_GEOFENCE
-    if w.fleet.prearm_failure(i):
+    if w.autopilots.prearm_failure(i):
         health &= ~M.MAV_SYS_STATUS_PREARM_CHECK
     return enc.fields(
         M.MAVLink_sys_status_message, present, enabled, health, 200, int(t.state.voltage_v[i] * 1000),
@@ -221,13 +221,13 @@ def _battery(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
     msg = M.MAVLink_battery_status_message(
         0, M.MAV_BATTERY_FUNCTION_ALL, M.MAV_BATTERY_TYPE_LIPO, 32767, voltages, int(s.current_a[i] * 100),
         int(s.consumed_mah[i]), -1, int(round(s.soc[i] * 100)), 0,
-        M.MAV_BATTERY_CHARGE_STATE_LOW if w.fleet.failsafe[i] else M.MAV_BATTERY_CHARGE_STATE_OK,
+        M.MAV_BATTERY_CHARGE_STATE_LOW if w.autopilots.failsafe[i] else M.MAV_BATTERY_CHARGE_STATE_OK,
         [0, 0, 0, 0], 0, 0)
     return enc.message(msg)
 
 
 def _gps_raw(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
-    ok = w.fleet.gps_ok[i]
+    ok = w.autopilots.gps_ok[i]
     v = t.state.vel_mps[i]
     fix_type = M.GPS_FIX_TYPE_3D_FIX if ok else M.GPS_FIX_TYPE_NO_FIX
     return enc.fields(
@@ -241,7 +241,7 @@ def _extended_sys_state(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> by
 
 
 def _mission_current(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
-    f = w.fleet
+    f = w.autopilots
     total = max(len(f.mission(i)) - 1, 0)
     state = int(f.mission_state[i]) if total else int(MissionState.NO_MISSION)
     in_auto = 1 if f.mode[i] == CopterMode.AUTO else 2  # MISSION_CURRENT.mission_mode: 1 in mission mode
@@ -249,7 +249,7 @@ def _mission_current(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes
 
 
 def _home_position(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
-    home, east, north, up = w.home_of(i), *w.fleet.home_m[i].tolist()
+    home, east, north, up = w.home_of(i), *w.autopilots.home_m[i].tolist()
     msg = M.MAVLink_home_position_message(
         int(round(home.lat_deg * 1e7)), int(round(home.lon_deg * 1e7)), int(round(home.alt_m * 1000)),
         north, east, -up, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, t.time_usec)
@@ -257,12 +257,12 @@ def _home_position(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
 
 
 def _rc_channels(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
-    return enc.fields(M.MAVLink_rc_channels_message, t.boot_ms[i], 16, *w.fleet.rc_us[i].tolist(), 0, 0, 255)
+    return enc.fields(M.MAVLink_rc_channels_message, t.boot_ms[i], 16, *w.autopilots.rc_us[i].tolist(), 0, 0, 255)
 
 
 def _servo_output_raw(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
     """Motors 1-4 as an ESC sees them (stopped, spinning armed, about hover in flight), then DO_SET_SERVO's."""
-    f = w.fleet
+    f = w.autopilots
     motor = 1000 if not f.armed[i] else (1100 if t.state.on_ground[i] else 1500)
     servos = [f.servo_pwm[i].get(k, 0) for k in range(5, 17)]
     return enc.fields(M.MAVLink_servo_output_raw_message, t.time_usec & 0xFFFFFFFF, 0, motor, motor, motor, motor,
@@ -271,8 +271,8 @@ def _servo_output_raw(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> byte
 
 def _ekf_status(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
     """A healthy EKF with GPS; without it, attitude and height only (what makes ArduCopter's EKF failsafe)."""
-    flags = EKF_WITH_GPS if w.fleet.gps_ok[i] else EKF_WITHOUT_GPS
-    horizontal = 0.02 if w.fleet.gps_ok[i] else 1.0
+    flags = EKF_WITH_GPS if w.autopilots.gps_ok[i] else EKF_WITHOUT_GPS
+    horizontal = 0.02 if w.autopilots.gps_ok[i] else 1.0
     return enc.fields(M.MAVLink_ekf_status_report_message, flags, 0.02, horizontal, 0.02, 0.02, 0.0, 0.0)
 
 

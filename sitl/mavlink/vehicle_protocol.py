@@ -1,4 +1,5 @@
-"""MAVLink protocol of one simulated vehicle: message handlers, commands, parameters, missions, telemetry.
+"""MAVLink protocol of one simulated vehicle: message handlers, parameters, missions, telemetry; its commands
+are answered from the table in sitl.mavlink.commands.
 
 The server's connections (UDP endpoints, TCP clients) deliver decoded messages here; everything the vehicle
 says goes out through `send`, which encodes once and writes to one connection or all of them. The protocol
@@ -12,16 +13,15 @@ import math
 import struct
 import time
 from collections.abc import Callable
-from typing import Protocol
 
 from missions.model import MavCmd, MissionItem, MissionType
 from nac_onboard.mavlink.signing import SigningState
-from sitl.mavlink.codec import FrameEncoder, ProtocolVersionMessage, mavlink
+from sitl.mavlink.codec import FrameEncoder, mavlink
+from sitl.mavlink.commands import CommandCall, Connection, answer
 from sitl.mavlink.mission_protocol import Ack, Complete, MissionReceiver, Request
 from sitl.mavlink.telemetry import BUILDERS, NOT_DATA_STREAMS, Streams, TelemetrySource
 from sitl.vehicle import guided, pilot
-from sitl.vehicle.flight import FORCE_DISARM_MAGIC, CommandOutcome, CopterMode, Event, Result, Severity
-from sitl.vehicle.flight import OK as OK_OUTCOME
+from sitl.vehicle.flight import CommandOutcome, Event, Result, Severity
 from sitl.vehicle.mission_items import validate_item
 from sitl.vehicle.params import PARAM_DEFS, ParamError
 from sitl.vehicle.world import World
@@ -45,12 +45,6 @@ RESTART_S = 3.0  # simulated seconds a rebooting autopilot is silent
 FLIGHT_SW_VERSION = (4 << 24) | (5 << 16) | (7 << 8) | 255  # 4.5.7 official: what an ArduCopter of today says
 
 
-class Connection(Protocol):
-    """Where a vehicle's frames go: one client of one of its links (the server's UDP peer or TCP connection)."""
-
-    def write(self, frame: bytes) -> None: ...
-
-
 def _item_from_msg(msg, is_int: bool) -> MissionItem:
     lat = msg.x / 1e7 if is_int else float(msg.x)
     lon = msg.y / 1e7 if is_int else float(msg.y)
@@ -67,7 +61,7 @@ class VehicleProtocol:
         self.i = index
         self.sysid = index + 1
         self.world = world
-        self.fleet = world.fleet
+        self.autopilots = world.autopilots
         self.streams = streams
         self.telemetry = telemetry
         self.encoder = FrameEncoder(self.sysid, 1, signing=signing)
@@ -75,9 +69,6 @@ class VehicleProtocol:
         self.receiver = MissionReceiver(validate_item)
         self.clock = clock  # wall clock: mission transfer timeouts are the client's, in real seconds
         self.on_params_changed()
-        self._after_ack: list = []
-        self._command_alt_amsl = False
-        self._command_is_int = False
         self._pending_transfer = None
         self._refused_frames: set[tuple[str, int]] = set()
         self.silent_until_t_s = -math.inf  # restarting: nothing in or out until then (simulated seconds)
@@ -118,115 +109,17 @@ class VehicleProtocol:
     def _partner(self, msg, channel: Connection) -> tuple:
         return (msg.get_srcSystem(), msg.get_srcComponent(), id(channel))
 
-    # ---- commands -----------------------------------------------------------------------------------
+    # ---- commands: the table in sitl.mavlink.commands ----------------------------------------------
     def _on_command(self, msg, channel: Connection) -> None:
-        is_int = msg.get_type() == "COMMAND_INT"
-        params = [msg.param1, msg.param2, msg.param3, msg.param4]
-        if is_int:
-            x, y, z = msg.x / 1e7, msg.y / 1e7, float(msg.z)
-            self._command_alt_amsl = msg.frame in (M.MAV_FRAME_GLOBAL, M.MAV_FRAME_GLOBAL_INT)
-        else:
-            x, y, z = msg.param5, msg.param6, msg.param7
-            self._command_alt_amsl = False  # COMMAND_LONG carries no frame: altitude relative to home
-        self._command_is_int = is_int
-        outcome = self.command(msg.command, params, x, y, z, channel)
+        reply = answer(self, CommandCall.from_msg(msg))
+        outcome = reply.outcome
         if outcome.text:
             self.statustext(Severity.INFO if outcome.result == Result.ACCEPTED else Severity.WARNING, outcome.text)
         ack = M.MAVLink_command_ack_message(msg.command, int(outcome.result), 0, 0, msg.get_srcSystem(),
                                             msg.get_srcComponent())
         self.send_msg(ack, channel)
-        deferred, self._after_ack = self._after_ack, []
-        for send_after in deferred:  # a requested message follows its ACK
-            send_after()
-
-    def command(self, command: int, p: list[float], x: float, y: float, z: float,
-                channel: Connection) -> CommandOutcome:
-        f, i = self.fleet, self.i
-        if command == MavCmd.COMPONENT_ARM_DISARM:
-            return f.arm(i, p[0] >= 0.5, force=int(p[1]) == FORCE_DISARM_MAGIC)
-        if command == MavCmd.NAV_TAKEOFF:
-            return f.takeoff(i, z)
-        if command == MavCmd.NAV_LAND:
-            return f.set_mode(i, CopterMode.LAND)
-        if command == MavCmd.NAV_RETURN_TO_LAUNCH:
-            return f.set_mode(i, CopterMode.RTL)
-        if command == MavCmd.MISSION_START:
-            return f.mission_start(i, int(p[0]))
-        if command == MavCmd.DO_SET_MODE:
-            if not int(p[0]) & M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-                return CommandOutcome(Result.DENIED, "Mode change refused: only custom modes are supported")
-            return f.set_mode(i, int(p[1]))
-        if command == MavCmd.DO_SET_MISSION_CURRENT:
-            return f.set_current(i, int(p[0]))
-        if command == MavCmd.DO_CHANGE_SPEED:
-            return f.change_speed(i, p[1])
-        if command == MavCmd.REQUEST_MESSAGE:
-            msgid = int(p[0])
-            if not self._can_send(msgid):
-                return CommandOutcome(Result.UNSUPPORTED)
-            self._after_ack.append(lambda: self.send_one(msgid, channel))
-            return CommandOutcome(Result.ACCEPTED)
-        if command == MavCmd.REQUEST_AUTOPILOT_CAPABILITIES:
-            self._after_ack.append(lambda: self.send_one(M.MAVLINK_MSG_ID_AUTOPILOT_VERSION, channel))
-            return CommandOutcome(Result.ACCEPTED)
-        if command == MavCmd.SET_MESSAGE_INTERVAL:
-            return self.set_interval(int(p[0]), p[1])
-        if command == M.MAV_CMD_GET_MESSAGE_INTERVAL:
-            msgid = int(p[0])
-            interval = self.streams.interval_of(i, msgid) or 0.0
-            us = int(interval * 1e6) if 0 < interval < math.inf else -1
-            self._after_ack.append(lambda: self.send_msg(M.MAVLink_message_interval_message(msgid, us), channel))
-            return CommandOutcome(Result.ACCEPTED)
-        if command == M.MAV_CMD_DO_REPOSITION:
-            return f.goto(i, self.world.global_to_enu(i, x, y, z, relative=not self._command_alt_amsl))
-        return self._command_more(command, p, x, y, z, channel)
-
-    def _command_more(self, command: int, p: list[float], x: float, y: float, z: float,
-                      channel: Connection) -> CommandOutcome:
-        """The commands a ground station uses beyond flying: yaw, region of interest, pause, servos, reboot,
-        home, the protocol version."""
-        f, i = self.fleet, self.i
-        if command == M.MAV_CMD_CONDITION_YAW:
-            return f.condition_yaw(i, p[0], p[1], p[2], p[3] >= 0.5)
-        if command == M.MAV_CMD_DO_SET_ROI_LOCATION or (command == M.MAV_CMD_DO_SET_ROI
-                                                         and int(p[0]) == M.MAV_ROI_LOCATION):
-            if not (math.isfinite(x) and math.isfinite(y) and -90 <= x <= 90 and -180 <= y <= 180):
-                return CommandOutcome(Result.DENIED, "ROI refused: no location")
-            return f.set_roi(i, self.world.global_to_enu(i, x, y, z if math.isfinite(z) else 0.0,
-                                                         relative=not self._command_alt_amsl))
-        if command in (M.MAV_CMD_DO_SET_ROI_NONE, M.MAV_CMD_DO_SET_ROI):
-            return f.set_roi(i, None)
-        if command == M.MAV_CMD_DO_PAUSE_CONTINUE:
-            return f.pause(i, int(p[0]) == 0)
-        if command == M.MAV_CMD_DO_SET_SERVO:
-            return f.set_servo(i, int(p[0]), int(p[1]))
-        if command == M.MAV_CMD_DO_FENCE_ENABLE:
-            return f.enable_fence(i, p[0])
-        if command == M.MAV_CMD_NAV_LOITER_UNLIM:
-            return f.set_mode(i, CopterMode.LOITER)
-        if command == M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
-            if int(p[0]) != 1:
-                return CommandOutcome(Result.UNSUPPORTED, "Only an autopilot reboot (param1 = 1) is simulated")
-            outcome = f.reboot(i)
-            if outcome.result == Result.ACCEPTED:
-                self._after_ack.append(self.restart)
-            return outcome
-        if command == M.MAV_CMD_GET_HOME_POSITION:
-            self._after_ack.append(lambda: self.send_one(M.MAVLINK_MSG_ID_HOME_POSITION, channel))
-            return OK_OUTCOME
-        if command == M.MAV_CMD_DO_SET_HOME:
-            if p[0] >= 0.5:
-                return f.set_home(i, None)
-            if not (math.isfinite(x) and math.isfinite(y) and -90 <= x <= 90 and -180 <= y <= 180) or x == y == 0:
-                return CommandOutcome(Result.DENIED, "Set home refused: no location")
-            # ArduPilot takes COMMAND_LONG's altitude as above mean sea level, COMMAND_INT's by its frame.
-            relative = self._command_is_int and not self._command_alt_amsl
-            return f.set_home(i, self.world.global_to_enu(i, x, y, z, relative=relative))
-        if command == M.MAV_CMD_REQUEST_PROTOCOL_VERSION:
-            self._after_ack.append(lambda: self.send(self.encoder.fields(
-                ProtocolVersionMessage, 200, 100, 200, bytes(8), bytes(8)), channel))
-            return OK_OUTCOME
-        return CommandOutcome(Result.UNSUPPORTED)
+        if reply.then is not None:  # a requested message follows its ACK
+            reply.then(channel)
 
     def restart(self) -> None:
         """The autopilot restarts after answering: silent for RESTART_S, then its boot clock starts again at 0
@@ -242,13 +135,10 @@ class VehicleProtocol:
             return CommandOutcome(Result.UNSUPPORTED, f"Message {msgid} cannot be streamed")
         return CommandOutcome(Result.ACCEPTED)
 
-    def _can_send(self, msgid: int) -> bool:
-        return msgid in BUILDERS or msgid in (M.MAVLINK_MSG_ID_AUTOPILOT_VERSION,)
-
     def _on_set_mode(self, msg, channel: Connection) -> None:
         result = Result.DENIED
         if msg.base_mode & M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-            outcome = self.fleet.set_mode(self.i, msg.custom_mode)
+            outcome = self.autopilots.set_mode(self.i, msg.custom_mode)
             result = outcome.result  # a mode this copter does not have is refused, not ACCEPTED and ignored
             if outcome.text:
                 self.statustext(Severity.WARNING, outcome.text)
@@ -285,7 +175,7 @@ class VehicleProtocol:
                 self._refused_frames.add(key)
                 self.statustext(Severity.WARNING, f"{msg.get_type()[20:]}: frame {msg.coordinate_frame} ignored")
             return
-        self.fleet.setpoint(self.i, target)
+        self.autopilots.setpoint(self.i, target)
 
     def _on_file_transfer(self, msg, channel: Connection) -> None:
         """MAVFTP: no files here. Every request is answered at once with a NAK (FileNotFound; a session reset or
@@ -305,7 +195,7 @@ class VehicleProtocol:
 
     def _on_rc_override(self, msg, channel: Connection) -> None:
         # a MAVLink 1 sender has no channels 9-18: they stay as they are
-        self.fleet.rc_override(self.i, [getattr(msg, f"chan{k}_raw", pilot.IGNORE) for k in range(1, 17)])
+        self.autopilots.rc_override(self.i, [getattr(msg, f"chan{k}_raw", pilot.IGNORE) for k in range(1, 17)])
 
     def _on_timesync(self, msg, channel: Connection) -> None:
         if msg.tc1 == 0:
@@ -356,8 +246,8 @@ class VehicleProtocol:
                 self.send_msg(M.MAVLink_mission_ack_message(
                     msg.get_srcSystem(), msg.get_srcComponent(), int(action.result), action.mission_type), channel)
             elif isinstance(action, Complete):
-                self.fleet.replace_mission(self.i, action.mission_type, action.items)
-        self.fleet.transfer_busy[self.i] = self.receiver.busy
+                self.autopilots.replace_mission(self.i, action.mission_type, action.items)
+        self.autopilots.transfer_busy[self.i] = self.receiver.busy
 
     def _on_mission_count(self, msg, channel: Connection) -> None:
         partner = self._partner(msg, channel)
@@ -380,7 +270,7 @@ class VehicleProtocol:
             self._mission_actions(actions, msg, channel)
 
     def download_items(self, mission_type: int) -> list[MissionItem]:
-        items = list(self.fleet.mission(self.i, mission_type))
+        items = list(self.autopilots.mission(self.i, mission_type))
         if mission_type == MissionType.MISSION:
             home = self.world.home_of(self.i)
             # ArduPilot's item 0 is always the current home, whatever was uploaded there.
@@ -413,7 +303,8 @@ class VehicleProtocol:
                                                         M.MAV_MISSION_INVALID_SEQUENCE, msg.mission_type), channel)
             return
         it = items[msg.seq]
-        current = 1 if (msg.mission_type == MissionType.MISSION and it.seq == self.fleet.current_seq[self.i]) else 0
+        on_it = msg.mission_type == MissionType.MISSION and it.seq == self.autopilots.current_seq[self.i]
+        current = 1 if on_it else 0
         self.send_msg(M.MAVLink_mission_item_int_message(
             msg.get_srcSystem(), msg.get_srcComponent(), it.seq, it.frame, it.command, current,
             int(it.autocontinue), it.p1, it.p2, it.p3, it.p4, int(round(it.lat_deg * 1e7)),
@@ -430,13 +321,13 @@ class VehicleProtocol:
             result = M.MAV_MISSION_DENIED
         else:
             for mission_type in (MissionType if everything else [msg.mission_type]):
-                self.fleet.replace_mission(self.i, mission_type, [])
+                self.autopilots.replace_mission(self.i, mission_type, [])
             result = M.MAV_MISSION_ACCEPTED
         self.send_msg(M.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(), result,
                                                     msg.mission_type), channel)
 
     def _on_mission_set_current(self, msg, channel: Connection) -> None:
-        outcome = self.fleet.set_current(self.i, msg.seq)
+        outcome = self.autopilots.set_current(self.i, msg.seq)
         if outcome.result != Result.ACCEPTED:
             self.statustext(Severity.WARNING, outcome.text)
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from missions.geo import Home, enu_to_lla, enu_to_lla_many, lla_to_ecef, lla_to_enu, offset_home
-from sitl.vehicle.flight import CopterMode, Event, Fleet
+from sitl.vehicle.flight import Autopilots, CopterMode, Event
 from sitl.vehicle.params import ParamTable
 from sitl.vehicle.physics import VehicleState, gps_noise_m, step
 
@@ -54,8 +54,8 @@ class World:
                 self.params.set(i, name, float(value))
         self.physics = self.params.physics()
         self.state = VehicleState.at_rest(n, self.physics)
-        self.fleet = Fleet(self.homes, self.params)
-        self.fleet.state = self.state
+        self.autopilots = Autopilots(self.homes, self.params)
+        self.autopilots.state = self.state
         self.rng = np.random.default_rng(seed)
         self.t_s = 0.0
         self.boot_t_s = np.zeros(n)  # when each autopilot (re)started, simulated seconds
@@ -72,12 +72,12 @@ class World:
 
     # ---- time -----------------------------------------------------------------------------------------------
     def step(self, dt_s: float) -> list[tuple[int, Event, object]]:
-        self.state = step(self.state, self.fleet.command(), self.physics, dt_s)
+        self.state = step(self.state, self.autopilots.command(), self.physics, dt_s)
         self.t_s += dt_s
-        self.fleet.update(self.state, self.t_s)
+        self.autopilots.update(self.state, self.t_s)
         for observe in self.step_observers:
             observe(self.t_s, self.state)
-        events, self.fleet.events = self.fleet.events, []
+        events, self.autopilots.events = self.autopilots.events, []
         return events
 
     # ---- parameters and faults ------------------------------------------------------------------------------
@@ -95,8 +95,8 @@ class World:
     def _apply_params(self) -> None:
         p = self.params
         self.physics = p.physics()
-        self.fleet.gps_ok = p.column("SIM_GPS_DISABLE") < 0.5
-        self.fleet.on_params_changed()
+        self.autopilots.gps_ok = p.column("SIM_GPS_DISABLE") < 0.5
+        self.autopilots.on_params_changed()
         batt = p.column("SIM_BATT_PCT")
         override = batt >= 0
         if override.any():
@@ -129,7 +129,7 @@ class World:
     # ---- sensors and coordinates ----------------------------------------------------------------------------
     def gps_fix(self) -> GpsFix:
         """Positions as the GPS reports them: frozen at the last fix while the GPS is lost, plus SIM_GPS_NOISE."""
-        fix = self.fleet.gps_ok
+        fix = self.autopilots.gps_ok
         self._last_fix_m[fix] = self.state.pos_m[fix]
         sigma = self.params.column("SIM_GPS_NOISE")
         reported = self._last_fix_m
@@ -141,16 +141,16 @@ class World:
     def global_to_enu(self, vehicle: int, lat: float, lon: float, alt: float, relative: bool = True) -> np.ndarray:
         home = self.homes[vehicle]
         enu = lla_to_enu(lat, lon, home.alt_m, home)
-        enu[2] = alt + self.fleet.home_m[vehicle, 2] if relative else alt - home.alt_m
+        enu[2] = alt + self.autopilots.home_m[vehicle, 2] if relative else alt - home.alt_m
         return enu
 
     def home_of(self, vehicle: int) -> Home:
         """Where vehicle's home is now (DO_SET_HOME and arming move it from the origin of its frame). Kept until
         the home moves: HOME_POSITION is streamed, and the geodesy on one point costs more than the message."""
-        home_m = tuple(self.fleet.home_m[vehicle].tolist())
+        home_m = tuple(self.autopilots.home_m[vehicle].tolist())
         known = self._home_now.get(vehicle)
         if known is None or known[0] != home_m:
-            lat, lon, alt = enu_to_lla(self.fleet.home_m[vehicle], self.homes[vehicle])
+            lat, lon, alt = enu_to_lla(self.autopilots.home_m[vehicle], self.homes[vehicle])
             known = self._home_now[vehicle] = (home_m, Home(float(lat), float(lon), float(alt)))
         return known[1]
 
@@ -165,7 +165,7 @@ class World:
 
     def truth(self, vehicle: int) -> dict:
         """True state of one vehicle (for tests and tools): ENU about its home, geodetic, mode, armed."""
-        s, f = self.state, self.fleet
+        s, f = self.state, self.autopilots
         lat, lon, alt = enu_to_lla(s.pos_m[vehicle], self.homes[vehicle])
         return {
             "t_s": self.t_s, "pos_m": s.pos_m[vehicle].copy(), "vel_mps": s.vel_mps[vehicle].copy(),

@@ -160,7 +160,7 @@ def test_the_telemetry_radio_loses_frames_with_distance_to_the_ground_station(st
     assert 0.15 < sim.ground_loss[0] < 0.7
     path = EXAMPLES / "flight-test-master.plan"
     ok(ground("--connect", link(sim, 0), "mission", "upload", str(path)))
-    on_vehicle, sent = sim.world.fleet.mission(0), load_mission(path).items
+    on_vehicle, sent = sim.world.autopilots.mission(0), load_mission(path).items
     assert len(on_vehicle) == len(sent) + 1 and all(a.same_as(b) for a, b in zip(on_vehicle[1:], sent, strict=True))
     assert sim.stats["radio_lost"] > 10, "frames were lost on the way"
     far = start_sitl(speedup=5.0, home=home, telemetry_radio="sik-915",
@@ -169,4 +169,4 @@ def test_the_telemetry_radio_loses_frames_with_distance_to_the_ground_station(st
     assert far.ground_loss[0] > 0.999
     refused = ground("--connect", link(far, 0), "mission", "upload", str(path), timeout_s=60.0)
     assert refused.returncode == 1 and "Traceback" not in refused.stderr, refused.stderr
-    assert len(far.world.fleet.mission(0)) <= 1, "nothing was installed"
+    assert len(far.world.autopilots.mission(0)) <= 1, "nothing was installed"

@@ -54,7 +54,7 @@ def test_malformed_file_is_exit_2_names_file_and_item_and_sends_nothing(name, st
     original = waypoint_mission(home.lat_deg, home.lon_deg, [(5, 5)])
     assert gcs.upload(original) == 0
     gcs.close()
-    before = list(sim.world.fleet.mission(0))
+    before = list(sim.world.autopilots.mission(0))
     counts_before = sim.protocols[0].receiver.items_received_total
 
     text, where = MALFORMED[name]
@@ -67,7 +67,7 @@ def test_malformed_file_is_exit_2_names_file_and_item_and_sends_nothing(name, st
     assert "Traceback" not in result.stderr
     offline = ground("mission", "validate", str(path))
     assert offline.returncode == 2 and str(path) in offline.stderr
-    assert sim.world.fleet.mission(0) == before
+    assert sim.world.autopilots.mission(0) == before
     assert sim.protocols[0].receiver.items_received_total == counts_before
     assert not sim.protocols[0].receiver.busy
 

@@ -90,7 +90,7 @@ def load_mission(proxy: MavProxy, sim, path: Path, rows) -> None:
     path.write_text(wpl(rows))
     proxy.send(f"wp load {path}")
     proxy.expect(r"Sent all \d+ waypoints|Loaded \d+ waypoints", 15.0)
-    until(lambda: len(sim.world.fleet.mission(0)) == len(rows), 10.0, "the mission is on the vehicle")
+    until(lambda: len(sim.world.autopilots.mission(0)) == len(rows), 10.0, "the mission is on the vehicle")
 
 
 def take_off(proxy: MavProxy, alt_m: float) -> None:
@@ -175,9 +175,9 @@ def test_a_fence_breach_sends_the_copter_to_the_rally_point(start_sitl, mavproxy
     rally = offset_home(home, 15.0, 45.0)
     rally_file.write_text(wpl([(0, 0, 3, 5100, 0, 0, 0, 0, rally.lat_deg, rally.lon_deg, 8)]))
     proxy.send(f"fence load {fence_file}")
-    until(lambda: len(sim.world.fleet.mission(0, 1)) == 4, 15.0, "the fence is on the vehicle")
+    until(lambda: len(sim.world.autopilots.mission(0, 1)) == 4, 15.0, "the fence is on the vehicle")
     proxy.send(f"rally load {rally_file}")
-    until(lambda: len(sim.world.fleet.mission(0, 2)) == 1, 15.0, "the rally point is on the vehicle")
+    until(lambda: len(sim.world.autopilots.mission(0, 2)) == 1, 15.0, "the rally point is on the vehicle")
     proxy.expect(r"Received \d+ parameters", 15.0)
     proxy.send("param set FENCE_ENABLE 1")
     until(lambda: sim.world.params.get(0, "FENCE_ENABLE") == 1, 10.0, "fence enabled")
@@ -213,7 +213,7 @@ def test_a_wpl_mission_with_roi_spline_yaw_servo_turns_and_delay_flies_in_auto_t
     # loaded machine's gaps (at 10x, 0.1 s of wall time is a second of flight).
     steps = []  # (t_s, item, east/north m, compass heading deg)
     sim.world.step_observers.append(lambda t_s, state: steps.append(
-        (t_s, int(sim.world.fleet.current_seq[0]), state.pos_m[0, :2].copy(), np.degrees(state.yaw_rad[0]))))
+        (t_s, int(sim.world.autopilots.current_seq[0]), state.pos_m[0, :2].copy(), np.degrees(state.yaw_rad[0]))))
     proxy.send("mode auto")
     until(lambda: not sim.truth(0)["armed"] or sim.t_s > 400, 120.0, "the mission ends")
     assert not sim.truth(0)["armed"], f"the mission ends; stuck at item {sim.truth(0)['mission_seq']}"
@@ -232,5 +232,5 @@ def test_a_wpl_mission_with_roi_spline_yaw_servo_turns_and_delay_flies_in_auto_t
     assert np.median(off_roi_deg) < 5.0, "the nose on the region of interest along the spline"
     assert sum(abs(d - 8.0) < 1.0 for d in circle_m) > len(circle_m) / 2, "the turn on the 8 m circle"
     assert 3.8 <= delay_t_s[-1] - delay_t_s[0] <= 4.2, "NAV_DELAY held for its 4 s"
-    assert sim.world.fleet.servo_pwm[0] == {9: 1600}
+    assert sim.world.autopilots.servo_pwm[0] == {9: 1600}
     assert np.hypot(*sim.truth(0)["pos_m"][:2]) < 1.0, "RTL landed at home"

@@ -200,7 +200,7 @@ def test_mavsdk_offboard_velocity_and_position_then_a_mission_with_loiter_time(s
                         PlanItem(float(second[0]), float(second[1]), 8.0, 5.0, False, float("nan"), float("nan"), 0,
                                  float("nan"))])
     mission.upload_mission(plan)
-    assert [it.command for it in sim.world.fleet.mission(0)].count(93) == 1, "loiter_time_s arrives as NAV_DELAY"
+    assert [it.command for it in sim.world.autopilots.mission(0)].count(93) == 1, "loiter_time_s arrives as NAV_DELAY"
     mission.start_mission()
     # MAVSDK sends no home slot: ArduCopter takes item 0 as home and flies from item 1 (DO_CHANGE_SPEED), then the
     # NAV_DELAY of loiter_time_s where the copter is, then the second waypoint

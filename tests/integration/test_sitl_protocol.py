@@ -55,7 +55,7 @@ def test_aborted_or_refused_upload_leaves_the_old_mission_intact(start_sitl, gcs
     bad[5] = MissionItem(5, 5001, Frame.GLOBAL_RELATIVE_ALT_INT, lat_deg=1, lon_deg=1)  # a fence vertex
     assert gcs.upload(bad) == M.MAV_MISSION_UNSUPPORTED
     assert same_items(gcs.download(), before)
-    assert not sim.world.fleet.transfer_busy[0]
+    assert not sim.world.autopilots.transfer_busy[0]
 
 
 def test_item_zero_reads_back_as_home_and_clear_empties_the_mission(start_sitl, gcs_for):

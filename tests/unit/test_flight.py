@@ -4,7 +4,7 @@ import numpy as np
 
 from missions.geo import Home, enu_to_lla
 from missions.model import Frame, MavCmd, MissionItem
-from sitl.vehicle.flight import Check, CopterMode, Event, Fleet, MissionState, Result
+from sitl.vehicle.flight import Autopilots, Check, CopterMode, Event, MissionState, Result
 from sitl.vehicle.params import ParamTable
 from sitl.vehicle.physics import VehicleState, step
 
@@ -13,7 +13,7 @@ HOME = Home(47.397742, 8.545594, 488.0)
 
 def make(n=1):
     params = ParamTable(n)
-    fleet = Fleet([HOME] * n, params)
+    fleet = Autopilots([HOME] * n, params)
     state = VehicleState.at_rest(n, params.physics())
     fleet.update(state, 0.0)
     return fleet, state, params

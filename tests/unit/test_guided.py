@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from sitl.vehicle import guided
-from sitl.vehicle.flight import CopterMode, Fleet, Phase
+from sitl.vehicle.flight import Autopilots, CopterMode, Phase
 from sitl.vehicle.guided import ACC_IGNORE, POS_IGNORE, VEL_IGNORE, YAW_IGNORE, YAW_RATE_IGNORE
 from tests.unit.test_flight import HOME, make, run
 
@@ -148,7 +148,7 @@ def test_setpoints_are_ignored_outside_guided_on_the_ground_in_other_frames_and_
 
 
 def test_fleet_command_carries_the_setpoint_arrays():
-    fleet = Fleet([HOME], make()[2])
+    fleet = Autopilots([HOME], make()[2])
     cmd = fleet.command()
     assert cmd.velocity_mps.shape == (1, 3) and np.isnan(cmd.yaw_target_rad).all()
 
