@@ -8,6 +8,7 @@ import os
 import secrets
 from pathlib import Path
 
+from nac_onboard.records import kinds
 from nac_onboard.tomlfile import write_toml
 from sitl.launcher import free_port
 
@@ -37,13 +38,13 @@ def memory_mb(pid: int) -> dict:
 def agent_config(folder: Path, vehicle_id: str, role: str, autopilot_uri: str, **sections) -> Path:
     """An agent config on free loopback ports, logging into folder (run id "bench"), with a fleet key beside it;
     keyword arguments add keys to sections, e.g. routing={"endpoints": [...]}."""
-    (folder / "fleet.key").write_text(secrets.token_hex(32) + "\n")
+    (folder / kinds.FLEET_KEY.name).write_text(secrets.token_hex(32) + "\n")
     config = {
         "vehicle": {"id": vehicle_id, "role": role, "sysid": 1},
         "autopilot": {"uri": autopilot_uri},
         "log": {"dir": str(folder), "run_id": "bench"},
         "peers": {"listen": f"127.0.0.1:{free_port()}", "send_to": [f"127.0.0.1:{free_port()}"],
-                  "key_file": "fleet.key"},
+                  "key_file": kinds.FLEET_KEY.name},
         "state_feed": {"listen": f"127.0.0.1:{free_port()}"},
         "throughput": {"bind": "127.0.0.1", "port": free_port()},
     }

@@ -22,6 +22,7 @@ from pathlib import Path
 
 from nac_onboard.agent.peers import FleetKey, PeerState, encode_peer_state
 from nac_onboard.child_process import AgentProcess
+from nac_onboard.records import kinds
 from sitl.launcher import free_port
 
 import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
@@ -76,7 +77,7 @@ def run(seconds: float, rate: float) -> dict:
             cpu1, t1 = _common.cpu_s(agent.pid), time.monotonic()
             tool.close()
             agent.stop()
-        stopped = json.loads((Path(tmp) / "bench" / "flooded" / "agent.jsonl").read_text().splitlines()[-1])
+        stopped = json.loads(kinds.AGENT_LOG.at(Path(tmp) / "bench", "flooded").read_text().splitlines()[-1])
     return {"cpu_pct_of_one_core": 100 * (cpu1 - cpu0) / (t1 - t0), "rss_mb": rss, "sent": sent,
             "rate": sent / (t1 - t0), "peer_rejects": stopped.get("peer_rejects", {}),
             "routing_refused": stopped.get("routing_refused", 0)}

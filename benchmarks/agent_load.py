@@ -22,6 +22,7 @@ from missions.builder import waypoint_mission
 from missions.model import MavCmd
 from nac_onboard.child_process import AgentProcess
 from nac_onboard.mavlink.client import VehicleClient
+from nac_onboard.records import kinds
 from sitl.launcher import SitlProcess, allocate_base_port
 from sitl.server import SitlConfig
 
@@ -59,9 +60,9 @@ def run(seconds: float, stream_hz: float, telemetry_hz: float, settle_s: float =
             memory = _common.memory_mb(agent.pid)
             gcs.close()
             agent.stop()
-        log = [json.loads(line) for line in (Path(tmp) / "bench" / "bench" / "agent.jsonl").read_text().splitlines()]
+        log = [json.loads(line) for line in kinds.AGENT_LOG.at(Path(tmp) / "bench", "bench").read_text().splitlines()]
         stopped = log[-1]
-        telemetry = [r for r in log if r["kind"] == "telemetry"]
+        telemetry = [r for r in log if r["kind"] == kinds.TELEMETRY.name]
         frames_per_s = stopped["frames_in"] / (telemetry[-1]["t_s"] - log[0]["t_s"])
     return {"cpu_pct_of_one_core": 100 * (cpu1 - cpu0) / (t1 - t0), "rss_mb": memory["VmRSS"],
             "peak_rss_mb": memory["VmHWM"], "frames_in_per_s": frames_per_s,

@@ -23,6 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from nac_onboard.compute import launch
+from nac_onboard.records import kinds
 
 import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
 
@@ -94,7 +95,7 @@ def measure(workers: int, iterations: int, env: dict) -> tuple[float, float]:
                lambda result: json.loads(result.stdout.strip().splitlines()[-1])["iterations_per_s"])
     with tempfile.TemporaryDirectory() as out:
         ours = run(workers + 1, ["-m", "nac_onboard.compute", "--task", "linreg", "--iterations", str(iterations),
-                                 "--out", out], env, lambda _: iterations_per_s(Path(out, "compute.jsonl")))
+                                 "--out", out], env, lambda _: iterations_per_s(Path(out, kinds.COMPUTE_LOG.name)))
     return ours, bare
 
 

@@ -28,6 +28,7 @@ import urllib.request
 from pathlib import Path
 
 from missions.geo import Home, enu_to_lla
+from nac_onboard.records import kinds
 
 import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
 
@@ -40,7 +41,8 @@ def telemetry(vehicle: int, t_s: float, t_rel_s: float) -> str:
     angle = t_rel_s * 0.1 + vehicle
     east, north = 40 * math.cos(angle) + vehicle * 5, 40 * math.sin(angle)
     lat, lon, alt = enu_to_lla([east, north, 10.0], ORIGIN)
-    return json.dumps({"t_s": t_s, "kind": "telemetry", "sysid": vehicle + 1, "time_boot_ms": int(t_rel_s * 1000),
+    return json.dumps({"t_s": t_s, "kind": kinds.TELEMETRY.name, "sysid": vehicle + 1,
+                       "time_boot_ms": int(t_rel_s * 1000),
                        "lat_deg": float(lat), "lon_deg": float(lon), "alt_m": float(alt), "rel_alt_m": 10.0,
                        "vel_ned_mps": [1.0, 0.5, 0.0], "roll_deg": 0.5, "pitch_deg": -1.0, "yaw_deg": 45.0,
                        "battery_pct": 80, "voltage_v": 15.9, "mode": "AUTO", "armed": True, "landed": 2,
@@ -48,12 +50,13 @@ def telemetry(vehicle: int, t_s: float, t_rel_s: float) -> str:
 
 
 def probe(t_s: float, worker: int, bps: float) -> str:
-    return json.dumps({"t_s": t_s, "kind": "throughput", "client": "v00", "server": f"v{worker:02d}",
+    return json.dumps({"t_s": t_s, "kind": kinds.THROUGHPUT.name, "client": "v00", "server": f"v{worker:02d}",
                        "distance_m": 30.0, "end": {"sum_received": {"bits_per_second": bps}}}) + "\n"
 
 
 def iteration(t_s: float, k: int, workers: int) -> str:
-    return json.dumps({"t_s": t_s, "kind": "iteration", "iteration": k, "duration_s": 0.8, "cost": 100 / (k + 1),
+    return json.dumps({"t_s": t_s, "kind": kinds.ITERATION.name, "iteration": k, "duration_s": 0.8,
+                       "cost": 100 / (k + 1),
                        "workers": {"present": [True] * workers}}) + "\n"
 
 
@@ -62,12 +65,12 @@ def open_logs(run: Path, vehicles: int, stack: contextlib.ExitStack) -> dict:
     for v in range(vehicles):
         folder = run / f"v{v:02d}"
         folder.mkdir(parents=True, exist_ok=True)
-        files[v] = stack.enter_context(open(folder / "agent.jsonl", "a"))  # noqa: SIM115 (the stack closes it)
-        files[v].write(json.dumps({"t_s": time.time(), "kind": "agent_started", "role":
+        files[v] = stack.enter_context(open(folder / kinds.AGENT_LOG.name, "a"))  # noqa: SIM115 (the stack closes it)
+        files[v].write(json.dumps({"t_s": time.time(), "kind": kinds.AGENT_STARTED.name, "role":
                                    "master" if v == 0 else "worker"}) + "\n")
-    (run / "compute").mkdir(exist_ok=True)
-    files["probes"] = stack.enter_context(open(run / "v00" / "throughput.jsonl", "a"))  # noqa: SIM115
-    files["compute"] = stack.enter_context(open(run / "compute" / "compute.jsonl", "a"))  # noqa: SIM115
+    kinds.COMPUTE_LOG.at(run).parent.mkdir(exist_ok=True)
+    files["probes"] = stack.enter_context(open(kinds.THROUGHPUT_LOG.at(run, "v00"), "a"))  # noqa: SIM115
+    files["compute"] = stack.enter_context(open(kinds.COMPUTE_LOG.at(run), "a"))  # noqa: SIM115
     return files
 
 

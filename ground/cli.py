@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 from nac_onboard.errors import BadInput, run_cli
+from nac_onboard.records import kinds
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -118,8 +119,8 @@ def run_logs(args: argparse.Namespace, out=None) -> int:
 
     if args.action == "analyze":
         tables = report.analyze_run(args.run_dir, args.out, args.master, args.bin_m, args.threshold_mbps)
-        where = args.out or args.run_dir / "analysis"
-        print(f"{where / 'report.md'}: {_brief(tables.summary)}", file=out)
+        where = args.out or args.run_dir / kinds.ANALYSIS_DIR
+        print(f"{where / kinds.REPORT.name}: {_brief(tables.summary)}", file=out)
         for line in tables.missing:
             print(f"  missing: {line}", file=out)
     elif args.action == "compare":

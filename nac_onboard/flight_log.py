@@ -2,8 +2,10 @@
 
 Each JSON record is one line `{"t_s": unix seconds, "kind": ..., ...}` handed to the kernel in a single write
 (O_APPEND), so a killed process leaves whole lines and, at worst, one partial last line; `read_jsonl` skips that
-line and says so. A `.tlog` is what QGroundControl and pymavlink's mavlogdump read: before each MAVLink frame, its
-receive time as an 8-byte big-endian count of microseconds since the Unix epoch.
+line and says so. Kinds and their fields are defined in `nac_onboard.records.kinds`; a new file starts with a
+`schema` record naming the schema version its records follow. A `.tlog` is what QGroundControl and pymavlink's
+mavlogdump read: before each MAVLink frame, its receive time as an 8-byte big-endian count of microseconds since the
+Unix epoch.
 """
 
 from __future__ import annotations
@@ -18,7 +20,10 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from nac_onboard.errors import BadInput
 from nac_onboard.mavlink.frames import TLOG_STAMP
+from nac_onboard.records import READABLE_VERSIONS, SCHEMA_VERSION, Kind, kinds
+from nac_onboard.records.schema import check
 
 log = logging.getLogger(__name__)
 
@@ -128,9 +133,14 @@ class JsonlLog(_AppendFile):
     `log_gap` (records and bytes lost, from when, until when, why), on a line of its own even if the failed write
     left half a line behind."""
 
+    def __init__(self, path: str | Path, t_s: float | None = None):
+        super().__init__(path)
+        if os.fstat(self._fd).st_size == 0:  # a new file (an agent restarted on its old log appends to it)
+            self.write(kinds.SCHEMA, t_s, schema_version=SCHEMA_VERSION, file=self.path.name)
+
     def _resume_prefix(self) -> bytes:
         g = self.gap
-        record = {"t_s": time.time(), "kind": "log_gap", "since_s": g.since_s, "records_lost": g.records,
+        record = {"t_s": time.time(), "kind": kinds.LOG_GAP.name, "since_s": g.since_s, "records_lost": g.records,
                   "bytes_lost": g.bytes, "error": g.error}
         return (("\n" if self._ends_mid_line() else "") + _STRICT.encode(record) + "\n").encode()
 
@@ -146,8 +156,9 @@ class JsonlLog(_AppendFile):
         except OSError:
             return True
 
-    def write(self, kind: str, t_s: float | None = None, **fields) -> dict:
-        record = {"t_s": time.time() if t_s is None else t_s, "kind": kind, **fields}
+    def write(self, kind: Kind, t_s: float | None = None, **fields) -> dict:
+        check(kind, fields)
+        record = {"t_s": time.time() if t_s is None else t_s, "kind": kind.name, **fields}
         try:
             line = _STRICT.encode(record)
         except ValueError:  # a NaN or infinity somewhere: the slower walk that writes them as null
@@ -177,13 +188,21 @@ class LogRead:
     records: list[dict] = field(default_factory=list)
     problems: list[str] = field(default_factory=list)
     truncated_tail: bool = False  # the last line was cut short (the writer stopped mid-record)
+    schema_version: int = 0  # from the file's schema record; 0: a file written before versions
 
-    def of_kind(self, *kinds: str) -> list[dict]:
-        return [r for r in self.records if r["kind"] in kinds]
+    def of_kind(self, *wanted: Kind | str) -> list[dict]:
+        names = {getattr(k, "name", k) for k in wanted}
+        return [r for r in self.records if r["kind"] in names]
+
+
+class RecordsVersionError(BadInput):
+    """A file written by a newer NAC, whose records this one cannot read."""
 
 
 def read_jsonl(path: str | Path) -> LogRead:
-    """Read a log written by JsonlLog. Bad lines are skipped and described in .problems, never raised."""
+    """Read a log written by JsonlLog. Bad lines are skipped and described in .problems, never raised; a file of a
+    schema version this code does not read raises RecordsVersionError naming the version. The schema record is
+    taken out of .records; kinds and fields this code does not know are kept."""
     path = Path(path)
     out = LogRead(path)
     data = path.read_bytes()
@@ -207,5 +226,16 @@ def read_jsonl(path: str | Path) -> LogRead:
             out.problems.append(f"{path}: line {number}: not a log record (expected a JSON object with t_s and "
                                 "kind); skipped")
             continue
+        if record["kind"] == kinds.SCHEMA.name:
+            out.schema_version = _readable_version(path, number, record.get("schema_version"))
+            continue
         out.records.append(record)
     return out
+
+
+def _readable_version(path: Path, line: int, version) -> int:
+    if version in READABLE_VERSIONS and not isinstance(version, bool):
+        return version
+    raise RecordsVersionError(f"{path}: line {line}: records of schema version {version!r}; this NAC reads versions "
+                              f"{', '.join(map(str, READABLE_VERSIONS))}: read it with the NAC that wrote it (or a "
+                              "newer one)")

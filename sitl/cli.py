@@ -17,6 +17,7 @@ from missions.geo import Home
 from nac_onboard.address import parse_host_port
 from nac_onboard.errors import BadInput, run_cli
 from nac_onboard.mavlink.signing import load_signing_key, state_path
+from nac_onboard.records import kinds
 from sitl.server import Sitl, SitlConfig, SitlError
 from sitl.vehicle.params import parse_param_file
 
@@ -86,7 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "throughput as a recorded run measured it, interpolated over simulated time")
     exp.add_argument("--view", nargs="?", const="127.0.0.1:8765", metavar="ADDR:PORT",
                      help="serve the live page while the run goes on (default 127.0.0.1:8765; another address "
-                          "only when given) and save its screenshot as RUN_DIR/view.png")
+                          f"only when given) and save its screenshot as RUN_DIR/{kinds.VIEW_PNG.path}")
     exp.add_argument("-v", "--verbose", action="store_true")
     radio = sub.add_parser("radio", help="a channel's throughput against distance: median, 95 %% band, MCS, range")
     radio.add_argument("channel", help="preset (paper-sim, wifi-flight, wifi-open-field) or channel TOML")

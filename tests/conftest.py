@@ -4,6 +4,7 @@ from pathlib import Path
 import pytest
 
 os.environ.setdefault("MAVLINK20", "1")  # before anything below imports pymavlink
+os.environ.setdefault("NAC_RECORDS_STRICT", "1")  # a record that strays from nac_onboard/records/kinds.py fails
 
 from sitl.launcher import allocate_base_port, free_port  # noqa: E402
 

@@ -16,6 +16,7 @@ from ground.logs.calibration import CalibrationError, fit_channel, fitted_model
 from ground.logs.runlog import read_run
 from nac_onboard.radio.channel import ChannelModel
 from nac_onboard.radio.files import load_channel, save_channel
+from nac_onboard.records import kinds
 
 SUMMARY_LABELS = {
     "vehicles": "vehicles", "master": "master", "iterations": "iterations done",
@@ -64,7 +65,7 @@ def summary_table(summaries: list[dict], names: list[str]) -> str:
 def write_tables(tables: RunTables, out: Path) -> None:
     for name, table in tables.csv_tables().items():
         table.to_csv(out / f"{name}.csv", index=False)
-    (out / "summary.json").write_text(json.dumps(tables.summary, indent=2, default=str) + "\n")
+    (out / kinds.SUMMARY.name).write_text(json.dumps(tables.summary, indent=2, default=str) + "\n")
 
 
 def _notes(tables: list[RunTables], experiment: dict | None) -> list[str]:
@@ -95,9 +96,9 @@ def analyze_run(run_dir: str | Path, out: str | Path | None = None, master: str 
                 report_path: Path | None = None) -> RunTables:
     """Tables and figures into out (default RUN_DIR/analysis), report.md there or at report_path."""
     run = read_run(run_dir)
-    out = Path(out) if out else run.path / "analysis"
+    out = Path(out) if out else run.path / kinds.ANALYSIS_DIR
     out.mkdir(parents=True, exist_ok=True)
-    report_path = Path(report_path) if report_path else out / "report.md"
+    report_path = Path(report_path) if report_path else out / kinds.REPORT.name
     tables = analyze(run, master, bin_m, threshold_mbps)
     write_tables(tables, out)
     pictures = {name: figures.draw(name, [tables], out / f"{name}.png") for name in figures.FIGURES}
@@ -145,7 +146,7 @@ def compare_runs(run_a: str | Path, run_b: str | Path, out: str | Path, master: 
             t.name = name
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    report_path = Path(report_path) if report_path else out / "report.md"
+    report_path = Path(report_path) if report_path else out / kinds.REPORT.name
     report = [f"# NAC runs compared: {names[0]} and {names[1]}", ""]
     lines = findings(*tables) if findings else []
     if lines:

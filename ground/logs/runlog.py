@@ -1,10 +1,8 @@
 """A run directory read into flat rows: what every vehicle logged, and what could not be read.
 
-    RUN_DIR/<vehicle>/agent.jsonl        telemetry and events (nac-onboard agent)
-    RUN_DIR/<vehicle>/throughput.jsonl   iperf3-shaped probe results (the master's agent)
-    RUN_DIR/<vehicle>/*.tlog|*.bin|*.ulg autopilot logs: positions when the agent logged none
-    RUN_DIR/**/compute.jsonl             per-iteration records (nac-onboard compute)
-    RUN_DIR/network.jsonl                the link shaper's rates over time (a SITL kernel network)
+The files and kinds are those of nac_onboard/records (docs/records.md): each vehicle's agent log (positions, role)
+and probes, its autopilot logs (positions when the agent logged none) and iperf3's own JSON; the compute job's
+records (any folder's); the link shaper's rates (a SITL kernel network); the experiment's settings.
 
 Nothing here raises for damaged or missing data: each problem becomes a sentence in `problems` (a truncated
 last line, corrupt tlog bytes) or `missing` (a vehicle without positions, a record kind nobody wrote).
@@ -20,6 +18,7 @@ from pathlib import Path
 from ground.logs.autopilot_logs import FlightLogError, reader_for
 from nac_onboard.errors import BadInput
 from nac_onboard.flight_log import read_jsonl
+from nac_onboard.records import kinds
 
 log = logging.getLogger(__name__)
 
@@ -77,37 +76,37 @@ def read_run(path: str | Path) -> RunLog:
     if not path.is_dir():
         raise RunDirError(f"{path}: no such run directory")
     run = RunLog(path)
-    experiment = path / "experiment.json"
+    experiment = kinds.EXPERIMENT_LOG.at(path)
     if experiment.exists():
         read = read_jsonl(experiment)
         _warn(run, read.problems)
         run.experiment = {}
         for record in read.records:  # the runner's start record, then its end record (outcome)
-            if record.get("kind") != "fault":  # each fault as it happened; the end record lists them all
+            if record.get("kind") != kinds.FAULT.name:  # each fault as it happened; the end record lists them all
                 run.experiment.update(record)
-    network = path / "network.jsonl"
+    network = kinds.NETWORK_LOG.at(path)
     if network.exists():
         read = read_jsonl(network)
         _warn(run, read.problems)
-        run.link_rates = read.of_kind("link_rates")
+        run.link_rates = read.of_kind(kinds.LINK_RATES)
     for vehicle_dir in sorted(p for p in path.iterdir() if p.is_dir()):
         _read_vehicle(run, vehicle_dir)
-    for compute_log in sorted(path.rglob("compute.jsonl")):
+    for compute_log in sorted(path.rglob(kinds.COMPUTE_LOG.name)):
         read = read_jsonl(compute_log)
         _warn(run, read.problems)
-        run.compute_runs += read.of_kind("run_started")
-        run.iterations += read.of_kind("iteration")
+        run.compute_runs += read.of_kind(kinds.RUN_STARTED)
+        run.iterations += read.of_kind(kinds.ITERATION)
     _check_clocks(run)
     if not run.vehicles and not run.iterations:
-        raise RunDirError(f"{path}: no NAC logs here (expected VEHICLE/agent.jsonl, autopilot logs or "
-                          "compute.jsonl); is this a run directory?")
+        raise RunDirError(f"{path}: no NAC logs here (expected {kinds.AGENT_LOG.path}, autopilot logs or "
+                          f"{kinds.COMPUTE_LOG.path}); is this a run directory?")
     for vehicle in run.vehicles:
         if not any(p["vehicle"] == vehicle for p in run.positions):
             run.missing.append(f"vehicle {vehicle}: no positions (no telemetry records and no autopilot log)")
     if not run.probes:
-        run.missing.append("throughput: no probe records (throughput.jsonl)")
+        run.missing.append(f"throughput: no probe records ({kinds.THROUGHPUT_LOG.name})")
     if not run.iterations:
-        run.missing.append("compute: no iteration records (compute.jsonl)")
+        run.missing.append(f"compute: no iteration records ({kinds.COMPUTE_LOG.name})")
     return run
 
 
@@ -128,7 +127,7 @@ def _check_clocks(run: RunLog) -> None:
 
 def _read_vehicle(run: RunLog, vehicle_dir: Path) -> None:
     vehicle = vehicle_dir.name
-    agent_log = vehicle_dir / "agent.jsonl"
+    agent_log = vehicle_dir / kinds.AGENT_LOG.name
     flight_logs = sorted(p for p in vehicle_dir.iterdir() if reader_for(p))
     iperf3_files = sorted(vehicle_dir.glob(IPERF3_GLOB))
     if not agent_log.exists() and not flight_logs and not iperf3_files:
@@ -140,14 +139,14 @@ def _read_vehicle(run: RunLog, vehicle_dir: Path) -> None:
         _warn(run, read.problems)
         for r in read.records:
             kind = r["kind"]
-            if kind == "telemetry":
+            if kind == kinds.TELEMETRY.name:
                 telemetry += 1
                 run.positions.append({"vehicle": vehicle, "source": "agent", "t_s": r["t_s"],
                                       "time_boot_ms": r.get("time_boot_ms"), "lat_deg": r.get("lat_deg"),
                                       "lon_deg": r.get("lon_deg"), "alt_m": r.get("alt_m"),
                                       "rel_alt_m": r.get("rel_alt_m"), "armed": r.get("armed"),
                                       "mission_seq": r.get("mission_seq")})
-            elif kind == "agent_started":
+            elif kind == kinds.AGENT_STARTED.name:
                 role = r.get("role", role)
     run.vehicles[vehicle] = role
     if telemetry == 0:
@@ -166,14 +165,14 @@ def _read_vehicle(run: RunLog, vehicle_dir: Path) -> None:
             _warn(run, [problem])
         else:
             run.probes.append(probe)
-    throughput_log = vehicle_dir / "throughput.jsonl"
+    throughput_log = vehicle_dir / kinds.THROUGHPUT_LOG.name
     if throughput_log.exists():
         read = read_jsonl(throughput_log)
         _warn(run, read.problems)
-        run.probes += read.of_kind("throughput")
+        run.probes += read.of_kind(kinds.THROUGHPUT)
 
 
-IPERF3_GLOB = "iperf3-*.json"  # VEHICLE/iperf3-PEER[.anything].json: `iperf3 -c PEER --json` run on VEHICLE
+IPERF3_GLOB = kinds.IPERF3_GLOB
 
 
 def _iperf3_probe(path: Path, client: str) -> tuple[dict | None, str | None]:
@@ -189,7 +188,7 @@ def _iperf3_probe(path: Path, client: str) -> tuple[dict | None, str | None]:
     if not isinstance(timesecs, (int, float)) or not server:
         return None, (f"{path}: iperf3 JSON without start.timestamp.timesecs (a test that never connected?) or "
                       "without a peer in its name (iperf3-PEER.json): skipped")
-    record = {"kind": "throughput", "t_s": float(timesecs), "client": client, "server": server,
+    record = {"kind": kinds.THROUGHPUT.name, "t_s": float(timesecs), "client": client, "server": server,
               "start": start, "end": data.get("end") or {}, "source": str(path)}
     received = (record["end"].get("sum_received") or {}).get("bits_per_second") if isinstance(
         record["end"], dict) else None

@@ -10,6 +10,7 @@ import time
 from ground.view.records import RunFollower
 from nac_onboard.agent.state_feed import StateFeedError, fetch_state
 from nac_onboard.mavlink.client import MavlinkClient
+from nac_onboard.records import kinds
 
 STREAM_HZ = 4  # what the view asks each autopilot for (REQUEST_DATA_STREAM), as MAVProxy does
 FEED_PERIOD_S = 1.0
@@ -45,7 +46,7 @@ class MavlinkSource:
             vehicle, role = self.names.get(sysid, (f"sysid{sysid}", "?"))
             follower.vehicles.setdefault(vehicle, {})["role"] = role
             added += follower.add("agent", vehicle, {
-                "t_s": now, "kind": "telemetry", "time_boot_ms": v.time_boot_ms, "lat_deg": v.lat_deg,
+                "t_s": now, "kind": kinds.TELEMETRY.name, "time_boot_ms": v.time_boot_ms, "lat_deg": v.lat_deg,
                 "lon_deg": v.lon_deg, "alt_m": v.alt_m, "rel_alt_m": v.rel_alt_m, "yaw_deg": v.yaw_deg,
                 "battery_pct": v.battery_pct, "mode": v.mode, "armed": v.armed,
                 "mission_seq": v.mission_seq, "mission_total": v.mission_total}) is not None
@@ -75,7 +76,7 @@ class MavlinkSource:
             follower.vehicles.setdefault(vehicle, {})["role"] = str(role)
             if sysid in heard_here or entry.get("lost") or entry.get("lat_deg") is None:
                 continue  # the link's own telemetry is fresher than the feed's
-            added += follower.add("agent", vehicle, {"t_s": time.time(), "kind": "telemetry",
+            added += follower.add("agent", vehicle, {"t_s": time.time(), "kind": kinds.TELEMETRY.name,
                                                      "lat_deg": entry["lat_deg"], "lon_deg": entry["lon_deg"],
                                                      "alt_m": entry.get("alt_m"),
                                                      "battery_pct": entry.get("battery_pct")}) is not None

@@ -1,11 +1,13 @@
 """One reader for live and replay: the records of a run directory, read as they are appended, each turned into
 the small frame the page draws (positions in local metres, probes, iterations, link capacities, events).
 
-    RUN_DIR/<vehicle>/agent.jsonl       telemetry and events       -> "pos" (a batch), "ev"
-    RUN_DIR/<vehicle>/throughput.jsonl  the master's probes         -> "probe"
-    RUN_DIR/**/compute.jsonl            the MPI job's iterations    -> "it"
-    RUN_DIR/network.jsonl               the link model's capacities -> "cap"
-    RUN_DIR/experiment.json             the runner's faults         -> "ev"
+    each vehicle's agent log     telemetry and events       -> "pos" (a batch), "ev"
+    the master's probes          iperf3-shaped results      -> "probe"
+    the MPI job's records        its iterations             -> "it"
+    the kernel network's log     the link model's capacities -> "cap"
+    the experiment's log         the runner's faults        -> "ev"
+
+(files and kinds as nac_onboard/records names them: docs/records.md)
 
 A "pos" frame holds every position one read of a vehicle's file gave, as columns ("t", "e", "n", "u", "hdg",
 "mode", "armed", "batt", "seq", "tot", "tb", one entry per record): a replay's hundred thousand positions are
@@ -29,13 +31,16 @@ import numpy as np
 import orjson
 
 from missions.geo import Home, lla_to_enu
+from nac_onboard.records import READABLE_VERSIONS, kinds
 
-EVENT_KINDS = {"link_lost": "autopilot link lost", "link_restored": "autopilot link back", "peer_lost": "lost",
-               "peer_seen": "seen", "mission_item_reached": "reached item", "landed_state": "landed state",
-               "agent_started": "agent started", "mode": "mode", "statustext": "says"}
+EVENT_KINDS = {k.name: text for k, text in (
+    (kinds.LINK_LOST, "autopilot link lost"), (kinds.LINK_RESTORED, "autopilot link back"), (kinds.PEER_LOST, "lost"),
+    (kinds.PEER_SEEN, "seen"), (kinds.MISSION_ITEM_REACHED, "reached item"), (kinds.LANDED_STATE, "landed state"),
+    (kinds.AGENT_STARTED, "agent started"), (kinds.MODE, "mode"), (kinds.STATUSTEXT, "says"))}
 MAX_LINE_BYTES = 1 << 20
-SOURCES = {"agent.jsonl": "agent", "throughput.jsonl": "throughput", "compute.jsonl": "compute",
-           "network.jsonl": "network", "experiment.json": "experiment"}
+SOURCES = {kinds.AGENT_LOG.name: "agent", kinds.THROUGHPUT_LOG.name: "throughput", kinds.COMPUTE_LOG.name: "compute",
+           kinds.NETWORK_LOG.name: "network", kinds.EXPERIMENT_LOG.name: "experiment"}
+TELEMETRY = kinds.TELEMETRY.name
 
 
 @dataclass
@@ -104,7 +109,7 @@ class RunFollower:
                 if not isinstance(record, dict) or not _finite(record.get("t_s")):
                     self._problem(f"{path.relative_to(self.run_dir)}:{line_no}: no t_s, skipped")
                     continue
-                if source == "agent" and record.get("kind") == "telemetry":
+                if source == "agent" and record.get("kind") == TELEMETRY:
                     telemetry.setdefault(vehicle, []).append(record)
                 else:
                     self._keep(self._frame(source, vehicle, record), new)
@@ -118,7 +123,7 @@ class RunFollower:
         other than files (a MAVLink link, an agent's state feed) come in here too."""
         if not isinstance(record, dict) or not _finite(record.get("t_s")):
             return None
-        if source == "agent" and record.get("kind") == "telemetry":
+        if source == "agent" and record.get("kind") == TELEMETRY:
             return next((self._keep(f, []) for f in self._position_frames([(vehicle, [record])])), None)
         return self._keep(self._frame(source, vehicle, record), [])
 
@@ -149,8 +154,10 @@ class RunFollower:
         return out
 
     def missing(self) -> list[str]:
-        wanted = {"pos": "positions (VEHICLE/agent.jsonl telemetry)", "probe": "throughput probes (throughput.jsonl)",
-                  "it": "compute iterations (compute.jsonl)", "cap": "link model capacities (network.jsonl, SITL)"}
+        wanted = {"pos": f"positions ({kinds.AGENT_LOG.path} telemetry)",
+                  "probe": f"throughput probes ({kinds.THROUGHPUT_LOG.name})",
+                  "it": f"compute iterations ({kinds.COMPUTE_LOG.name})",
+                  "cap": f"link model capacities ({kinds.NETWORK_LOG.name}, SITL)"}
         return [text for kind, text in wanted.items() if kind not in self._seen_kinds]
 
     def _problem(self, text: str) -> None:
@@ -162,40 +169,44 @@ class RunFollower:
     def _discover(self) -> None:
         if self.run_dir is None or not self.run_dir.is_dir():
             return
-        candidates = [self.run_dir / "experiment.json", self.run_dir / "network.jsonl"]
+        candidates = [kinds.EXPERIMENT_LOG.at(self.run_dir), kinds.NETWORK_LOG.at(self.run_dir)]
         for sub in sorted(p for p in self.run_dir.iterdir() if p.is_dir()):
-            candidates += [sub / "agent.jsonl", sub / "throughput.jsonl", sub / "compute.jsonl"]
+            candidates += [sub / f.name for f in (kinds.AGENT_LOG, kinds.THROUGHPUT_LOG, kinds.COMPUTE_LOG)]
         for path in candidates:
             if path not in self._tails and path.is_file():
                 self._tails[path] = _Tail(path)
 
     def _frame(self, source: str, vehicle: str, r: dict) -> dict | None:
         kind, t_s = r.get("kind"), float(r["t_s"])
+        if kind == kinds.SCHEMA.name and r.get("schema_version") not in READABLE_VERSIONS:
+            self._problem(f"{vehicle}/{source}: records of schema version {r.get('schema_version')!r}; this NAC "
+                          f"reads versions {', '.join(map(str, READABLE_VERSIONS))}: its records may be misread")
+            return None
         if source == "agent":
-            if kind == "agent_started":
+            if kind == kinds.AGENT_STARTED.name:
                 self.vehicles.setdefault(vehicle, {})["role"] = r.get("role", "?")
             if kind in EVENT_KINDS:
                 detail = next((r[k] for k in ("peer", "seq", "value", "text") if r.get(k) is not None), "")
                 return {"k": "ev", "t": t_s, "v": vehicle, "text": f"{vehicle}: {EVENT_KINDS[kind]} {detail}".strip()}
             return None
-        if source == "throughput" and kind == "throughput":
+        if source == "throughput" and kind == kinds.THROUGHPUT.name:
             end = r.get("end") or {}
             bps = ((end.get("sum_received") or {}).get("bits_per_second")) if isinstance(end, dict) else None
             ok = _finite(bps) and not r.get("error")
             self._seen_kinds.add("probe")
             return {"k": "probe", "t": t_s, "a": str(r.get("client")), "b": str(r.get("server")),
                     "bps": float(bps) if ok else 0.0, "ok": bool(ok), "d": _num(r.get("distance_m"))}
-        if source == "compute" and kind == "iteration":
+        if source == "compute" and kind == kinds.ITERATION.name:
             workers = r.get("workers") or {}
             present = workers.get("present") or []
             self._seen_kinds.add("it")
             return {"k": "it", "t": t_s, "i": r.get("iteration"), "dur": _num(r.get("duration_s")),
                     "cost": _num(r.get("cost")), "n": sum(1 for p in present if p), "of": len(present)}
-        if source == "network" and kind == "link_rates":
+        if source == "network" and kind == kinds.LINK_RATES.name:
             self._seen_kinds.add("cap")
             return {"k": "cap", "t": t_s, "a": r.get("a"), "b": r.get("b"), "bps": r.get("rate_bps"),
                     "d": r.get("distance_m")}
-        if source == "experiment" and kind == "experiment":
+        if source == "experiment" and kind == kinds.EXPERIMENT.name:
             for vehicle in r.get("vehicles") or []:
                 if isinstance(vehicle, dict) and isinstance(vehicle.get("id"), str):
                     self.vehicles.setdefault(vehicle["id"], {})["role"] = str(vehicle.get("role", "?"))
@@ -205,7 +216,7 @@ class RunFollower:
                                              and _finite(p[0]) and _finite(p[1])]
                                     for v, points in missions.items() if isinstance(points, list)}
             return None
-        if source == "experiment" and kind == "fault":
+        if source == "experiment" and kind == kinds.FAULT.name:
             return {"k": "ev", "t": t_s, "v": r.get("vehicle"), "fault": True,
                     "text": f"fault: {r.get('fault')} {r.get('state')} for {r.get('vehicle')}"}
         return None

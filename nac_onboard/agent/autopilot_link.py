@@ -13,6 +13,7 @@ from nac_onboard.flight_log import JsonlLog
 from nac_onboard.mavlink.client import CLIENT_MESSAGES, LinkError, MavlinkClient, TelemetryState
 from nac_onboard.mavlink.dialect import M
 from nac_onboard.mavlink.signing import state_path
+from nac_onboard.records import kinds
 
 OPEN_FAILURES_LOGGED_EVERY = 30  # a long outage logs its first failure and then one in this many
 
@@ -66,10 +67,10 @@ class AutopilotLink:
         except LinkError as err:
             self.open_failures += 1
             if self.open_failures == 1 or self.open_failures % OPEN_FAILURES_LOGGED_EVERY == 0:
-                self.log.write("link_open_failed", uri=self.config.uri, error=str(err), attempts=self.open_failures)
+                self.log.write(kinds.LINK_OPEN_FAILED, uri=self.config.uri, error=str(err), attempts=self.open_failures)
             return
         if self.open_failures:
-            self.log.write("link_opened", uri=self.config.uri, after_attempts=self.open_failures + 1)
+            self.log.write(kinds.LINK_OPENED, uri=self.config.uri, after_attempts=self.open_failures + 1)
         self.open_failures = 0
         self._tap()
 
@@ -84,7 +85,7 @@ class AutopilotLink:
         try:
             messages = self.client.poll(0.0)
         except (OSError, LinkError) as err:  # a serial adapter unplugged, a TCP peer gone
-            self.log.write("link_error", uri=self.config.uri, error=str(err))
+            self.log.write(kinds.LINK_ERROR, uri=self.config.uri, error=str(err))
             self._mark_lost(now_s, "error")
             self.client.close()
             self.client = None
@@ -104,9 +105,9 @@ class AutopilotLink:
     def _came_up(self, heartbeat, now_s: float) -> None:
         self.up = True
         if self.ever_up:
-            self.log.write("link_restored", sysid=self.sysid, outage_s=round(now_s - self.lost_since_s, 3))
+            self.log.write(kinds.LINK_RESTORED, sysid=self.sysid, outage_s=round(now_s - self.lost_since_s, 3))
         else:
-            self.log.write("link_up", sysid=self.sysid, autopilot=heartbeat.autopilot, vehicle_type=heartbeat.type,
+            self.log.write(kinds.LINK_UP, sysid=self.sysid, autopilot=heartbeat.autopilot, vehicle_type=heartbeat.type,
                            mavlink_version=heartbeat.mavlink_version)
         self.ever_up = True
         self.on_status(f"autopilot {self.sysid} linked")
@@ -139,7 +140,7 @@ class AutopilotLink:
             return
         self.up = False
         self.lost_since_s = since_s
-        self.log.write("link_lost", sysid=self.sysid, why=why, **extra)
+        self.log.write(kinds.LINK_LOST, sysid=self.sysid, why=why, **extra)
         self.on_status(f"autopilot link lost ({why}); retrying")
 
     def close(self) -> None:

@@ -47,6 +47,7 @@ from nac_onboard.mavlink.dialect import M
 from nac_onboard.mavlink.routing import RawEndpoint
 from nac_onboard.mavlink.signing import load_signing_key
 from nac_onboard.node.mpi_build import mpi_build
+from nac_onboard.records import kinds
 
 log = logging.getLogger(__name__)
 EXPIRE_CHECK_S = 0.1
@@ -83,9 +84,9 @@ class Agent:
         self.stop_reason = ""
         a = config.autopilot
         self.signing_key = load_signing_key(a.signing_key_file) if a.signing_key_file else None
-        self.log = JsonlLog(run_dir / "agent.jsonl")
-        self.throughput_log = JsonlLog(run_dir / "throughput.jsonl")
-        self.tlog = TlogWriter(run_dir / "mavlink.tlog") if config.log.tlog else None
+        self.log = JsonlLog(run_dir / kinds.AGENT_LOG.name)
+        self.throughput_log = JsonlLog(run_dir / kinds.THROUGHPUT_LOG.name)
+        self.tlog = TlogWriter(run_dir / kinds.TLOG.name) if config.log.tlog else None
         self.autopilot = AutopilotLink(a, config.vehicle.sysid or 1, config.vehicle.sysid or None, self.signing_key,
                                        self.log, lambda text: self.notifier.status(f"{text}; logging to {run_dir}"),
                                        self._log_sent if self.tlog is not None else None)
@@ -109,7 +110,7 @@ class Agent:
     # ---- setup and teardown ----------------------------------------------------------------------------
     def open(self) -> Agent:
         c = self.config
-        self.log.write("agent_started", vehicle=c.vehicle.id, role=c.vehicle.role, config=c.source,
+        self.log.write(kinds.AGENT_STARTED, vehicle=c.vehicle.id, role=c.vehicle.role, config=c.source,
                        autopilot=c.autopilot.uri, run_dir=str(self.run_dir), pid=os.getpid(),
                        mpi_build=mpi_build())
         self.autopilot.open(time.monotonic())
@@ -118,7 +119,7 @@ class Agent:
             try:
                 self.endpoints.append(RawEndpoint(uri, read_only, allow))
             except LinkError as err:
-                self.log.write("routing_error", endpoint=uri, error=str(err))
+                self.log.write(kinds.ROUTING_ERROR, endpoint=uri, error=str(err))
         self.peer_sock = _udp_socket(c.peers.listen, "peers.listen", broadcast=True)
         # one byte more than allowed, so a longer datagram shows as too big instead of cut short; one buffer, so a
         # refused datagram costs no allocation
@@ -126,11 +127,12 @@ class Agent:
         self.sender_mute = SenderMute()
         self.feed_sock = _udp_socket(c.state_feed.listen, "state_feed.listen")
         if c.state_feed.expose:
-            self.log.write("warning", text=f"the state feed listens on {c.state_feed.listen}: whoever reaches it "
-                                           "learns every vehicle's position")
+            self.log.write(kinds.WARNING, text=f"the state feed listens on {c.state_feed.listen}: whoever reaches it "
+                                                 "learns every vehicle's position")
             log.warning("state feed exposed on %s", c.state_feed.listen)
         if c.peers.allow_unsigned:
-            self.log.write("warning", text="peers.allow_unsigned: peer state from anyone on the network is believed")
+            self.log.write(kinds.WARNING,
+                           text="peers.allow_unsigned: peer state from anyone on the network is believed")
         t = c.throughput
         if t.server:
             try:
@@ -142,7 +144,7 @@ class Agent:
             emulation = SleepEmulation(c.emulated_channel, clock) if c.emulated_channel else None
             self.scheduler = ProbeScheduler(t, c.vehicle.id, self._probe_targets, self.snapshot,
                                             self.throughput_log, self.stop_event, emulation, clock).start()
-        self.log.write("agent_ready", peers_listen=c.peers.listen, state_feed=c.state_feed.listen,
+        self.log.write(kinds.AGENT_READY, peers_listen=c.peers.listen, state_feed=c.state_feed.listen,
                        throughput_port=self.throughput_server.port if self.throughput_server else None,
                        probing=t.probe, probe_duty_cycle=t.duty_cycle if t.probe else None)
         self.notifier.ready(f"logging to {self.run_dir}")
@@ -160,7 +162,7 @@ class Agent:
         for sock in (self.peer_sock, self.feed_sock):
             if sock is not None:
                 sock.close()
-        self.log.write("agent_stopped", reason=self.stop_reason or "closed", peer_rejects=self.peer_rejects,
+        self.log.write(kinds.AGENT_STOPPED, reason=self.stop_reason or "closed", peer_rejects=self.peer_rejects,
                        **self.counters)
         for f in (self.log, self.throughput_log, self.tlog):
             if f is not None:
@@ -213,7 +215,7 @@ class Agent:
                 self._publish_state()
             if expire.fire(now):
                 for peer, silent_s in self.peers.expire(now):
-                    self.log.write("peer_lost", peer=peer.id, role=peer.role, host=peer.host,
+                    self.log.write(kinds.PEER_LOST, peer=peer.id, role=peer.role, host=peer.host,
                                    silent_s=round(silent_s, 3))
             if sync is not None and sync.fire(now):
                 for f in (self.log, self.throughput_log, self.tlog):
@@ -251,24 +253,24 @@ class Agent:
         if vehicle is None:
             return
         if kind == "HEARTBEAT" and msg.get_srcComponent() == M.MAV_COMP_ID_AUTOPILOT1:
-            self._note_change("mode", "mode", vehicle.mode)
-            self._note_change("armed", "armed", vehicle.armed)
+            self._note_change("mode", vehicle.mode)
+            self._note_change("armed", vehicle.armed)
         elif kind == "MISSION_ITEM_REACHED":
-            self.log.write("mission_item_reached", seq=msg.seq)
+            self.log.write(kinds.MISSION_ITEM_REACHED, seq=msg.seq)
         elif kind == "MISSION_CURRENT":
-            self._note_change("mission_seq", "mission_current", msg.seq, total=vehicle.mission_total)
+            self._note_change("mission_seq", msg.seq, total=vehicle.mission_total)
             if vehicle.mission_state:
-                self._note_change("mission_state", "mission_state", vehicle.mission_state)
+                self._note_change("mission_state", vehicle.mission_state)
         elif kind == "EXTENDED_SYS_STATE":
-            self._note_change("landed", "landed_state", vehicle.landed)
+            self._note_change("landed", vehicle.landed)
         elif kind == "STATUSTEXT":
-            self.log.write("statustext", severity=msg.severity, text=msg.text)
+            self.log.write(kinds.STATUSTEXT, severity=msg.severity, text=msg.text)
 
-    def _note_change(self, key: str, kind: str, value, **extra) -> None:
+    def _note_change(self, key: str, value, **extra) -> None:
         previous = self._last[key]
         if value != previous:
             self._last[key] = value
-            self.log.write(kind, value=value, previous=previous, **extra)
+            self.log.write(kinds.CHANGES[key], value=value, previous=previous, **extra)
 
     def _log_telemetry(self) -> None:
         v = self.autopilot.vehicle()
@@ -277,7 +279,7 @@ class Agent:
         if v.time_boot_ms < 0:
             return
         self.counters["telemetry"] += 1
-        self.log.write("telemetry", sysid=v.sysid, time_boot_ms=v.time_boot_ms, lat_deg=v.lat_deg,
+        self.log.write(kinds.TELEMETRY, sysid=v.sysid, time_boot_ms=v.time_boot_ms, lat_deg=v.lat_deg,
                        lon_deg=v.lon_deg, alt_m=v.alt_m, rel_alt_m=v.rel_alt_m, vel_ned_mps=v.vel_ned_mps,
                        roll_deg=round(v.roll_deg, 3), pitch_deg=round(v.pitch_deg, 3), yaw_deg=round(v.yaw_deg, 3),
                        battery_pct=v.battery_pct, voltage_v=v.voltage_v, mode=v.mode, armed=v.armed,
@@ -293,9 +295,9 @@ class Agent:
         try:
             server.stop()
             self.throughput_server = ThroughputServer(t.bind, t.port).start()
-            self.log.write("throughput_server_restarted", port=t.port, refused_before=server.refused)
+            self.log.write(kinds.THROUGHPUT_SERVER_RESTARTED, port=t.port, refused_before=server.refused)
         except OSError as err:
-            self.log.write("throughput_server_failed", port=t.port, error=str(err))
+            self.log.write(kinds.THROUGHPUT_SERVER_FAILED, port=t.port, error=str(err))
 
     # ---- routing -------------------------------------------------------------------------------------------
     def _read_endpoints(self) -> None:
@@ -312,7 +314,7 @@ class Agent:
         now = time.monotonic()
         if dropped > self._refusals_logged and now - self._last_refusal_log_s >= REJECT_LOG_PERIOD_S:
             senders = sorted({e.last_dropped_sender for e in self.endpoints if e.last_dropped_sender})
-            self.log.write("routing_refused", frames_since_last_record=dropped - self._refusals_logged,
+            self.log.write(kinds.ROUTING_REFUSED, frames_since_last_record=dropped - self._refusals_logged,
                            senders=senders)
             self._refusals_logged, self._last_refusal_log_s = dropped, now
 
@@ -359,7 +361,7 @@ class Agent:
                 try:
                     peer = decode_peer_state(bytes(buffer[:size]), host, key, allow_unsigned)
                     with self._state_lock:
-                        event = self.peers.update(peer, now, time.time())
+                        seen = self.peers.update(peer, now, time.time())
                     reason = None
                 except PeerMessageError as err:
                     reason = err.reason
@@ -368,8 +370,8 @@ class Agent:
                 mute.refused(sender, now)  # the rate-limited peer_rejected record counts what muting then drops
                 continue
             self.counters["peer_msgs"] += 1
-            if event:
-                self.log.write(event, peer=peer.id, role=peer.role, host=host, probe_port=peer.probe_port)
+            if seen:
+                self.log.write(kinds.PEER_SEEN, peer=peer.id, role=peer.role, host=host, probe_port=peer.probe_port)
 
     def _peer_rejected(self, reason: str, host: str, now: float, count: int = 1) -> None:
         """Count it; log at most one peer_rejected record per REJECT_LOG_PERIOD_S, with the counts since the last."""
@@ -378,7 +380,7 @@ class Agent:
         if now - self._last_reject_log_s >= REJECT_LOG_PERIOD_S:
             since = {r: n - self._rejects_logged.get(r, 0) for r, n in self.peer_rejects.items()
                      if n != self._rejects_logged.get(r, 0)}
-            self.log.write("peer_rejected", last_sender=host, last_reason=reason, since_last_record=since)
+            self.log.write(kinds.PEER_REJECTED, last_sender=host, last_reason=reason, since_last_record=since)
             self._rejects_logged = dict(self.peer_rejects)
             self._last_reject_log_s = now
 

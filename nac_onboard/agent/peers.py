@@ -191,11 +191,11 @@ class PeerTable:
         self.replay_window_s = replay_window_s  # None: the sender's clock is not checked (unsigned fleets)
         self._entries: dict[str, _Entry] = {}
 
-    def update(self, state: PeerState, now_mono_s: float, now_unix_s: float) -> str | None:
-        """Record a message; returns "peer_seen" when the peer is new or back after being lost. Raises
+    def update(self, state: PeerState, now_mono_s: float, now_unix_s: float) -> bool:
+        """Record a message; returns whether the peer is new or back after being lost (seen). Raises
         PeerMessageError for a replayed or stale message, or a new peer when the table is full."""
         if state.id == self.self_id:
-            return None  # our own broadcast, looped back
+            return False  # our own broadcast, looped back
         entry = self._entries.get(state.id)
         if self.replay_window_s is not None:
             if abs(state.t_s - now_unix_s) > self.replay_window_s:
@@ -204,9 +204,9 @@ class PeerTable:
                 raise PeerMessageError("replayed", f"{state.id}: not newer than its last message")
         if entry is None and len(self._entries) >= self.max_peers:
             raise PeerMessageError("table_full", f"{self.max_peers} peers already")
-        event = "peer_seen" if entry is None or entry.lost else None
+        seen = entry is None or entry.lost
         self._entries[state.id] = _Entry(state, now_mono_s)
-        return event
+        return seen
 
     def expire(self, now_mono_s: float) -> list[tuple[PeerState, float]]:
         """Peers that just went silent for longer than timeout_s, with how long they have been silent; peers

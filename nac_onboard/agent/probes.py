@@ -26,6 +26,7 @@ from nac_onboard.flight_log import JsonlLog
 from nac_onboard.link import iperf3
 from nac_onboard.link.emulation import SleepEmulation
 from nac_onboard.link.throughput import LINK, MIN_INTERVAL_S, ProbeError, probe
+from nac_onboard.records import kinds
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +69,7 @@ class ProbeScheduler:
         distance_m = before.distance_m(self.self_id, peer_id)
         if self.emulation is not None and distance_m is None:
             # no distance, no emulated link: nothing was measured, so it is not a failed probe either
-            return self.out.write("probe_skipped", **fields, reason="no position for one of the pair yet")
+            return self.out.write(kinds.PROBE_SKIPPED, **fields, reason="no position for one of the pair yet")
         rate_bps = s.rate_bps or None
         wall = self.clock.wall_s
         try:
@@ -92,7 +93,7 @@ class ProbeScheduler:
         fields["positions"] = {"start": self._pair(before, peer_id), "end": self._pair(after, peer_id)}
         fields["distance_m"] = distance_m
         fields["distance_end_m"] = after.distance_m(self.self_id, peer_id)
-        return self.out.write("throughput", **fields, **result)
+        return self.out.write(kinds.THROUGHPUT, **fields, **result)
 
     def _emulated_rate_bps(self, peer_id: str, distance_m: float, cap_bps: float | None) -> float:
         link = self.emulation.link(distance_m, peer_id, (self.self_id, peer_id))

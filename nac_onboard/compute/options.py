@@ -19,6 +19,7 @@ from nac_onboard.compute.tasks import all_tasks
 from nac_onboard.errors import BadInput, NacError
 from nac_onboard.radio.channel import PRESETS, ChannelModel
 from nac_onboard.radio.files import load_channel
+from nac_onboard.records import kinds
 
 
 @dataclass(frozen=True)
@@ -79,7 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--start-file", help="after setting up, wait until this file exists before the first iteration "
                                         "(an orchestrator's go: the vehicles are in the air); a JSON object in it "
                                         "may give end_at_s, as --end-at-s does")
-    p.add_argument("--out", default="compute-out", help="directory for compute.jsonl (and results.npz)")
+    p.add_argument("--out", default="compute-out",
+                   help=f"directory for {kinds.COMPUTE_LOG.name} (and {kinds.RESULTS.name})")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--m", type=int, default=100, help="matmul: rows of A")
     p.add_argument("--n", type=int, default=10000, help="matmul: columns of A, rows of B")

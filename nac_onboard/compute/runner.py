@@ -59,6 +59,7 @@ from nac_onboard.compute.task import Answer, Extra, Task
 from nac_onboard.errors import NacError
 from nac_onboard.flight_log import JsonlLog
 from nac_onboard.link.emulation import SleepEmulation
+from nac_onboard.records import kinds
 
 IDLE_FIRST_S, IDLE_MAX_S = 0.05, 1.0  # back-off while no worker is in range
 UNRESPONSIVE_AFTER = 3  # iterations missed in a row before a worker is no longer waited for
@@ -290,7 +291,7 @@ class Master:
     def _lose(self, rank: int, error: str) -> None:
         if rank not in self.lost:
             self.lost[rank] = error
-            self.log.write("worker_lost", rank=rank, vehicle=self.options.vehicle_of(rank), error=error)
+            self.log.write(kinds.WORKER_LOST, rank=rank, vehicle=self.options.vehicle_of(rank), error=error)
         if rank not in self.unresponsive:
             self.unresponsive.add(rank)
             self._next_ping_s[rank] = float("inf")  # MPI said it is gone: nothing to ping
@@ -312,7 +313,7 @@ class Master:
             if self._missed[rank] >= UNRESPONSIVE_AFTER and rank not in self.unresponsive:
                 self.unresponsive.add(rank)
                 self._next_ping_s[rank] = 0.0
-                self.log.write("worker_unresponsive", rank=rank, vehicle=self.options.vehicle_of(rank),
+                self.log.write(kinds.WORKER_UNRESPONSIVE, rank=rank, vehicle=self.options.vehicle_of(rank),
                                iteration=iteration, missed=self._missed[rank])
 
     def _ping_unresponsive(self) -> None:
@@ -331,7 +332,7 @@ class Master:
     def _back(self, rank: int) -> None:
         self.unresponsive.discard(rank)
         self._missed[rank] = 0
-        self.log.write("worker_back", rank=rank, vehicle=self.options.vehicle_of(rank))
+        self.log.write(kinds.WORKER_BACK, rank=rank, vehicle=self.options.vehicle_of(rank))
 
     def send_all(self, ranks: list[int], iteration: int, payload: np.ndarray, links: IterationLinks) -> None:
         message = message_buffer((), WORK_HEADER + payload.size, self.pad)
@@ -411,7 +412,7 @@ class Master:
                            self.pad)
         warmup_s = self.warm_up(task.input_floats())
         emulating = self.emulation is not None
-        self.log.write("run_started", warmup_s=warmup_s, task=task.name, workers=len(self.workers),
+        self.log.write(kinds.RUN_STARTED, warmup_s=warmup_s, task=task.name, workers=len(self.workers),
                        shards=self.bounds, emulate=o.emulate, pad_bits=o.pad_bits, speedup=self.clock.speedup,
                        channel=o.channel.name if emulating else None,
                        channel_validity=o.channel.validity() if emulating else None,
@@ -454,7 +455,7 @@ class Master:
         self.stop_workers(iteration)
         t = self.tally
         d = np.array(t.durations) if t.durations else np.array([np.nan])
-        self.log.write("run_summary", task=task.name, iterations=iteration, complete_iterations=t.complete,
+        self.log.write(kinds.RUN_SUMMARY, task=task.name, iterations=iteration, complete_iterations=t.complete,
                        ended_by=ended_by, elapsed_s=time.monotonic() - t_run,
                        elapsed_sim_s=self.clock.now_s() - t_run_sim, mean_duration_s=float(np.mean(d)),
                        p95_duration_s=float(np.percentile(d, 95)),
@@ -497,14 +498,14 @@ class Master:
                 raise TimeoutError(f"--start-file {path} did not appear within {self.options.idle_timeout_s:g} s")
             time.sleep(0.005)
         self.end_at_s = read_start_file(path) or self.options.end_at_s
-        self.log.write("started", start_file=path, end_at_s=self.end_at_s)
+        self.log.write(kinds.STARTED, start_file=path, end_at_s=self.end_at_s)
 
     def checkpoint(self, iteration: int) -> None:
         """results.npz as of this iteration, replaced atomically: a crash of the master leaves the last whole one."""
         results = self.task.results()
         if not results and not self.options.save_results:
             return
-        path = os.path.join(self.options.out, "results.npz")
+        path = os.path.join(self.options.out, kinds.RESULTS.name)
         partial = path + ".partial.npz"
         np.savez(partial, iteration=np.array(iteration), **results)
         os.replace(partial, path)
@@ -523,7 +524,7 @@ class Master:
             if why is not None:
                 t.absences[rank] += 1
         end_s = start_unix + duration_s
-        self.log.write("iteration", t_s=end_s, iteration=iteration, start_s=start_unix, end_s=end_s,
+        self.log.write(kinds.ITERATION, t_s=end_s, iteration=iteration, start_s=start_unix, end_s=end_s,
                        duration_s=duration_s, start_sim_s=start_sim, duration_sim_s=end_sim - start_sim,
                        workers=links.record(self.workers, self.vehicles), **record)
 
@@ -593,16 +594,16 @@ def main(argv: list[str] | None = None) -> int:
     try:
         os.makedirs(options.out, exist_ok=True)
         if comm.Get_rank() == 0:
-            with JsonlLog(os.path.join(options.out, "compute.jsonl")) as log:
+            with JsonlLog(os.path.join(options.out, kinds.COMPUTE_LOG.name)) as log:
                 master = Master(comm, MPI, options, log)
                 code = master.run()
             if not master.finalizes:
                 end_without_finalize(code)
             return code
-        with JsonlLog(os.path.join(options.out, f"rank-{comm.Get_rank()}.jsonl")) as log:
-            log.write("worker_started", rank=comm.Get_rank(), pid=os.getpid(), host=MPI.Get_processor_name())
+        with JsonlLog(os.path.join(options.out, kinds.RANK_LOG.file_name(rank=comm.Get_rank()))) as log:
+            log.write(kinds.WORKER_STARTED, rank=comm.Get_rank(), pid=os.getpid(), host=MPI.Get_processor_name())
             finalizes = run_worker(comm, MPI, options)
-            log.write("worker_stopped", rank=comm.Get_rank(), finalizes=finalizes)
+            log.write(kinds.WORKER_STOPPED, rank=comm.Get_rank(), finalizes=finalizes)
         if not finalizes:
             end_without_finalize(0)
         return 0

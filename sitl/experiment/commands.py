@@ -11,20 +11,17 @@ from pathlib import Path
 
 from nac_onboard import clock
 from nac_onboard.compute import launch
+from nac_onboard.records import kinds
 from nac_onboard.tomlfile import dumps_toml
 from sitl.experiment.scenario import Scenario
 from sitl.network.air import AirNetwork
 from sitl.network.netns import NetworkUnavailable, check_kernel_network
 
 PORTS_PER_VEHICLE = 10  # ground, companion, peers, throughput server, (master) state feed
-FLEET_KEY_FILE = "fleet.key"
-START_FILE = "start"  # the MPI job's go, written once the vehicles are in the air
-CHANNEL_FILE = "channel.toml"  # the run's radio, in its config folder: what every child of the run loads
-REPLAY_FILE = "replay.json"  # beside it, the replay table the run's radio names (sleep network, --links replay)
 
 
 def run_channel_path(run_dir: Path) -> Path:
-    return run_dir / "config" / CHANNEL_FILE
+    return kinds.CHANNEL_FILE.at(run_dir)
 
 
 @dataclass(frozen=True)
@@ -72,7 +69,7 @@ def agent_config(scenario: Scenario, index: int, run_dir: Path, ports: Ports,
         "vehicle": {"id": vehicle.id, "role": vehicle.role, "sysid": index + 1},
         "autopilot": {"uri": f"udpin:127.0.0.1:{ports.companion(index)}", "link_timeout_s": 3.0},
         "log": {"dir": str(run_dir.parent), "run_id": run_dir.name, "telemetry_hz": 10.0, "tlog": True},
-        "peers": {"listen": f"{air[index]}:{ports.peers(index)}", "key_file": FLEET_KEY_FILE,
+        "peers": {"listen": f"{air[index]}:{ports.peers(index)}", "key_file": kinds.FLEET_KEY.name,
                   "send_to": [f"{air[k]}:{ports.peers(k)}" for k in others], "rate_hz": 2.0, "timeout_s": 3.0},
         "state_feed": {"listen": f"127.0.0.1:{ports.feed() if master else ports.of(index, 4)}"},
         "throughput": throughput,
@@ -85,14 +82,14 @@ def compute_args(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: 
     (--emulate none) with the channel's per-transfer overhead as real bytes; otherwise the research's sleeps."""
     c = scenario.compute
     ids = [scenario.master.id, *(w.id for w in scenario.workers)]
-    # without a number of iterations the runner's go (START_FILE) says when to end
+    # without a number of iterations the runner's go (kinds.START_FILE) says when to end
     stop = ["--iterations", str(c.iterations)] if c.iterations else ["--end-at-s", f"{end_at_sim_s:.3f}"]
     if kernel:
         link = ["--emulate", "none", "--pad-bits", f"{scenario.channel.overhead_bits:g}"]
     else:
         link = ["--emulate", "sleep"]
-    return ["--task", c.task, *stop, "--start-file", str(run_dir / "compute" / START_FILE), "--out",
-            str(run_dir / "compute"), *link,
+    return ["--task", c.task, *stop, "--start-file", str(kinds.START_FILE.at(run_dir)), "--out",
+            str(kinds.COMPUTE_LOG.at(run_dir).parent), *link,
             "--channel", str(run_channel_path(run_dir)), "--positions", "feed", "--feed", f"127.0.0.1:{ports.feed()}",
             "--vehicles", ",".join(ids), "--timeout-s", str(c.timeout_s), "--on-missing", c.on_missing,
             "--allocation", c.allocation, *c.args]

@@ -14,6 +14,7 @@ import threading
 import time
 from pathlib import Path
 
+from nac_onboard.records import kinds
 from sitl.experiment.runner import Outcome, run_scenario
 from sitl.experiment.scenario import ScenarioError, load_scenario
 
@@ -36,7 +37,7 @@ def run_demo(out: Path, speedup: float, base_port: int, stream=sys.stdout,
         from ground.logs.report import compare_runs
 
         comparison = compare_runs(results[0].run_dir, results[1].run_dir, out / "comparison",
-                                  report_path=out / "report.md", findings=research_findings)
+                                  report_path=kinds.REPORT.at(out), findings=research_findings)
         print(f"\ncomparison: {comparison.report_path}", file=stream)
         for line in comparison.findings:
             print(f"- {line}", file=stream)

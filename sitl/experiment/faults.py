@@ -17,6 +17,7 @@ from enum import Enum
 from pathlib import Path
 
 from nac_onboard.flight_log import read_jsonl
+from nac_onboard.records import kinds
 from sitl.server import Sitl
 from sitl.vehicle.world import COMPANION
 
@@ -67,9 +68,9 @@ class FaultInjector:
     def _kill_rank(self, vehicle_id: str) -> None:
         path = self.rank_log(vehicle_id)
         try:
-            started = read_jsonl(path).of_kind("worker_started")
+            started = read_jsonl(path).of_kind(kinds.WORKER_STARTED)
             if not started:
-                raise OSError(f"{path} has no worker_started record yet")
+                raise OSError(f"{path} has no {kinds.WORKER_STARTED} record yet")
             os.kill(int(started[-1]["pid"]), signal.SIGKILL)
         except (OSError, KeyError, ValueError) as err:
             log.warning("kill_worker %s: %s", vehicle_id, err)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from nac_onboard.mavlink.client import LinkError, VehicleClient
 from nac_onboard.mavlink.dialect import COPTER_MODES, M
+from nac_onboard.records import Kind, kinds
 
 MODES = {number: name for name, number in COPTER_MODES.items()}
 TAIL_BYTES = 65536
@@ -55,7 +56,7 @@ def follow(client: VehicleClient, progress: VehicleProgress, stop: threading.Eve
             progress.item = msg.seq
 
 
-def last_record(path: Path, kind: str) -> dict | None:
+def last_record(path: Path, kind: Kind) -> dict | None:
     """The last complete record of this kind in a JSON Lines log, reading only its tail."""
     try:
         with open(path, "rb") as f:
@@ -70,7 +71,7 @@ def last_record(path: Path, kind: str) -> dict | None:
             record = json.loads(line)
         except ValueError:  # the line being written, or damage: the reader's problem list has it
             continue
-        if isinstance(record, dict) and record.get("kind") == kind:
+        if isinstance(record, dict) and record.get("kind") == kind.name:
             return record
     return None
 
@@ -79,13 +80,13 @@ def render_progress(t_s: float, states: list[VehicleProgress], run_dir: Path, ma
     cells = [f"{s.vehicle} {s.mode:<6}{'A' if s.armed else '-'} {s.rel_alt_m:4.1f} m {s.speed_mps:3.1f} m/s "
              f"item {s.item}/{s.total}" for s in states]
     line = f"t={t_s:6.1f}s | " + " | ".join(cells)
-    iteration = last_record(run_dir / "compute" / "compute.jsonl", "iteration")
+    iteration = last_record(kinds.COMPUTE_LOG.at(run_dir), kinds.ITERATION)
     if iteration:
         present = iteration.get("workers", {}).get("present", [])
         line += f" | it {iteration['iteration'] + 1} ({sum(present)}/{len(present)} workers)"
         if iteration.get("cost") is not None:
             line += f" cost {iteration['cost']:.4f}"
-    probe = last_record(run_dir / master / "throughput.jsonl", "throughput")
+    probe = last_record(kinds.THROUGHPUT_LOG.at(run_dir, master), kinds.THROUGHPUT)
     if probe:
         if "error" in probe:
             line += f" | {probe.get('server')}: no link"

@@ -35,11 +35,9 @@ from nac_onboard.mavlink.dialect import M
 from nac_onboard.mavlink.mission_transfer import MissionError
 from nac_onboard.radio.files import save_channel, save_replay
 from nac_onboard.radio.replay import ReplayError, ReplayLinks
+from nac_onboard.records import Kind, kinds
 from sitl.experiment.commands import (
-    FLEET_KEY_FILE,
     PORTS_PER_VEHICLE,
-    REPLAY_FILE,
-    START_FILE,
     Ports,
     agent_config,
     choose_network,
@@ -61,7 +59,6 @@ log = logging.getLogger(__name__)
 CLIENT_ERRORS = (OSError, LinkError, CommandError, MissionError)
 TAKEOFF_TIMEOUT_S = 60.0  # simulated
 COMPUTE_SETUP_TIMEOUT_S = 60.0  # wall: ranks started, data loaded, connections warmed up
-CLOCK_FILE = "clock.json"
 CLOCK_PUBLISH_S = 0.2  # wall seconds between publications of the simulator's clock
 
 
@@ -110,7 +107,7 @@ class Experiment:
         self.air: AirNetwork | None = None
         self.shaper: Shaper | None = None
         self.network_log: JsonlLog | None = None
-        self.clock_path = self.run_dir / CLOCK_FILE
+        self.clock_path = kinds.CLOCK_FILE.at(self.run_dir)
         self._clock_thread: threading.Thread | None = None
         self._clock_stop = threading.Event()
         self.pace = clock.Pace(speedup)
@@ -136,7 +133,7 @@ class Experiment:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self._write_channel()
         outcome, detail = Outcome.COMPLETED, "the scenario ran to its end"
-        self._write_record("experiment", scenario=self.scenario.name, path=str(self.scenario.path),
+        self._write_record(kinds.EXPERIMENT, scenario=self.scenario.name, path=str(self.scenario.path),
                            speedup=self.speedup, speedup_note=self._speedup_note(), duration_s=self.scenario.duration_s,
                            network={"mode": self.network, "why": self.network_why,
                                     "sharing": self.scenario.network.sharing,
@@ -160,7 +157,7 @@ class Experiment:
             if self.stop_event.is_set() and outcome is Outcome.COMPLETED:
                 outcome, detail = Outcome.INTERRUPTED, "stopped by the operator"
             self._shutdown(land=outcome is not Outcome.INTERRUPTED)
-        self._write_record("experiment_ended", outcome=outcome.name.lower(), detail=detail, faults=self.fault_log)
+        self._write_record(kinds.EXPERIMENT_ENDED, outcome=outcome.name.lower(), detail=detail, faults=self.fault_log)
         result = ExperimentResult(outcome, detail, self.run_dir)
         if self.analyze:
             result.report, result.summary = self._analyze(outcome)
@@ -175,7 +172,7 @@ class Experiment:
         path = run_channel_path(self.run_dir)
         path.parent.mkdir(parents=True, exist_ok=True)
         if self.replay is not None and self.network == "sleep":  # the kernel shaper holds the table itself
-            table = path.with_name(REPLAY_FILE)
+            table = kinds.REPLAY_TABLE.at(self.run_dir)
             save_replay(self.replay, table)
             radio = dataclasses.replace(radio, replay_file=str(table))
         save_channel(radio, path)
@@ -187,9 +184,9 @@ class Experiment:
         return (f"sped up: simulated time ran {self.speedup:g}x wall-clock time, and so did the links, the compute "
                 "job's timeouts and the probes (one clock): results are in simulated seconds")
 
-    def _write_record(self, kind: str, **fields) -> None:
-        with open(self.run_dir / "experiment.json", "a") as f:
-            f.write(json.dumps({"t_s": time.time(), "kind": kind, **fields}) + "\n")
+    def _write_record(self, kind: Kind, **fields) -> None:
+        with JsonlLog(kinds.EXPERIMENT_LOG.at(self.run_dir)) as out:
+            out.write(kind, **fields)
 
     def _preflight(self) -> None:
         """What would only fail minutes later (the MPI job's data) is checked before anything starts."""
@@ -228,16 +225,15 @@ class Experiment:
         self._clock_thread = threading.Thread(target=self._publish_clock, name="clock", daemon=True)
         self._clock_thread.start()
         if self.air is not None:
-            self.network_log = JsonlLog(self.run_dir / "network.jsonl")
+            self.network_log = JsonlLog(kinds.NETWORK_LOG.at(self.run_dir))
             self.shaper = Shaper(self.air, self.sim.air_positions, self.radio, self.pace.value,
                                  s.network.period_s, self.network_log, self.replay)
             try:
                 self.shaper.start()
             except NetworkError as err:
                 raise ExperimentError(Outcome.NETWORK_FAILED, str(err)) from None
-        config_dir = self.run_dir / "config"
-        config_dir.mkdir(exist_ok=True)
-        key = config_dir / FLEET_KEY_FILE  # a fresh fleet key per run, beside the agents' configs
+        key = kinds.FLEET_KEY.at(self.run_dir)  # a fresh fleet key per run, beside the agents' configs
+        key.parent.mkdir(exist_ok=True)
         key.touch(mode=0o600)
         key.write_text(secrets.token_hex(32) + "\n")
         addresses = [st.address for st in self.air.stations] if self.air else None
@@ -245,7 +241,7 @@ class Experiment:
             self._start_iperf3_servers()
         env = {**os.environ, clock.ENV: str(self.clock_path)}
         for i, vehicle in enumerate(s.vehicles):
-            path = config_dir / f"{vehicle.id}.toml"
+            path = kinds.AGENT_CONFIG.at(self.run_dir, vehicle.id)
             path.write_text(agent_config(s, i, self.run_dir, self.ports, addresses))
             agent = AgentProcess(path, env=env, prefix=self.air.exec_prefix(i) if self.air else None)
             try:
@@ -324,8 +320,10 @@ class Experiment:
         self._wait_for_takeoff()
         if s.compute:
             go = json.dumps({"end_at_s": self.mission_start_sim_s + s.duration_s})
-            (self.run_dir / "compute" / f"{START_FILE}.partial").write_text(go)
-            os.replace(self.run_dir / "compute" / f"{START_FILE}.partial", self.run_dir / "compute" / START_FILE)
+            start = kinds.START_FILE.at(self.run_dir)
+            partial = start.with_name(start.name + ".partial")
+            partial.write_text(go)
+            os.replace(partial, start)
         self._watch()
 
     def _sim_elapsed_s(self) -> float:
@@ -346,12 +344,12 @@ class Experiment:
         """The missions start once the MPI job is set up (its run_started record): its start-up costs wall time,
         which at a speed-up would otherwise be flight without computing, more of it the faster the run."""
         deadline = time.monotonic() + timeout_s
-        path = self.run_dir / "compute" / "compute.jsonl"
-        while not (path.exists() and (started := read_jsonl(path).of_kind("run_started"))):
+        path = kinds.COMPUTE_LOG.at(self.run_dir)
+        while not (path.exists() and (started := read_jsonl(path).of_kind(kinds.RUN_STARTED))):
             self._check_children()
             if self.mpi.poll() is not None:
                 raise ExperimentError(Outcome.COMPUTE_FAILED, f"mpiexec exited {self.mpi.returncode} while setting "
-                                                              f"up (see {self.run_dir / 'compute' / 'mpiexec.log'})")
+                                                              f"up (see {kinds.MPIEXEC_LOG.at(self.run_dir)})")
             if time.monotonic() > deadline:
                 raise ExperimentError(Outcome.COMPUTE_FAILED, f"the MPI job was not set up within {timeout_s:g} s")
             if self.stop_event.wait(0.02):
@@ -360,8 +358,8 @@ class Experiment:
 
     def _start_mpi(self) -> None:
         end_at_sim_s = self.sim.t_s + TAKEOFF_TIMEOUT_S + self.scenario.duration_s  # the go gives the real end
-        (self.run_dir / "compute").mkdir(exist_ok=True)
-        self.mpi_log = open(self.run_dir / "compute" / "mpiexec.log", "wb")  # noqa: SIM115 (closed at shutdown)
+        kinds.MPIEXEC_LOG.at(self.run_dir).parent.mkdir(exist_ok=True)
+        self.mpi_log = open(kinds.MPIEXEC_LOG.at(self.run_dir), "wb")  # noqa: SIM115 (closed at shutdown)
         if self.air is not None:
             self.air.wait_for_carrier()  # MPI's transport picks its devices once, at start
             command = kernel_mpi_command(self.scenario, self.run_dir, self.ports, end_at_sim_s, self.air,
@@ -409,16 +407,16 @@ class Experiment:
                                                             f"({agent.proc.returncode}): {agent.stderr_text()[-500:]}")
         if self.mpi is not None and self.mpi.poll() not in (None, 0) and not self._compute_summary():
             raise ExperimentError(Outcome.COMPUTE_FAILED, f"mpiexec exited {self.mpi.returncode} (see "
-                                                          f"{self.run_dir / 'compute' / 'mpiexec.log'})")
+                                                          f"{kinds.MPIEXEC_LOG.at(self.run_dir)})")
         # mpiexec waits on for the other ranks when the master alone dies
         if self.master_pid and not _alive(self.master_pid) and not self._compute_summary():
             raise ExperimentError(Outcome.COMPUTE_FAILED, f"the MPI master (pid {self.master_pid}) ended without its "
-                                                          f"summary (see {self.run_dir / 'compute' / 'mpiexec.log'})")
+                                                          f"summary (see {kinds.MPIEXEC_LOG.at(self.run_dir)})")
 
     def _compute_summary(self) -> dict | None:
         """The master's run_summary: a job that wrote it finished, even when mpiexec reports a worker it lost."""
-        path = self.run_dir / "compute" / "compute.jsonl"
-        summaries = read_jsonl(path).of_kind("run_summary") if path.exists() else []
+        path = kinds.COMPUTE_LOG.at(self.run_dir)
+        summaries = read_jsonl(path).of_kind(kinds.RUN_SUMMARY) if path.exists() else []
         return summaries[-1] if summaries else None
 
     def _killed_on_purpose(self, vehicle_id: str, kind: FaultKind) -> bool:
@@ -430,14 +428,14 @@ class Experiment:
         record = {"t_sim_s": round(self._sim_elapsed_s(), 3), "vehicle": fault.vehicle, "kind": fault.kind.value,
                   "state": "on" if on else "off"}
         self.fault_log.append(record)
-        self._write_record("fault", vehicle=fault.vehicle, fault=fault.kind.value, state=record["state"],
+        self._write_record(kinds.FAULT, vehicle=fault.vehicle, fault=fault.kind.value, state=record["state"],
                            t_sim_s=record["t_sim_s"])  # as it happens: the live view reads it
         print(f"fault: {fault.kind.value} {record['state']} for {fault.vehicle} at t={record['t_sim_s']:.1f} s",
               file=self.out, flush=True)
 
     def _rank_log(self, vehicle_id: str) -> Path:
         rank = 1 + [w.id for w in self.scenario.workers].index(vehicle_id)
-        return self.run_dir / "compute" / f"rank-{rank}.jsonl"
+        return kinds.RANK_LOG.at(self.run_dir, rank=rank)
 
     # ---- the end ---------------------------------------------------------------------------------------------
     def _shutdown(self, land: bool) -> None:
@@ -503,11 +501,12 @@ class Experiment:
         from ground.logs.runlog import RunDirError
 
         try:
-            tables = analyze_run(self.run_dir, self.run_dir / "analysis", report_path=self.run_dir / "report.md")
+            tables = analyze_run(self.run_dir, self.run_dir / kinds.ANALYSIS_DIR,
+                                 report_path=kinds.REPORT.at(self.run_dir))
         except RunDirError as err:
             print(f"analysis: {err}", file=self.out)
             return None, {}
-        return self.run_dir / "report.md", tables.summary
+        return kinds.REPORT.at(self.run_dir), tables.summary
 
 
 def _alive(pid: int) -> bool:
@@ -560,11 +559,11 @@ def save_screenshot(viewer, run_dir: Path, out) -> None:
     from ground.view.serve import chromium, screenshot
 
     if chromium() is None:
-        print("view: no Chromium here, so no view.png (Debian: apt-get install chromium)", file=out, flush=True)
+        print("view: no Chromium here, so no screenshot (Debian: apt-get install chromium)", file=out, flush=True)
         return
     try:
-        screenshot(viewer.url, run_dir / "view.png")
-        print(f"view: {run_dir / 'view.png'}", file=out, flush=True)
+        screenshot(viewer.url, kinds.VIEW_PNG.at(run_dir))
+        print(f"view: {kinds.VIEW_PNG.at(run_dir)}", file=out, flush=True)
     except NacError as err:
         print(f"view: no screenshot: {err}", file=out, flush=True)
 

@@ -15,6 +15,7 @@ from collections.abc import Callable
 from nac_onboard.flight_log import JsonlLog
 from nac_onboard.radio.air_link import AirRadio
 from nac_onboard.radio.channel import ChannelModel
+from nac_onboard.records import kinds
 from sitl.network.air import NFT_TABLE, AirNetwork
 from sitl.network.netns import NetworkError
 from sitl.network.shaping import AirState, air_state, with_replay
@@ -61,7 +62,7 @@ class Shaper:
                 self.update()
             except NetworkError as err:  # tc or nft died: the links keep their last rates
                 self.error = str(err)
-                self.out.write("shaper_failed", error=str(err))
+                self.out.write(kinds.SHAPER_FAILED, error=str(err))
                 log.error("link shaper stopped: %s", err)
                 return
             next_at += self.period_s / self.pace()
@@ -70,7 +71,7 @@ class Shaper:
                 self.late += 1
                 if time.monotonic() - self._last_late_log >= LATE_LOG_EVERY_S:
                     self._last_late_log = time.monotonic()
-                    self.out.write("shaper_late", behind_s=round(behind_s, 4), late_updates=self.late,
+                    self.out.write(kinds.SHAPER_LATE, behind_s=round(behind_s, 4), late_updates=self.late,
                                    note="rates are updated less often than every period; the last ones hold")
                 next_at = time.monotonic()  # skip the missed ticks rather than burst through them
 
@@ -99,7 +100,7 @@ class Shaper:
         ids = self.ids
         n = len(ids)
         pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
-        self.out.write("link_rates", t_sim_s=round(t_sim_s, 3), speedup=round(pace, 4),
+        self.out.write(kinds.LINK_RATES, t_sim_s=round(t_sim_s, 3), speedup=round(pace, 4),
                        a=[ids[i] for i, _ in pairs], b=[ids[j] for _, j in pairs],
                        distance_m=[round(float(state.distance_m[i, j]), 3) for i, j in pairs],
                        rate_bps=[round(float(state.rate_bps[i, j])) for i, j in pairs],

@@ -16,6 +16,7 @@ from nac_onboard.agent.snapshot import AgentSnapshot, OwnState
 from nac_onboard.agent.state_feed import distance_between, encode_snapshot
 from nac_onboard.agent.systemd_notify import SystemdNotifier
 from nac_onboard.flight_log import JsonlLog, TlogWriter, read_jsonl
+from nac_onboard.records import kinds
 
 MINIMAL = {"vehicle": {"id": "uav1", "role": "worker"}, "peers": {"allow_unsigned": True}}
 
@@ -86,31 +87,32 @@ def test_peer_table_seen_lost_and_back():
     table = PeerTable("uav1", timeout_s=1.0)
     me = PeerState("uav1", "master", 0.0)
     other = PeerState("uav2", "worker", 0.0)
-    assert table.update(me, 0.0, 0.0) is None, "our own looped-back broadcast is not a peer"
-    assert table.update(other, 0.0, 0.0) == "peer_seen"
-    assert table.update(other, 0.5, 0.5) is None
+    assert table.update(me, 0.0, 0.0) is False, "our own looped-back broadcast is not a peer"
+    assert table.update(other, 0.0, 0.0) is True
+    assert table.update(other, 0.5, 0.5) is False
     assert table.expire(1.4) == []
     lost = table.expire(1.6)
     assert [(p.id, round(s, 1)) for p, s in lost] == [("uav2", 1.1)]
     assert table.expire(3.0) == [], "lost is reported once"
     assert table.snapshot(3.0)["uav2"].lost and table.live() == []
-    assert table.update(other, 3.1, 3.1) == "peer_seen", "a peer that comes back is seen again"
+    assert table.update(other, 3.1, 3.1) is True, "a peer that comes back is seen again"
 
 
 def test_jsonl_records_have_time_and_kind_and_no_nan(tmp_path):
     with JsonlLog(tmp_path / "a.jsonl") as log:
-        log.write("telemetry", t_s=5.0, lat_deg=float("nan"), vel=(1.0, float("inf")))
-        log.write("event")
+        log.write(kinds.LINK_LOST, t_s=5.0, sysid=1, why="silent", silent_s=float("nan"))
+        log.write(kinds.MISSION_CURRENT, value=(1.0, float("inf")), previous=None)
     lines = (tmp_path / "a.jsonl").read_text().splitlines()
-    assert json.loads(lines[0]) == {"t_s": 5.0, "kind": "telemetry", "lat_deg": None, "vel": [1.0, None]}
-    assert set(json.loads(lines[1])) == {"t_s", "kind"}
+    assert json.loads(lines[0])["kind"] == "schema"
+    assert json.loads(lines[1]) == {"t_s": 5.0, "kind": "link_lost", "sysid": 1, "why": "silent", "silent_s": None}
+    assert json.loads(lines[2])["value"] == [1.0, None] and isinstance(json.loads(lines[2])["t_s"], float)
 
 
 def test_a_cut_at_any_byte_of_the_last_record_loses_only_that_record(tmp_path):
     path = tmp_path / "a.jsonl"
     with JsonlLog(path) as log:
         for k in range(3):
-            log.write("telemetry", t_s=float(k), seq=k)
+            log.write(kinds.MISSION_ITEM_REACHED, t_s=float(k), seq=k)
     whole = path.read_bytes()
     last_start = whole.rstrip(b"\n").rfind(b"\n") + 1
     for cut in range(last_start + 1, len(whole)):
@@ -118,7 +120,7 @@ def test_a_cut_at_any_byte_of_the_last_record_loses_only_that_record(tmp_path):
         read = read_jsonl(path)
         assert [r["seq"] for r in read.records] == [0, 1]
         assert read.truncated_tail and len(read.problems) == 1
-        assert "line 3: last record is incomplete" in read.problems[0] and str(path) in read.problems[0]
+        assert "line 4: last record is incomplete" in read.problems[0] and str(path) in read.problems[0]
 
 
 def test_corrupt_lines_in_the_middle_are_named_and_skipped(tmp_path):

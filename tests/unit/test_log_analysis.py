@@ -82,8 +82,8 @@ def test_damaged_and_missing_input_is_named_not_raised(tmp_path, caplog):
     (run / "w3").mkdir()
     (run / "w3" / "agent.jsonl").write_text('{"t_s": 999.0, "kind": "agent_started", "role": "worker"}\n')
     t = analyze_run(run)
-    assert any("w1/agent.jsonl: line 8: last record is incomplete" in p for p in t.problems)
-    assert "line 8" in caplog.text
+    assert any("w1/agent.jsonl: line 9: last record is incomplete" in p for p in t.problems)
+    assert "line 9" in caplog.text
     assert "vehicle w3: no positions (no telemetry records and no autopilot log)" in t.missing
     assert "compute: no iteration records (compute.jsonl)" in t.missing
     report = (run / "analysis" / "report.md").read_text()

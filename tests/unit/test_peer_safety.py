@@ -69,12 +69,12 @@ def test_signed_state_round_trips_and_forgeries_are_refused():
 def test_replayed_and_stale_signed_state_is_refused():
     table = PeerTable("m", timeout_s=3.0, replay_window_s=30.0)
     first = PeerState("w1", "worker", NOW)
-    assert table.update(first, 0.0, NOW) == "peer_seen"
+    assert table.update(first, 0.0, NOW) is True
     with pytest.raises(PeerMessageError, match="replayed"):
         table.update(first, 1.0, NOW + 1)  # the same message captured and sent again
     with pytest.raises(PeerMessageError, match="stale"):
         table.update(PeerState("w1", "worker", NOW + 3600), 1.0, NOW + 1)  # dated far ahead: would lock out
-    assert table.update(PeerState("w1", "worker", NOW + 1), 1.0, NOW + 1) is None
+    assert table.update(PeerState("w1", "worker", NOW + 1), 1.0, NOW + 1) is False
 
 
 def test_a_flood_of_forged_ids_cannot_grow_the_table_and_silent_peers_are_forgotten():
@@ -89,7 +89,7 @@ def test_a_flood_of_forged_ids_cannot_grow_the_table_and_silent_peers_are_forgot
     assert len(table.snapshot(0.0)) == 64 and refused == 50_000 - 64
     table.expire(11.0)
     assert table.snapshot(11.0) == {}
-    assert table.update(PeerState("w1", "worker", NOW), 11.0, NOW) == "peer_seen"
+    assert table.update(PeerState("w1", "worker", NOW), 11.0, NOW) is True
 
 
 def test_the_state_feed_answer_always_fits_a_datagram_and_is_standard_json():

@@ -1,0 +1,276 @@
+"""The run directory's files and every record kind, each defined once with its fields and units.
+
+Writers pass these objects (`log.write(kinds.TELEMETRY, ...)`), readers compare against them; no other module
+spells a file name or a kind (tests/unit/test_records.py walks the sources for that). `docs/records.md` is made
+from this module (`python -m nac_onboard.records`).
+"""
+
+from __future__ import annotations
+
+from nac_onboard.records.schema import Field, Kind, RunFile, opt, req
+
+AGENT_WRITER = "nac-onboard agent (nac_onboard/agent/)"
+COMPUTE_WRITER = "nac-onboard compute, MPI master (nac_onboard/compute/runner.py)"
+RUNNER_WRITER = "nac-sitl experiment (sitl/experiment/runner.py)"
+
+# ---- files ------------------------------------------------------------------------------------------------------
+AGENT_LOG = RunFile("agent.jsonl", "VEHICLE/agent.jsonl", "vehicle", AGENT_WRITER,
+                    "the companion's telemetry and events")
+THROUGHPUT_LOG = RunFile("throughput.jsonl", "VEHICLE/throughput.jsonl", "vehicle", AGENT_WRITER + ", probes",
+                         "iperf3-shaped probe results (the master's agent probes its workers)")
+TLOG = RunFile("mavlink.tlog", "VEHICLE/mavlink.tlog", "vehicle", AGENT_WRITER,
+               "MAVLink frames to and from the autopilot, 8-byte big-endian microseconds before each", jsonl=False)
+COMPUTE_LOG = RunFile("compute.jsonl", "compute/compute.jsonl", "run", COMPUTE_WRITER,
+                      "the MPI job: its start, one record per iteration, its workers' losses, its summary")
+RANK_LOG = RunFile("rank-N.jsonl", "compute/rank-N.jsonl", "rank", "nac-onboard compute, worker rank N",
+                   "a worker rank's start and stop")
+RESULTS = RunFile("results.npz", "compute/results.npz", "run", COMPUTE_WRITER,
+                  "the task's arrays (linreg weights; matmul B and A@B with --save-results), replaced atomically at "
+                  "each checkpoint", jsonl=False)
+MPIEXEC_LOG = RunFile("mpiexec.log", "compute/mpiexec.log", "run", RUNNER_WRITER, "mpiexec's own output",
+                      jsonl=False)
+START_FILE = RunFile("start", "compute/start", "run", RUNNER_WRITER,
+                     "the go: the simulated time the job ends at, written when the missions start", jsonl=False)
+NETWORK_LOG = RunFile("network.jsonl", "network.jsonl", "run", "the link shaper (sitl/network/shaper.py)",
+                      "the kernel network's link rates over time")
+EXPERIMENT_LOG = RunFile("experiment.json", "experiment.json", "run", RUNNER_WRITER,
+                         "the experiment: its settings, its faults as they happen, how it ended (JSON Lines)")
+CLOCK_FILE = RunFile("clock.json", "clock.json", "run", RUNNER_WRITER,
+                     "the run's one clock: simulated seconds and pace, read by every process ($NAC_SIM_CLOCK)",
+                     jsonl=False)
+CHANNEL_FILE = RunFile("channel.toml", "config/channel.toml", "run", RUNNER_WRITER,
+                       "the run's radio, overrides applied: every process of the run loads it", jsonl=False)
+REPLAY_TABLE = RunFile("replay.json", "config/replay.json", "run", RUNNER_WRITER,
+                       "a recorded run's link rates, for the sleep network's processes", jsonl=False)
+AGENT_CONFIG = RunFile("VEHICLE.toml", "config/VEHICLE.toml", "vehicle", RUNNER_WRITER, "each agent's config",
+                       jsonl=False)
+FLEET_KEY = RunFile("fleet.key", "config/fleet.key", "run", RUNNER_WRITER,
+                    "the fleet's peer-state signing key, fresh per run (mode 0600)", jsonl=False)
+HOSTFILE = RunFile("hostfile", "config/hostfile", "run", RUNNER_WRITER, "MPICH's hostfile", jsonl=False)
+REPORT = RunFile("report.md", "report.md", "run", "nac-ground logs analyze (ground/logs/report.py)",
+                 "the analysis report", jsonl=False)
+SUMMARY = RunFile("summary.json", "analysis/summary.json", "run", "nac-ground logs analyze",
+                  "the report's summary figures", jsonl=False)
+VIEW_PNG = RunFile("view.png", "view.png", "run", RUNNER_WRITER + " with --view", "the web view's screenshot",
+                   jsonl=False)
+
+CONFIG_DIR = "config"
+COMPUTE_DIR = "compute"
+ANALYSIS_DIR = "analysis"
+#: VEHICLE/iperf3-PEER[.anything].json: the output of `iperf3 --client PEER --json` run on VEHICLE, read as probes
+IPERF3_GLOB = "iperf3-*.json"
+
+FILES = (AGENT_LOG, THROUGHPUT_LOG, TLOG, COMPUTE_LOG, RANK_LOG, RESULTS, MPIEXEC_LOG, START_FILE, NETWORK_LOG,
+         EXPERIMENT_LOG, CLOCK_FILE, CHANNEL_FILE, REPLAY_TABLE, AGENT_CONFIG, FLEET_KEY,
+         HOSTFILE, REPORT, SUMMARY, VIEW_PNG)
+
+
+# ---- kinds in every JSON Lines file --------------------------------------------------------------------------
+ANY_FILE = RunFile("*.jsonl", "any JSON Lines file above", "run", "every writer (nac_onboard/flight_log.py)",
+                   "records every log writes")
+SCHEMA = Kind("schema", ANY_FILE, "the first record of every file: which schema its records follow", (
+    req("schema_version", "integer", "", "nac_onboard.records.SCHEMA_VERSION of the writer"),
+    req("file", "string", "", "the file's name"),
+))
+LOG_GAP = Kind("log_gap", ANY_FILE, "records lost to a full disk, written when writing works again", (
+    req("since_s", "number", "s", "unix time of the first lost record"),
+    req("records_lost", "integer", "", "records not written"),
+    req("bytes_lost", "integer", "bytes", "their size"),
+    req("error", "string", "", "why, e.g. ENOSPC"),
+))
+
+# ---- the agent: VEHICLE/agent.jsonl --------------------------------------------------------------------------
+_CHANGE = (req("value", "any", "", "the new value"), req("previous", "any", "", "the value before (null at first)"))
+AGENT_STARTED = Kind("agent_started", AGENT_LOG, "the agent started", (
+    req("vehicle", "string", "", "vehicle id"), req("role", "string", "", "master or worker"),
+    req("config", "string", "", "config file"), req("autopilot", "string", "", "autopilot URI"),
+    req("run_dir", "string", "", "where it logs"), req("pid", "integer", "", "process id"),
+    req("mpi_build", "any", "", "the MPI build found on this companion"),
+))
+AGENT_READY = Kind("agent_ready", AGENT_LOG, "sockets open, probes scheduled", (
+    req("peers_listen", "string", "", "HOST:PORT of peer state"), req("state_feed", "string", "", "HOST:PORT"),
+    opt("throughput_port", "integer", "", "the throughput server's port"),
+    req("probing", "boolean", "", "whether this agent probes its peers"),
+    opt("probe_duty_cycle", "number", "", "share of time spent probing"),
+))
+AGENT_STOPPED = Kind("agent_stopped", AGENT_LOG, "the agent stopped, with its counters", (
+    req("reason", "string", "", "why"), req("peer_rejects", "object", "", "peer messages refused, by reason"),
+    *(req(name, "integer", "", doc) for name, doc in (
+        ("frames_in", "MAVLink frames from the autopilot"), ("frames_out", "frames sent to the autopilot"),
+        ("frames_routed", "frames relayed between endpoints"), ("telemetry", "telemetry records"),
+        ("peer_msgs", "peer states taken"), ("bad_peer_msgs", "peer datagrams refused"),
+        ("feed_requests", "state-feed answers"), ("bad_feed_requests", "state-feed requests refused"),
+        ("routing_refused", "frames refused by routing.allow"))),
+))
+WARNING = Kind("warning", AGENT_LOG, "a setting that lowers safety", (req("text", "string", "", "what and why"),))
+ROUTING_ERROR = Kind("routing_error", AGENT_LOG, "a routing endpoint could not open", (
+    req("endpoint", "string", "", "URI"), req("error", "string", "", "why")))
+ROUTING_REFUSED = Kind("routing_refused", AGENT_LOG, "frames refused from senders not in routing.allow (rate-limited)",
+                       (req("frames_since_last_record", "integer", "", "refused since the last such record"),
+                        req("senders", "list", "", "HOST:PORT of the refused senders")))
+TELEMETRY = Kind("telemetry", AGENT_LOG, "the autopilot's position and state, at log.telemetry_hz", (
+    req("sysid", "integer", "", "MAVLink system id"), req("time_boot_ms", "integer", "ms", "autopilot's boot clock"),
+    req("lat_deg", "number", "deg", "WGS-84 latitude"), req("lon_deg", "number", "deg", "WGS-84 longitude"),
+    req("alt_m", "number", "m", "altitude above mean sea level"), req("rel_alt_m", "number", "m", "above home"),
+    req("vel_ned_mps", "list", "m/s", "velocity north, east, down"),
+    req("roll_deg", "number", "deg", "roll"), req("pitch_deg", "number", "deg", "pitch"),
+    req("yaw_deg", "number", "deg", "yaw"), opt("battery_pct", "number", "%", "battery remaining"),
+    opt("voltage_v", "number", "V", "battery voltage"), req("mode", "string", "", "flight mode"),
+    req("armed", "boolean", "", "armed"), opt("landed", "string", "", "landed state"),
+    opt("mission_seq", "integer", "", "current mission item"), opt("mission_total", "integer", "", "mission items"),
+))
+MODE = Kind("mode", AGENT_LOG, "the flight mode changed", _CHANGE)
+ARMED = Kind("armed", AGENT_LOG, "armed or disarmed", _CHANGE)
+LANDED_STATE = Kind("landed_state", AGENT_LOG, "EXTENDED_SYS_STATE's landed state changed", _CHANGE)
+MISSION_CURRENT = Kind("mission_current", AGENT_LOG, "the current mission item changed",
+                       (*_CHANGE, opt("total", "integer", "", "mission items")))
+MISSION_STATE = Kind("mission_state", AGENT_LOG, "MISSION_CURRENT's mission state changed", _CHANGE)
+MISSION_ITEM_REACHED = Kind("mission_item_reached", AGENT_LOG, "MISSION_ITEM_REACHED",
+                            (req("seq", "integer", "", "the item"),))
+STATUSTEXT = Kind("statustext", AGENT_LOG, "the autopilot's STATUSTEXT", (
+    req("severity", "integer", "", "MAV_SEVERITY"), req("text", "string", "", "the text")))
+LINK_OPEN_FAILED = Kind("link_open_failed", AGENT_LOG, "the autopilot link could not open (retried)", (
+    req("uri", "string", "", "autopilot URI"), req("error", "string", "", "why"),
+    req("attempts", "integer", "", "failed attempts so far")))
+LINK_OPENED = Kind("link_opened", AGENT_LOG, "the autopilot link opened", (
+    req("uri", "string", "", "autopilot URI"), req("after_attempts", "integer", "", "attempts it took")))
+LINK_ERROR = Kind("link_error", AGENT_LOG, "the autopilot link failed", (
+    req("uri", "string", "", "autopilot URI"), req("error", "string", "", "why")))
+LINK_UP = Kind("link_up", AGENT_LOG, "the autopilot's first heartbeat", (
+    req("sysid", "integer", "", "its system id"), req("autopilot", "integer", "", "MAV_AUTOPILOT"),
+    req("vehicle_type", "integer", "", "MAV_TYPE"), req("mavlink_version", "integer", "", "from HEARTBEAT")))
+LINK_LOST = Kind("link_lost", AGENT_LOG, "the autopilot went silent or its link failed", (
+    req("sysid", "integer", "", "its system id"), req("why", "string", "", "silent or error"),
+    opt("silent_s", "number", "s", "silence that declared it lost")))
+LINK_RESTORED = Kind("link_restored", AGENT_LOG, "the autopilot is heard again", (
+    req("sysid", "integer", "", "its system id"), req("outage_s", "number", "s", "how long it was lost")))
+_PEER = (req("peer", "string", "", "peer vehicle id"), req("role", "string", "", "its role"),
+         req("host", "string", "", "its address"))
+PEER_SEEN = Kind("peer_seen", AGENT_LOG, "a peer heard for the first time or again",
+                 (*_PEER, opt("probe_port", "integer", "", "its throughput server port")))
+PEER_LOST = Kind("peer_lost", AGENT_LOG, "a peer went silent", (*_PEER, req("silent_s", "number", "s", "silence")))
+PEER_REJECTED = Kind("peer_rejected", AGENT_LOG, "peer datagrams refused (rate-limited)", (
+    req("last_sender", "string", "", "address of the last refused sender"),
+    req("last_reason", "string", "", "why it was refused"),
+    req("since_last_record", "object", "", "refusals since the last such record, by reason")))
+THROUGHPUT_SERVER_RESTARTED = Kind("throughput_server_restarted", AGENT_LOG, "the throughput server died and was "
+                                   "started again", (req("port", "integer", "", "its port"),
+                                                     req("refused_before", "integer", "", "connections it refused")))
+THROUGHPUT_SERVER_FAILED = Kind("throughput_server_failed", AGENT_LOG, "the throughput server could not restart", (
+    req("port", "integer", "", "its port"), req("error", "string", "", "why")))
+
+# ---- the agent's probes: VEHICLE/throughput.jsonl ----------------------------------------------------------------
+_PROBE = (req("client", "string", "", "probing vehicle"), req("server", "string", "", "probed vehicle"),
+          req("host", "string", "", "server address"), req("port", "integer", "", "server port"),
+          req("t_sim_s", "number", "s", "simulated time at the start (the run's clock)"),
+          req("speedup", "number", "", "simulated seconds per wall second"))
+THROUGHPUT = Kind("throughput", THROUGHPUT_LOG, "one probe, shaped as iperf3 --json (start, intervals, end)", (
+    *_PROBE,
+    opt("start", "object", "", "iperf3's start: timestamp.timesecs, connected, test_start"),
+    opt("intervals", "list", "", "iperf3's intervals, each streams[] and sum"),
+    opt("end", "object", "", "iperf3's end: sum_sent, sum_received (bits_per_second in bit/s, bytes, seconds)"),
+    opt("server_output_json", "object", "", "the server's own intervals"),
+    opt("error", "string", "", "why the probe failed"),
+    opt("error_kind", "string", "", "link (nothing got through) or server (the server's answer was wrong)"),
+    opt("emulated_channel", "string", "", "sleep network: the channel model"),
+    opt("emulated_rate_bps", "number", "bit/s", "sleep network: the model's rate"),
+    opt("duration_wall_s", "integer", "s", "real iperf3: its whole-second test length"),
+    req("positions", "object", "", "the pair's positions at the start and the end"),
+    opt("distance_m", "number", "m", "distance at the start"), opt("distance_end_m", "number", "m", "at the end"),
+), open="real iperf3's own JSON keys, kept as it wrote them")
+PROBE_SKIPPED = Kind("probe_skipped", THROUGHPUT_LOG, "no probe: a position of the pair is not known yet",
+                     (*_PROBE, req("reason", "string", "", "why")))
+
+# ---- the MPI job: compute/compute.jsonl, compute/rank-N.jsonl ------------------------------------------------
+RUN_STARTED = Kind("run_started", COMPUTE_LOG, "the job is set up (after one untimed warm-up exchange)", (
+    req("warmup_s", "number", "s", "the warm-up exchange"), req("task", "string", "", "linreg or matmul"),
+    req("workers", "integer", "", "worker ranks"), req("shards", "list", "", "each worker's rows [start, end)"),
+    req("emulate", "string", "", "link emulation: none, positions, script"),
+    req("pad_bits", "integer", "bit", "padding added to each message"),
+    req("speedup", "number", "", "simulated seconds per wall second"),
+    opt("channel", "string", "", "the emulated channel"), opt("channel_validity", "any", "", "its model's range"),
+    opt("iterations", "integer", "", "iterations asked for"), opt("duration_s", "number", "s", "duration asked for"),
+    req("timeout_s", "number", "s", "a worker's answer deadline"), req("on_missing", "string", "", "skip or reassign"),
+    req("allocation", "string", "", "rows per worker: equal or capacity"), req("pid", "integer", "", "master's pid"),
+))
+STARTED = Kind("started", COMPUTE_LOG, "the go arrived (--start-file)", (
+    req("start_file", "string", "", "its path"), opt("end_at_s", "number", "s", "simulated time to end at")))
+ITERATION = Kind("iteration", COMPUTE_LOG, "one iteration; `workers` holds one list per field, one entry per worker", (
+    req("iteration", "integer", "", "from 0"), req("start_s", "number", "s", "unix time the inputs went out"),
+    req("end_s", "number", "s", "unix time it was combined"), req("duration_s", "number", "s", "wall time"),
+    opt("start_sim_s", "number", "s", "simulated start (absent: the analysis uses start_s)"),
+    opt("duration_sim_s", "number", "s", "simulated time (absent: the analysis uses duration_s)"),
+    req("workers", "object", "", "rank, vehicle, present, distance_m (m), rate_bps (bit/s), loss, absent (why: "
+                                 "out_of_range, no_position, timeout), bytes_down, bytes_up (bytes), down_s, up_s, "
+                                 "compute_s (s)"),
+    req("complete", "boolean", "", "every worker's block arrived"),
+    opt("cost", "number", "", "linreg: training cost (mean squared error / 2) before the update"),
+    opt("rows_used", "integer", "", "linreg: data rows whose gradients arrived"),
+    opt("reassigned", "object", "", "a task's plan for missing blocks (matmul --on-missing reassign): who computed "
+                                    "whose rows"),
+), open="a task's own fields (cost and rows_used are linreg's): a new task in nac_onboard/compute/tasks/ adds its "
+        "fields from its own module")
+RUN_SUMMARY = Kind("run_summary", COMPUTE_LOG, "the job's end", (
+    req("task", "string", "", "linreg or matmul"), req("iterations", "integer", "", "iterations run"),
+    req("complete_iterations", "integer", "", "with every worker"), req("ended_by", "string", "", "why it stopped"),
+    req("elapsed_s", "number", "s", "wall time"), req("elapsed_sim_s", "number", "s", "simulated time"),
+    req("mean_duration_s", "number", "s", "mean iteration time"), req("p95_duration_s", "number", "s", "95th pct"),
+    req("absent_iterations", "object", "", "iterations each rank missed"),
+    req("stale_results", "integer", "", "late answers dropped"), req("lost_workers", "list", "", "unresponsive ranks"),
+    req("failed_workers", "list", "", "ranks whose MPI calls failed"),
+    opt("final_cost", "number", "", "linreg: the last cost"),
+), open="a task's own fields (Task.final(); final_cost is linreg's)")
+WORKER_LOST = Kind("worker_lost", COMPUTE_LOG, "an MPI call to a worker failed: it is not sent to again", (
+    req("rank", "integer", "", "MPI rank"), req("vehicle", "string", "", "its vehicle"),
+    req("error", "string", "", "MPI's error")))
+WORKER_UNRESPONSIVE = Kind("worker_unresponsive", COMPUTE_LOG, "a worker missed several iterations in a row", (
+    req("rank", "integer", "", "MPI rank"), req("vehicle", "string", "", "its vehicle"),
+    req("iteration", "integer", "", "when"), req("missed", "integer", "", "iterations missed in a row")))
+WORKER_BACK = Kind("worker_back", COMPUTE_LOG, "an unresponsive worker answered again", (
+    req("rank", "integer", "", "MPI rank"), req("vehicle", "string", "", "its vehicle")))
+WORKER_STARTED = Kind("worker_started", RANK_LOG, "a worker rank started", (
+    req("rank", "integer", "", "MPI rank"), req("pid", "integer", "", "process id"),
+    req("host", "string", "", "MPI processor name")))
+WORKER_STOPPED = Kind("worker_stopped", RANK_LOG, "a worker rank stopped", (
+    req("rank", "integer", "", "MPI rank"), req("finalizes", "boolean", "", "whether it called MPI_Finalize")))
+
+# ---- the kernel network: network.jsonl ---------------------------------------------------------------------------
+LINK_RATES = Kind("link_rates", NETWORK_LOG, "every pair's link, one list per field, one entry per pair", (
+    req("t_sim_s", "number", "s", "simulated time"), req("speedup", "number", "", "the pace applied"),
+    req("a", "list", "", "first vehicle of each pair"), req("b", "list", "", "second vehicle"),
+    req("distance_m", "list", "m", "distance"), req("rate_bps", "list", "bit/s", "rate applied"),
+    req("loss", "list", "", "packet loss applied (0-1)"), req("snr_db", "list", "dB", "signal to noise"),
+    req("mcs", "list", "", "802.11n MCS index (-1 out of range)"),
+    opt("budget_bps", "number", "bit/s", "the access point's shared airtime"),
+    req("source", "string", "", "the channel model, or replay:FILE"),
+))
+SHAPER_LATE = Kind("shaper_late", NETWORK_LOG, "the shaper fell behind its period (rate-limited)", (
+    req("behind_s", "number", "s", "how far behind"), req("late_updates", "integer", "", "late so far"),
+    req("note", "string", "", "what it means")))
+SHAPER_FAILED = Kind("shaper_failed", NETWORK_LOG, "tc or nft failed: links keep their last rates",
+                     (req("error", "string", "", "why"),))
+
+# ---- the experiment: experiment.json ---------------------------------------------------------------------------
+EXPERIMENT = Kind("experiment", EXPERIMENT_LOG, "the experiment's settings, at its start", (
+    req("scenario", "string", "", "scenario name"), req("path", "string", "", "scenario file"),
+    req("speedup", "number", "", "simulated seconds per wall second"), req("speedup_note", "string", "", "in words"),
+    req("duration_s", "number", "s", "simulated duration"),
+    req("network", "object", "", "mode (kernel or sleep), why, sharing, period_s"),
+    req("radio", "object", "", "name, describe, sources"), req("links", "string", "", "model or replay:FILE"),
+    req("vehicles", "list", "", "each {id, role}"),
+    req("missions", "object", "", "vehicle -> [[lat_deg, lon_deg], ...] of its mission"),
+))
+FAULT = Kind("fault", EXPERIMENT_LOG, "a scheduled fault switched on or off, as it happens", (
+    req("vehicle", "string", "", "vehicle id"), req("fault", "string", "", "fault kind"),
+    req("state", "string", "", "on or off"), req("t_sim_s", "number", "s", "simulated time since the missions")))
+EXPERIMENT_ENDED = Kind("experiment_ended", EXPERIMENT_LOG, "how the experiment ended", (
+    req("outcome", "string", "", "completed, interrupted, ..."), req("detail", "string", "", "in words"),
+    req("faults", "list", "", "every fault event: t_sim_s, vehicle, kind, state")))
+
+KINDS: tuple[Kind, ...] = tuple(v for v in dict(globals()).values() if isinstance(v, Kind))
+BY_NAME: dict[str, Kind] = {k.name: k for k in KINDS}
+#: the agent's state changes, by what changed
+CHANGES = {"mode": MODE, "armed": ARMED, "landed": LANDED_STATE, "mission_seq": MISSION_CURRENT,
+           "mission_state": MISSION_STATE}
+assert len(BY_NAME) == len(KINDS), "two kinds share a name"
+__all__ = ["Field", "Kind", "RunFile", "KINDS", "BY_NAME", "FILES"]
