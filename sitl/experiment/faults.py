@@ -2,7 +2,7 @@
 
 Link, GPS, battery and loss faults go through the simulator's fault API (sitl/server.py), which sets the
 vehicle's SIM_* parameters (sitl/vehicle/params.py); the vehicle's flight logic reacts as an autopilot would
-(sitl/vehicle/flight.py: GPS lost -> land, low battery -> BATT_FS_LOW_ACT). Process faults kill the vehicle's
+(sitl/vehicle/guards.py: GPS lost -> land, low battery -> BATT_FS_LOW_ACT). Process faults kill the vehicle's
 agent or its MPI rank, as a crash on the companion computer would.
 """
 
