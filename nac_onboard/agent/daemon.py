@@ -112,7 +112,7 @@ class Agent:
         c = self.config
         self.log.write(kinds.AGENT_STARTED, vehicle=c.vehicle.id, role=c.vehicle.role, config=c.source,
                        autopilot=c.autopilot.uri, run_dir=str(self.run_dir), pid=os.getpid(),
-                       mpi_build=mpi_build())
+                       host=socket.gethostname(), mpi_build=mpi_build())
         self.autopilot.open(time.monotonic())
         allow = tuple(parse_host_port(text, "routing.allow") for text in c.routing.allow)
         for uri, read_only in [*((u, False) for u in c.routing.endpoints), *((u, True) for u in c.routing.watch)]:

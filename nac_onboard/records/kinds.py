@@ -85,6 +85,7 @@ AGENT_STARTED = Kind("agent_started", AGENT_LOG, "the agent started", (
     req("vehicle", "string", "", "vehicle id"), req("role", "string", "", "master or worker"),
     req("config", "string", "", "config file"), req("autopilot", "string", "", "autopilot URI"),
     req("run_dir", "string", "", "where it logs"), req("pid", "integer", "", "process id"),
+    opt("host", "string", "", "the companion's hostname (runs from several companions are merged on the ground)"),
     req("mpi_build", "any", "", "the MPI build found on this companion"),
 ))
 AGENT_READY = Kind("agent_ready", AGENT_LOG, "sockets open, probes scheduled", (
