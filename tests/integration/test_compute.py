@@ -19,6 +19,7 @@ from nac_onboard.flight_log import read_jsonl
 from nac_onboard.radio.channel import PRESETS
 from nac_onboard.radio.files import save_channel
 from tests.conftest import SHARED_DATA
+from tests.stats import agrees_within
 
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
 ENV = dict(os.environ, NAC_DATA_DIR=str(SHARED_DATA))
@@ -93,8 +94,12 @@ def test_linreg_on_two_workers_equals_single_process_gradient_descent(tmp_path):
 
 
 def test_emulated_iterations_last_the_predicted_transfer_plus_compute_time(tmp_path):
+    """Each iteration lasts the emulated transfers plus the workers' compute, judged on the 20 iterations' median:
+    a machine busy with the rest of the suite makes single iterations run long (one of ten took 12 % longer in a
+    full run), not the median of twenty; its 95 % order-statistic interval must meet 0.9-1.1 and the sample median
+    be within 10 %. A broken emulation (no sleep, or a wrong rate) moves every iteration, not a few."""
     distances, overhead_bits = [6.0, 9.0, 12.0], 2e5
-    result = run_mpi(4, "--task", "matmul", "--iterations", "10", "--out", str(tmp_path), "--emulate", "sleep",
+    result = run_mpi(4, "--task", "matmul", "--iterations", "20", "--out", str(tmp_path), "--emulate", "sleep",
                      "--channel", wifi(tmp_path, overhead_bits), "--positions", "fixed",
                      "--distances", ",".join(map(str, distances)))
     assert result.returncode == 0, result.stderr
@@ -113,9 +118,8 @@ def test_emulated_iterations_last_the_predicted_transfer_plus_compute_time(tmp_p
             predicted = max(predicted, sent_at + w["compute_s"] + w["up_s"])
         ratios.append(r["duration_s"] / predicted)
         assert predicted > 0.05, "the emulated transfers dominate (B is 640 kbit)"
-    # Each iteration as predicted within 10 % in the median; one may run long on a machine busy with the rest of
-    # the suite (one of ten took 12 % longer in a full run), none by a third.
-    assert abs(float(np.median(ratios)) - 1.0) < 0.10 and max(abs(x - 1.0) for x in ratios) < 0.33, ratios
+    assert len(ratios) == 20 and agrees_within(ratios, 1.0, 0.10), sorted(ratios)
+    assert abs(float(np.median(ratios)) - 1.0) < 0.10, sorted(ratios)
 
 
 def test_worker_out_of_range_is_absent_and_rejoins_while_training_continues(tmp_path):

@@ -26,6 +26,7 @@ from sitl.network.air import AirNetwork
 from sitl.network.shaper import Shaper
 from tests.conftest import SHARED_DATA, allocate_base_port
 from tests.integration.console import Console
+from tests.stats import MIN_SAMPLES, agrees_within, median_interval
 
 ENV = dict(os.environ, NAC_DATA_DIR=str(SHARED_DATA))
 SCENARIOS = Path(__file__).resolve().parents[2] / "sitl" / "scenarios"
@@ -110,7 +111,7 @@ def test_two_workers_share_the_access_points_airtime_or_not(tmp_path, sharing):
     assert not any(n.startswith(air.prefix) for n in netns.namespaces())
 
 
-
+@needs_kernel
 def test_a_station_interface_without_a_carrier_is_set_up_again_before_use():
     """What kernel 6.18 did to the access point's air0 now and then (NO-CARRIER after its qdisc was attached,
     so MPI found no device): wait_for_carrier brings it back, and says who when it cannot."""
@@ -144,21 +145,28 @@ def test_a_dead_runs_namespaces_are_found_and_removed():
 
 
 # ---- whole experiments --------------------------------------------------------------------------------------
-def _measured_matches_applied(summary: dict, run_dir: Path, solid_below_m: float = 16.0, min_probes: int = 5) -> None:
-    """Probes measure the rate the shaper applied, within 15 %, where the link is solid and a bin has enough probes
-    for a median: towards wifi-flight's median range (~24 m) fades take the link below MCS 0 within a probe, packets
-    are lost and rates change every 0.1 s, so there a ratio says little about shaping; nor does the median of the
-    two or three probes a moving vehicle leaves in some bins (one full-suite run: 0.83 from 4 probes at 14-16 m,
-    0.95 alone)."""
-    by_bin = summary["measured_to_applied_by_bin"]
+def _measured_matches_applied(run_dir: Path, solid_below_m: float = 16.0, bin_m: float = 2.0) -> None:
+    """Probes measure the rate the shaper applied, within 15 %, where the link is solid (towards wifi-flight's median
+    range, ~24 m, fades take the link below MCS 0 within a probe and rates change every 0.1 s, so a ratio there says
+    little about shaping).
+
+    Judged on the sample, not on a few probes: the pooled median of every solid probe's measured/applied ratio
+    must be within 15 % (a flight leaves 30-60 such probes), and each 2 m bin only as far as its own sample allows:
+    the 95 % order-statistic interval of its median must meet the 0.85-1.15 band, and a bin of fewer than
+    tests.stats.MIN_SAMPLES probes is not judged. On a loaded 2-core machine a probe can lose a few hundred
+    milliseconds of CPU and read low, which moves single probes, not the median of dozens; a CI run failed on the
+    old per-bin check with a 6-probe bin at 0.849."""
     import pandas as pd
 
-    table = pd.read_csv(run_dir / "analysis" / "throughput_by_distance.csv")
-    counts = {f"{a:g}-{b:g} m": int(n) for a, b, n in zip(table["distance_from_m"], table["distance_to_m"],
-                                                          table["count"], strict=True)}
-    solid = {key: ratio for key, ratio in by_bin.items()
-             if float(key.split("-")[1].split()[0]) <= solid_below_m and counts.get(key, 0) >= min_probes}
-    assert solid and all(abs(ratio - 1.0) <= 0.15 for ratio in solid.values()), f"{by_bin} probes {counts}"
+    table = pd.read_csv(run_dir / "analysis" / "throughput.csv")
+    ok = table[(table["distance_m"] <= solid_below_m) & (table["applied_mbps"] > 0)
+               & (table["error"].fillna("").astype(str) == "")]
+    ratio = ok["throughput_mbps"] / ok["applied_mbps"]
+    assert len(ratio) >= MIN_SAMPLES, f"only {len(ratio)} probes below {solid_below_m:g} m"
+    assert abs(float(ratio.median()) - 1.0) <= 0.15, f"pooled median {ratio.median():.3f} of {len(ratio)} probes"
+    for lower, in_bin in ratio.groupby((ok["distance_m"] // bin_m) * bin_m):
+        assert agrees_within(in_bin, 1.0, 0.15) is not False, \
+            f"{lower:g}-{lower + bin_m:g} m: {len(in_bin)} probes, median interval {median_interval(in_bin)}"
 
 
 @needs_kernel
@@ -181,7 +189,7 @@ def test_the_moving_flight_on_a_kernel_network(tmp_path):
     assert result.outcome is Outcome.COMPLETED, result.detail
     run = result.run_dir
     assert "- network: kernel (" in (run / "report.md").read_text()
-    _measured_matches_applied(result.summary, result.run_dir)
+    _measured_matches_applied(result.run_dir)
     probes = read_jsonl(run / "master" / "throughput.jsonl").of_kind("throughput")
     assert probes and not any("emulated_rate_bps" in p for p in probes), "probes measured traffic, not the model"
     compute = read_jsonl(run / "compute" / "compute.jsonl")
@@ -214,7 +222,7 @@ def test_results_in_simulated_time_do_not_depend_on_the_speedup(tmp_path):
         result = run_scenario(scenario, tmp_path / f"run-{speedup:g}x", speedup, allocate_base_port(3, slots=5),
                               out=io.StringIO(), network="kernel")
         assert result.outcome is Outcome.COMPLETED, result.detail
-        _measured_matches_applied(result.summary, result.run_dir)
+        _measured_matches_applied(result.run_dir)
         summaries[speedup] = result.summary
     slow, fast = summaries[1.0], summaries[4.0]
     assert fast["iterations_per_min"] == pytest.approx(slow["iterations_per_min"], rel=0.10), (slow, fast)
@@ -224,9 +232,11 @@ def test_results_in_simulated_time_do_not_depend_on_the_speedup(tmp_path):
 
 
 def pd_bins(run: Path) -> dict[float, float]:
+    """Mean throughput per distance bin, for bins of at least tests.stats.MIN_SAMPLES probes (fewer say little)."""
     import pandas as pd
 
     table = pd.read_csv(run / "analysis" / "throughput_by_distance.csv")
+    table = table[table["count"] >= MIN_SAMPLES]
     return dict(zip(table["distance_from_m"], table["mean_mbps"], strict=True))
 
 
@@ -234,6 +244,8 @@ def test_without_the_privileges_kernel_exits_2_quickly_and_sleep_still_runs(tmp_
     """Root without CAP_NET_ADMIN and CAP_SYS_ADMIN (as in a container that refuses namespaces)."""
     if os.geteuid() != 0 or shutil.which("setpriv") is None:
         pytest.skip("needs root to drop capabilities (setpriv)")
+    if _kernel_network_missing():  # without tc or nft the refusal names the missing tool instead
+        pytest.skip(_kernel_network_missing())
     scenario = shortened("paper-flight-static", tmp_path, 6.0, max_speedup=4.0)
     unprivileged = ["setpriv", "--bounding-set=-net_admin,-sys_admin", "--inh-caps=-net_admin,-sys_admin"]
     t0 = time.monotonic()
