@@ -16,6 +16,13 @@ sixteen frames, read, sent and parsed as arrays instead of one object each.
 Live, a file's last line may still be being written: it waits for its newline. A line that is not JSON, or a
 record without what it needs, is skipped and named in `problems` (file and line); what no file holds is in
 `missing`. Nothing here raises for a damaged run.
+
+Every file is hostile until checked: a line longer than MAX_LINE_BYTES is skipped as it is read (never held
+whole: a 200 MB record costs a megabyte of memory) and named; a file is read at most MAX_READ_BYTES per poll;
+a record whose t_s is more than MAX_GAP_S from the run's span (first the median of the first read's records,
+then growing with the records kept), or more than MAX_GAP_S ahead of this machine's clock, is skipped and named,
+so one wild timestamp cannot stretch the timeline to the year 30000; texts and ids passed to the page are cut
+short, and a frame holds at most MAX_FRAME_POSITIONS positions.
 """
 
 from __future__ import annotations
@@ -24,6 +31,8 @@ import contextlib
 import gc
 import math
 import operator
+import statistics
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,7 +46,13 @@ EVENT_KINDS = {k.name: text for k, text in (
     (kinds.LINK_LOST, "autopilot link lost"), (kinds.LINK_RESTORED, "autopilot link back"), (kinds.PEER_LOST, "lost"),
     (kinds.PEER_SEEN, "seen"), (kinds.MISSION_ITEM_REACHED, "reached item"), (kinds.LANDED_STATE, "landed state"),
     (kinds.AGENT_STARTED, "agent started"), (kinds.MODE, "mode"), (kinds.STATUSTEXT, "says"))}
-MAX_LINE_BYTES = 1 << 20
+MAX_LINE_BYTES = 1 << 20  # a longer line is skipped and named, never held whole
+READ_CHUNK_BYTES = 1 << 20
+MAX_READ_BYTES = 32 << 20  # per file and poll: the rest on the next poll (live) or the next round (finish)
+MAX_GAP_S = 86_400.0  # a record more than a day from the run's span, or ahead of the clock, is not of this run
+MAX_FRAME_POSITIONS = 20_000  # positions in one "pos" frame: every frame, and so every response, is bounded
+MAX_TEXT_CHARS = 200  # an event's text as the page shows it
+MAX_ID_CHARS = 64  # a vehicle id or a role from a record
 SOURCES = {kinds.AGENT_LOG.name: "agent", kinds.THROUGHPUT_LOG.name: "throughput", kinds.COMPUTE_LOG.name: "compute",
            kinds.NETWORK_LOG.name: "network", kinds.EXPERIMENT_LOG.name: "experiment"}
 TELEMETRY = kinds.TELEMETRY.name
@@ -51,27 +66,53 @@ class _Tail:
     offset: int = 0
     line_no: int = 0
     partial: bytes = b""
+    skipping: int = 0  # bytes so far of a line over MAX_LINE_BYTES, dropped as they are read (0: none)
+    pending: bool = False  # the last read stopped at MAX_READ_BYTES: more to read now
+    oversized: list = field(default_factory=list)  # (line number, bytes) of lines skipped for their size
 
     def new_lines(self) -> list[tuple[int, bytes]]:
+        """The whole lines added since the last call (at most MAX_READ_BYTES of the file; `pending` says more is
+        there). A line over MAX_LINE_BYTES goes to `oversized` instead, and is never held whole."""
+        out: list[tuple[int, bytes]] = []
+        self.pending = False
         try:
             with open(self.path, "rb") as f:
                 f.seek(self.offset)
-                data = f.read()
+                budget = MAX_READ_BYTES
+                while budget > 0:
+                    data = f.read(min(READ_CHUNK_BYTES, budget))
+                    if not data:
+                        break
+                    budget -= len(data)
+                    self.offset += len(data)
+                    self._split(data, out)
+                else:
+                    self.pending = True
         except OSError:
-            return []
-        self.offset += len(data)
-        data = self.partial + data
-        lines = data.split(b"\n")
-        self.partial = lines.pop()
-        if len(self.partial) > MAX_LINE_BYTES:  # not a line being written: a damaged file
-            lines.append(self.partial)
-            self.partial = b""
-        out = []
-        for line in lines:
-            self.line_no += 1
-            if line.strip():
-                out.append((self.line_no, line))
+            pass
         return out
+
+    def _split(self, data: bytes, out: list) -> None:
+        pieces = data.split(b"\n")
+        last = pieces.pop()
+        for piece in pieces:
+            self.line_no += 1
+            if self.skipping or self.partial:
+                size = self.skipping + len(self.partial) + len(piece)
+                line = b"" if self.skipping else self.partial + piece
+                self.skipping, self.partial = 0, b""
+            else:
+                size, line = len(piece), piece
+            if size > MAX_LINE_BYTES:
+                self.oversized.append((self.line_no, size))
+            elif line.strip():
+                out.append((self.line_no, line))
+        if self.skipping:
+            self.skipping += len(last)
+        elif len(self.partial) + len(last) > MAX_LINE_BYTES:  # not a line being written: dropped as it comes
+            self.skipping, self.partial = len(self.partial) + len(last), b""
+        else:
+            self.partial += last
 
 
 @dataclass
@@ -83,8 +124,10 @@ class RunFollower:
     origin: Home | None = None  # the map's (0, 0): the first position heard, at ground level
     mission_lla: dict[str, list] = field(default_factory=dict)  # vehicle -> [[lat, lon], ...] (experiment.json)
     record_count: int = 0  # records drawn so far (a "pos" frame holds many)
+    span: tuple[float, float] | None = None  # the t_s of the records kept, first to last
     _tails: dict[Path, _Tail] = field(default_factory=dict)
     _seen_kinds: set = field(default_factory=set)
+    _pending: bool = False  # a file had more than MAX_READ_BYTES to read
 
     def __post_init__(self):
         self.run_dir = None if self.run_dir is None else Path(self.run_dir)
@@ -97,7 +140,8 @@ class RunFollower:
     def _poll(self) -> list[dict]:
         self._discover()
         new: list[dict] = []
-        telemetry: dict[str, list[dict]] = {}  # vehicle -> its positions in this read, drawn together below
+        read: list[tuple[Path, int, str, str, dict]] = []  # (file, line, source, vehicle, record)
+        self._pending = False
         for path, tail in self._tails.items():
             source, vehicle = SOURCES.get(path.name, ""), path.parent.name
             for line_no, line in tail.new_lines():
@@ -109,19 +153,52 @@ class RunFollower:
                 if not isinstance(record, dict) or not _finite(record.get("t_s")):
                     self._problem(f"{path.relative_to(self.run_dir)}:{line_no}: no t_s, skipped")
                     continue
-                if source == "agent" and record.get("kind") == TELEMETRY:
-                    telemetry.setdefault(vehicle, []).append(record)
-                else:
-                    self._keep(self._frame(source, vehicle, record), new)
-        for frame in self._position_frames(list(telemetry.items())):
+                read.append((path, line_no, source, vehicle, record))
+            for line_no, size in tail.oversized:
+                self._problem(f"{path.relative_to(self.run_dir)}:{line_no}: a record of {size:,} bytes, over the "
+                              f"{MAX_LINE_BYTES:,}-byte limit, skipped")
+            tail.oversized.clear()
+            self._pending |= tail.pending
+        if self.span is None and read:  # the run's time: where most of its first records are
+            middle = statistics.median_low(float(r[4]["t_s"]) for r in read)
+            if middle <= time.time() + MAX_GAP_S:
+                self.span = (middle, middle)
+        telemetry: dict[str, list[dict]] = {}  # vehicle -> its positions in this read, drawn together below
+        for path, line_no, source, vehicle, record in read:
+            why = self._out_of_span(float(record["t_s"]))
+            if why:
+                self._problem(f"{path.relative_to(self.run_dir)}:{line_no}: t_s {record['t_s']!r} {why}, skipped")
+            elif source == "agent" and record.get("kind") == TELEMETRY:
+                telemetry.setdefault(vehicle, []).append(record)
+            else:
+                self._keep(self._frame(source, vehicle, record), new)
+        batches = [(vehicle, records[k:k + MAX_FRAME_POSITIONS]) for vehicle, records in telemetry.items()
+                   for k in range(0, len(records), MAX_FRAME_POSITIONS)]
+        for frame in self._position_frames(batches):
             self._keep(frame, new)
         return new
+
+    def _out_of_span(self, t_s: float) -> str:
+        """Why a record's time is not of this run ("" when it is; the span grows to take it)."""
+        if t_s > time.time() + MAX_GAP_S:
+            return "is more than a day ahead of this machine's clock"
+        if self.span is None:
+            self.span = (t_s, t_s)
+            return ""
+        first, last = self.span
+        if t_s < first - MAX_GAP_S or t_s > last + MAX_GAP_S:
+            return f"is more than a day from the run's other records ({first:.3f} to {last:.3f})"
+        if t_s < first or t_s > last:
+            self.span = (min(first, t_s), max(last, t_s))
+        return ""
 
     def add(self, source: str, vehicle: str, record: dict) -> dict | None:
         """One record as a file would hold it ("agent" telemetry or events of `vehicle`, "throughput",
         "compute", "network", "experiment"): its frame, appended, or None when it draws nothing. Live sources
         other than files (a MAVLink link, an agent's state feed) come in here too."""
         if not isinstance(record, dict) or not _finite(record.get("t_s")):
+            return None
+        if self._out_of_span(float(record["t_s"])):
             return None
         if source == "agent" and record.get("kind") == TELEMETRY:
             return next((self._keep(f, []) for f in self._position_frames([(vehicle, [record])])), None)
@@ -136,10 +213,17 @@ class RunFollower:
         return frame
 
     def finish(self) -> None:
-        """After the run: a last line without its newline will not be completed now."""
+        """After the run: every file read to its end; a last line without its newline will not be completed
+        now."""
         self.poll()
+        while self._pending:
+            self.poll()
         for path, tail in self._tails.items():
-            if tail.partial.strip():
+            if tail.skipping:
+                self._problem(f"{path.relative_to(self.run_dir)}:{tail.line_no + 1}: a record of "
+                              f"{tail.skipping:,} bytes, over the {MAX_LINE_BYTES:,}-byte limit, skipped")
+                tail.skipping = 0
+            elif tail.partial.strip():
                 self._problem(f"{path.relative_to(self.run_dir)}:{tail.line_no + 1}: truncated last line, skipped")
                 tail.partial = b""
 
@@ -184,41 +268,48 @@ class RunFollower:
             return None
         if source == "agent":
             if kind == kinds.AGENT_STARTED.name:
-                self.vehicles.setdefault(vehicle, {})["role"] = r.get("role", "?")
+                self.vehicles.setdefault(vehicle, {})["role"] = _short(r.get("role", "?"))
             if kind in EVENT_KINDS:
                 detail = next((r[k] for k in ("peer", "seq", "value", "text") if r.get(k) is not None), "")
-                return {"k": "ev", "t": t_s, "v": vehicle, "text": f"{vehicle}: {EVENT_KINDS[kind]} {detail}".strip()}
+                text = f"{vehicle}: {EVENT_KINDS[kind]} {str(detail)[:MAX_TEXT_CHARS]}".strip()
+                return {"k": "ev", "t": t_s, "v": vehicle, "text": text}
             return None
         if source == "throughput" and kind == kinds.THROUGHPUT.name:
             end = r.get("end") or {}
             bps = ((end.get("sum_received") or {}).get("bits_per_second")) if isinstance(end, dict) else None
             ok = _finite(bps) and not r.get("error")
             self._seen_kinds.add("probe")
-            return {"k": "probe", "t": t_s, "a": str(r.get("client")), "b": str(r.get("server")),
+            return {"k": "probe", "t": t_s, "a": _short(r.get("client")), "b": _short(r.get("server")),
                     "bps": float(bps) if ok else 0.0, "ok": bool(ok), "d": _num(r.get("distance_m"))}
         if source == "compute" and kind == kinds.ITERATION.name:
-            workers = r.get("workers") or {}
-            present = workers.get("present") or []
+            workers = r.get("workers")
+            present = workers.get("present") if isinstance(workers, dict) else None
+            present = present if isinstance(present, list) else []
             self._seen_kinds.add("it")
-            return {"k": "it", "t": t_s, "i": r.get("iteration"), "dur": _num(r.get("duration_s")),
+            iteration = r.get("iteration")
+            return {"k": "it", "t": t_s, "i": iteration if type(iteration) is int else None,
+                    "dur": _num(r.get("duration_s")),
                     "cost": _num(r.get("cost")), "n": sum(1 for p in present if p), "of": len(present)}
         if source == "network" and kind == kinds.LINK_RATES.name:
+            columns = [r.get(key) for key in ("a", "b", "rate_bps", "distance_m")]
+            if not all(isinstance(c, list) for c in columns) or len({len(c) for c in columns}) != 1:
+                return None  # one entry per pair in every column, or nothing to draw
             self._seen_kinds.add("cap")
-            return {"k": "cap", "t": t_s, "a": r.get("a"), "b": r.get("b"), "bps": r.get("rate_bps"),
-                    "d": r.get("distance_m")}
+            return {"k": "cap", "t": t_s, "a": [_short(v) for v in columns[0]], "b": [_short(v) for v in columns[1]],
+                    "bps": [_num(v) for v in columns[2]], "d": [_num(v) for v in columns[3]]}
         if source == "experiment" and kind == kinds.EXPERIMENT.name:
             for vehicle in r.get("vehicles") or []:
                 if isinstance(vehicle, dict) and isinstance(vehicle.get("id"), str):
-                    self.vehicles.setdefault(vehicle["id"], {})["role"] = str(vehicle.get("role", "?"))
+                    self.vehicles.setdefault(_short(vehicle["id"]), {})["role"] = _short(vehicle.get("role", "?"))
             missions = r.get("missions")
             if isinstance(missions, dict):
-                self.mission_lla = {str(v): [p for p in points if isinstance(p, list) and len(p) == 2
+                self.mission_lla = {_short(v): [p for p in points if isinstance(p, list) and len(p) == 2
                                              and _finite(p[0]) and _finite(p[1])]
                                     for v, points in missions.items() if isinstance(points, list)}
             return None
         if source == "experiment" and kind == kinds.FAULT.name:
-            return {"k": "ev", "t": t_s, "v": r.get("vehicle"), "fault": True,
-                    "text": f"fault: {r.get('fault')} {r.get('state')} for {r.get('vehicle')}"}
+            text = f"fault: {_short(r.get('fault'))} {_short(r.get('state'))} for {_short(r.get('vehicle'))}"
+            return {"k": "ev", "t": t_s, "v": _short(r.get("vehicle")), "fault": True, "text": text}
         return None
 
     def _position_frames(self, batches: list[tuple[str, list[dict]]]) -> list[dict]:
@@ -297,6 +388,11 @@ def _finite(value) -> bool:
     if kind is int:
         return True
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _short(value) -> str:
+    """A name from a record as the page shows it: a string of at most MAX_ID_CHARS characters."""
+    return (value if isinstance(value, str) else str(value))[:MAX_ID_CHARS]
 
 
 def _num(value) -> float | None:

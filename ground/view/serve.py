@@ -12,6 +12,7 @@ from pathlib import Path
 
 from ground.view.server import ViewServer
 from nac_onboard.address import parse_host_port
+from nac_onboard.child_process import die_with_parent_preexec
 from nac_onboard.errors import BadInput, OperationFailed
 
 DEFAULT_ADDRESS = "127.0.0.1:8765"  # loopback unless asked: the page shows where the vehicles are
@@ -62,7 +63,8 @@ def screenshot(url: str, path: Path, width: int = 1400, height: int = 860, timeo
     try:
         done = subprocess.run([browser, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", f"--screenshot={path}",
                                f"--window-size={width},{height}", "--virtual-time-budget=4000", url],
-                              capture_output=True, text=True, timeout=timeout_s)
+                              capture_output=True, text=True, timeout=timeout_s,
+                              preexec_fn=die_with_parent_preexec())  # a killed runner takes it along
     except subprocess.TimeoutExpired:
         raise OperationFailed(f"Chromium took more than {timeout_s:g} s to render {url}") from None
     finally:
@@ -72,13 +74,15 @@ def screenshot(url: str, path: Path, width: int = 1400, height: int = 860, timeo
     return path
 
 
-def replay(run_dir: Path, address: str, screenshot_path: Path | None = None, out=None, live: bool = False) -> int:
+def replay(run_dir: Path, address: str, screenshot_path: Path | None = None, out=None, live: bool = False,
+           allowed_hosts: tuple[str, ...] = ()) -> int:
     """Serve a run until Ctrl-C: finished (replay), or followed as it is written (live). With screenshot_path,
-    save the page at the run's end and stop."""
+    save the page at the run's end and stop. The page answers to the address it listens on (and localhost on
+    loopback) and to `allowed_hosts`, nothing else (ViewServer)."""
     out = out or sys.stdout
     if not Path(run_dir).is_dir():
         raise BadInput(f"{run_dir}: no such run directory")
-    server = ViewServer(run_dir, live=live)
+    server = ViewServer(run_dir, live=live, allowed_hosts=allowed_hosts)
     if not live and not server.follower.records:
         raise BadInput(f"{run_dir}: no NAC records here (VEHICLE/agent.jsonl, throughput.jsonl, compute.jsonl)")
     viewer = ViewThread(server, address)
@@ -108,7 +112,8 @@ def _serve(viewer: ViewThread, announce: str, out, then=None) -> int:
     return 0
 
 
-def watch(uris: list[str], feed: str | None, run_dir: Path | None, address: str, out=None) -> int:
+def watch(uris: list[str], feed: str | None, run_dir: Path | None, address: str, out=None,
+          allowed_hosts: tuple[str, ...] = ()) -> int:
     """Vehicles live over MAVLink (and the master agent's state feed), with a run directory's files when one is
     given; until Ctrl-C."""
     from ground.view.mavlink_source import MavlinkSource
@@ -121,7 +126,8 @@ def watch(uris: list[str], feed: str | None, run_dir: Path | None, address: str,
     if run_dir is not None and not Path(run_dir).is_dir():
         raise BadInput(f"{run_dir}: no such run directory")
     source = MavlinkSource(uris, feed)
-    viewer = ViewThread(ViewServer(run_dir, live=True, title="live", sources=[source]), address)
+    viewer = ViewThread(ViewServer(run_dir, live=True, title="live", sources=[source], allowed_hosts=allowed_hosts),
+                        address)
     try:
         url = viewer.start()
     except BaseException:

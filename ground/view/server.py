@@ -4,19 +4,30 @@ the run.
 
     GET /                     the page
     GET /api/state            vehicles, roles, missions, what is missing or damaged, live or not
-    GET /api/records?after=S  every frame after index S (a replay loads them all at once)
-    GET /api/stream?after=S   the frames after S, then each new batch as it is read (SSE; a reconnecting
-                              browser resumes from Last-Event-ID)
+    GET /api/records?after=S  the frames after index S, at most MAX_RESPONSE_BYTES of them (at least one);
+                              header X-More-Records: yes when there are more (the page asks again from the last)
+    GET /api/stream?after=S   the frames after S, then each new batch as it is read (SSE, events of at most
+                              MAX_RESPONSE_BYTES; a reconnecting browser resumes from Last-Event-ID)
 
 A page that cannot keep up gets bigger batches, never fewer records: it draws the latest state once per
 animation frame, so it drops frames, not records.
+
+Every request's Host header is checked before anything is answered (DNS rebinding: a page of another site whose
+name is made to point at this machine must not read the vehicles' positions): it must name the address the server
+listens on, a localhost form when that is loopback, any IP address when it is every interface (a name, not an
+address, is what a rebinding page sends), or one of the names given in `allowed_hosts`; anything else gets 421. A
+request that carries an Origin header (a browser's cross-site request) must come from such a host too, else 403.
+Nothing here changes state: every route is GET.
 """
 
 from __future__ import annotations
 
 import asyncio
+import ipaddress
 import logging
+import socket
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import orjson
 from aiohttp import web
@@ -28,11 +39,16 @@ log = logging.getLogger(__name__)
 STATIC = Path(__file__).parent / "static"
 POLL_S = 0.1  # how often a live run's files are read: 10 updates a second
 HEARTBEAT_S = 15.0  # an SSE comment when nothing new: proxies and browsers keep the stream open
+MAX_RESPONSE_BYTES = 16 << 20  # of frames in one /api/records answer or one SSE event (a frame is bounded too)
+LOOPBACK_NAMES = frozenset({"localhost", "localhost.localdomain", "ip6-localhost", "ip6-loopback"})
 
 
 class ViewServer:
-    def __init__(self, run_dir: str | Path | None, live: bool, title: str = "", sources: list | None = None):
+    def __init__(self, run_dir: str | Path | None, live: bool, title: str = "", sources: list | None = None,
+                 allowed_hosts: list[str] | tuple[str, ...] = ()):
         self.follower = RunFollower(None if run_dir is None else Path(run_dir))
+        self.allowed_hosts = {_host_name(h) for h in allowed_hosts}  # names the page may be reached by, besides
+        self.bind_host = "127.0.0.1"  # ... the address it listens on (set by start())
         self.live = live
         self.sources = sources or []  # live sources beside the files: MavlinkSource
         self.title = title or (Path(run_dir).name if run_dir is not None else "live")
@@ -44,7 +60,7 @@ class ViewServer:
             self.follower.finish()
 
     def app(self) -> web.Application:
-        app = web.Application()
+        app = web.Application(middlewares=[self._check_host])
         app.router.add_get("/", self._index)
         app.router.add_get("/api/state", self._state)
         app.router.add_get("/api/records", self._records)
@@ -55,6 +71,7 @@ class ViewServer:
     async def start(self, host: str, port: int) -> str:
         """Serve on host:port (0: any free port); returns the page's URL. A taken port: OperationFailed naming it."""
         self._changed = asyncio.Event()
+        self.bind_host = host
         self._runner = web.AppRunner(self.app(), access_log=None, shutdown_timeout=2.0)
         await self._runner.setup()
         site = web.TCPSite(self._runner, host, port)
@@ -94,6 +111,43 @@ class ViewServer:
                 self._changed = asyncio.Event()
             await asyncio.sleep(POLL_S)
 
+    # ---- who may ask ------------------------------------------------------------------------------------
+    def host_allowed(self, name: str) -> bool:
+        """Whether a request naming `name` (a Host header's host, without the port) reaches this view on
+        purpose: the listening address, localhost forms on a loopback bind, any address on an every-interface
+        bind, or a name given."""
+        name = _host_name(name)
+        if not name:
+            return False
+        if name in self.allowed_hosts:
+            return True
+        bind = _host_name(self.bind_host)
+        if name == bind:
+            return True
+        bind_ip, name_ip = _ip(bind), _ip(name)
+        if bind in LOOPBACK_NAMES or (bind_ip is not None and bind_ip.is_loopback):
+            return name in LOOPBACK_NAMES or (name_ip is not None and name_ip.is_loopback)
+        if bind_ip is not None and bind_ip.is_unspecified:  # every interface: reached by any of its addresses
+            return name_ip is not None or name in LOOPBACK_NAMES or name == _host_name(socket.gethostname())
+        return False
+
+    @web.middleware
+    async def _check_host(self, request: web.Request, handler):
+        host = request.headers.get("Host", "")
+        if not self.host_allowed(_split_port(host)):
+            raise web.HTTPMisdirectedRequest(
+                text=f"this NAC view does not answer to the host {host[:100]!r}: open it by the address it "
+                     f"listens on ({self.bind_host}){', localhost' if self._loopback() else ''}"
+                     f"{', or ' + ', '.join(sorted(self.allowed_hosts)) if self.allowed_hosts else ''}\n")
+        origin = request.headers.get("Origin")
+        if origin is not None and not self.host_allowed(urlsplit(origin).hostname or ""):
+            raise web.HTTPForbidden(text=f"this NAC view refuses requests from pages of {origin[:100]!r}\n")
+        return await handler(request)
+
+    def _loopback(self) -> bool:
+        bind = _host_name(self.bind_host)
+        return bind in LOOPBACK_NAMES or bool((ip := _ip(bind)) and ip.is_loopback)
+
     # ---- handlers ---------------------------------------------------------------------------------------
     async def _index(self, request: web.Request) -> web.FileResponse:
         return web.FileResponse(STATIC / "index.html")
@@ -107,8 +161,9 @@ class ViewServer:
                                   "records": f.record_count})
 
     async def _records(self, request: web.Request) -> web.Response:
-        after = _after(request)
-        return web.Response(body=orjson.dumps(self.follower.records[after + 1:]), content_type="application/json")
+        body, _, more = _page(self.follower.records, _after(request))
+        return web.Response(body=body, content_type="application/json",
+                            headers={"X-More-Records": "yes" if more else "no", "Cache-Control": "no-store"})
 
     async def _stream(self, request: web.Request) -> web.StreamResponse:
         after = _after(request)
@@ -119,9 +174,10 @@ class ViewServer:
             while not self._closing:
                 changed = self._changed
                 if len(records) > after + 1:
-                    batch = records[after + 1:]
-                    after = batch[-1]["s"]
-                    await response.write(b"id: %d\nevent: records\ndata: %s\n\n" % (after, orjson.dumps(batch)))
+                    body, after, more = _page(records, after)
+                    await response.write(b"id: %d\nevent: records\ndata: %s\n\n" % (after, body))
+                    if more:
+                        continue  # the rest at once, an event at a time
                 elif not self.live:
                     await response.write(b"event: end\ndata: {}\n\n")
                     break
@@ -132,6 +188,39 @@ class ViewServer:
         except (ConnectionResetError, asyncio.CancelledError):
             pass  # the browser left; it resumes from its Last-Event-ID when it comes back
         return response
+
+
+def _page(records: list[dict], after: int) -> tuple[bytes, int, bool]:
+    """The frames after index `after` as a JSON list of at most MAX_RESPONSE_BYTES (at least one frame), the
+    last index in it, and whether more follow."""
+    parts, size, last = [], 2, after
+    for k in range(after + 1, len(records)):
+        frame = records[k]
+        encoded = orjson.dumps(frame)
+        if parts and size + len(encoded) + 1 > MAX_RESPONSE_BYTES:
+            return b"[" + b",".join(parts) + b"]", last, True
+        parts.append(encoded)
+        size += len(encoded) + 1
+        last = frame["s"]
+    return b"[" + b",".join(parts) + b"]", last, False
+
+
+def _split_port(host: str) -> str:
+    """A Host header's host: "[::1]:8765" -> "::1", "example.org:80" -> "example.org"."""
+    if host.startswith("["):
+        return host[1:host.find("]")] if "]" in host else ""
+    return host.rsplit(":", 1)[0] if host.count(":") == 1 else host
+
+
+def _host_name(host: str) -> str:
+    return host.strip().strip("[]").rstrip(".").lower()
+
+
+def _ip(name: str):
+    try:
+        return ipaddress.ip_address(name)
+    except ValueError:
+        return None
 
 
 def _after(request: web.Request) -> int:

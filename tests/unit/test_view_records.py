@@ -5,7 +5,15 @@ import json
 
 import pytest
 
-from ground.view.records import RunFollower, positions
+from ground.view.records import (
+    MAX_FRAME_POSITIONS,
+    MAX_GAP_S,
+    MAX_ID_CHARS,
+    MAX_LINE_BYTES,
+    MAX_TEXT_CHARS,
+    RunFollower,
+    positions,
+)
 from missions.geo import Home, enu_to_lla
 
 ORIGIN = Home(47.397742, 8.545594, 488.0)
@@ -88,3 +96,119 @@ def test_positions_that_are_not_finite_numbers_on_the_globe_are_not_drawn_and_va
     last = drawn[-1]
     assert (last["mode"], last["armed"], last["batt"], last["seq"], last["hdg"], last["tb"]) == \
         (("<b>x</b>" * 5), None, None, 3, None, None)
+
+
+@pytest.mark.parametrize("size", [MAX_LINE_BYTES - 100, MAX_LINE_BYTES + 1, 3 * MAX_LINE_BYTES + 17])
+def test_a_record_over_the_line_limit_is_skipped_and_named_without_being_held(tmp_path, size):
+    """A valid record longer than MAX_LINE_BYTES (a statustext padded to `size` bytes), written live in pieces
+    around other records: skipped and named with its line and size, never held whole, the records after it
+    read; one just under the limit is read."""
+    (tmp_path / "w1").mkdir()
+    agent = tmp_path / "w1" / "agent.jsonl"
+    head = '{"t_s": 2.0, "kind": "statustext", "severity": 6, "text": "'
+    big = head + "x" * (size - len(head) - 3) + '"}\n'
+    assert len(big) == size
+    follower = RunFollower(tmp_path)
+    agent.write_text(telemetry(1.0, 0.0, 0.0))
+    follower.poll()
+    for k in range(0, len(big), 700_000):  # the line arrives as a writer's buffers would
+        with agent.open("a") as f:
+            f.write(big[k:k + 700_000])
+        follower.poll()
+        assert all(len(tail.partial) <= MAX_LINE_BYTES for tail in follower._tails.values())
+    with agent.open("a") as f:
+        f.write(telemetry(3.0, 5.0, 0.0))
+    follower.poll()
+    follower.finish()
+    assert [p["t"] for p in positions(follower.records)] == [1.0, 3.0], "the records around it are read"
+    if size - 1 > MAX_LINE_BYTES:  # the newline is not the record's
+        assert follower.problems == [f"w1/agent.jsonl:2: a record of {size - 1:,} bytes, over the "
+                                     f"{MAX_LINE_BYTES:,}-byte limit, skipped"]
+        assert not any(f["k"] == "ev" for f in follower.records)
+    else:
+        assert follower.problems == [] and [f["text"][:20] for f in follower.records if f["k"] == "ev"] == \
+            ["w1: says " + "x" * 11], "read, and its text cut short for the page"
+        assert max(len(f["text"]) for f in follower.records if f["k"] == "ev") <= MAX_TEXT_CHARS + 20
+
+
+def test_an_oversized_last_line_of_a_finished_run_is_named(tmp_path):
+    (tmp_path / "w1").mkdir()
+    (tmp_path / "w1" / "agent.jsonl").write_text(telemetry(1.0, 0.0, 0.0) + "y" * (MAX_LINE_BYTES + 5))
+    follower = RunFollower(tmp_path)
+    follower.finish()
+    assert follower.problems == [f"w1/agent.jsonl:2: a record of {MAX_LINE_BYTES + 5:,} bytes, over the "
+                                 f"{MAX_LINE_BYTES:,}-byte limit, skipped"]
+
+
+WILD_T_S = [1e15, -1e15, 1e300, 5e9, 1020.0 + MAX_GAP_S, 1000.0 - MAX_GAP_S - 60.0, 2e9 + 3 * MAX_GAP_S]
+
+
+@pytest.mark.parametrize("first_is_wild", [False, True])
+def test_records_far_outside_the_runs_time_are_skipped_and_named(tmp_path, first_is_wild):
+    """The run's time is where most of its first records are (a wild first line does not decide it); a record
+    more than a day from the records kept, or a day ahead of the clock, is skipped and named, in any file."""
+    for vid in ("master", "w1"):
+        (tmp_path / vid).mkdir()
+    lines = [telemetry(1000.0 + k, float(k), 0.0) for k in range(20)]
+    wild = [telemetry(t, 50.0, 0.0) for t in WILD_T_S]
+    master = (wild[:1] + lines + wild[1:]) if first_is_wild else (lines[:10] + wild + lines[10:])
+    (tmp_path / "master" / "agent.jsonl").write_text("".join(master))
+    (tmp_path / "w1" / "agent.jsonl").write_text(
+        "".join(json.dumps({"t_s": t, "kind": "mode", "value": "AUTO"}) + "\n" for t in (1005.0, 1e15)))
+    (tmp_path / "master" / "throughput.jsonl").write_text(json.dumps(
+        {"t_s": -1e300, "kind": "throughput", "client": "master", "server": "w1"}) + "\n")
+    follower = RunFollower(tmp_path)
+    follower.finish()
+    kept = [p["t"] for p in positions(follower.records)]
+    assert kept == [1000.0 + k for k in range(20)]
+    assert follower.span == (1000.0, 1019.0)
+    assert [f["t"] for f in follower.records if f["k"] == "ev"] == [1005.0]
+    assert len(follower.problems) == len(WILD_T_S) + 2
+    assert all("t_s" in p and ("more than a day" in p) and p.endswith("skipped") for p in follower.problems)
+    assert any(p.startswith("w1/agent.jsonl:2: t_s 1000000000000000.0 ") for p in follower.problems)
+    assert any(p.startswith("master/throughput.jsonl:1: t_s -1e+300") for p in follower.problems)
+
+
+def test_a_long_live_run_moves_its_span_with_its_records(tmp_path):
+    """The span grows with each record kept: records a few hours apart over several days are all kept; a jump of
+    more than a day is not."""
+    (tmp_path / "w1").mkdir()
+    follower = RunFollower(tmp_path)
+    times = [1e6 + k * 6 * 3600.0 for k in range(12)]  # three days, a record every six hours
+    with (tmp_path / "w1" / "agent.jsonl").open("a") as f:
+        for t in times:
+            f.write(telemetry(t, 0.0, 0.0))
+            f.flush()
+            follower.poll()
+        f.write(telemetry(times[-1] + MAX_GAP_S + 1.0, 0.0, 0.0))
+    follower.poll()
+    assert [p["t"] for p in positions(follower.records)] == times and len(follower.problems) == 1
+
+
+def test_names_and_texts_from_records_reach_the_page_short_and_as_strings(tmp_path):
+    (tmp_path / "master").mkdir()
+    (tmp_path / "master" / "throughput.jsonl").write_text(json.dumps(
+        {"t_s": 1.0, "kind": "throughput", "client": "m" * 5000, "server": {"x": [1] * 1000}}) + "\n")
+    (tmp_path / "network.jsonl").write_text(
+        json.dumps({"t_s": 1.0, "kind": "link_rates", "a": ["master", {"x": 1}], "b": ["w1", "w" * 900],
+                    "rate_bps": [1e6, "fast"], "distance_m": [3.0, None]}) + "\n"
+        + json.dumps({"t_s": 1.5, "kind": "link_rates", "a": ["master"], "b": [], "rate_bps": 5,
+                      "distance_m": []}) + "\n")
+    frames = RunFollower(tmp_path).poll()
+    probe = next(f for f in frames if f["k"] == "probe")
+    assert len(probe["a"]) == MAX_ID_CHARS and len(probe["b"]) == MAX_ID_CHARS
+    caps = [f for f in frames if f["k"] == "cap"]
+    assert len(caps) == 1, "columns that are not lists of one length draw nothing"
+    assert caps[0]["a"] == ["master", "{'x': 1}"] and caps[0]["b"] == ["w1", "w" * MAX_ID_CHARS]
+    assert caps[0]["bps"] == [1e6, None] and caps[0]["d"] == [3.0, None]
+
+
+def test_a_frame_holds_a_bounded_number_of_positions(tmp_path):
+    (tmp_path / "w1").mkdir()
+    count = MAX_FRAME_POSITIONS * 2 + 5
+    line = json.loads(telemetry(1000.0, 0.0, 0.0))
+    (tmp_path / "w1" / "agent.jsonl").write_text(
+        "".join(json.dumps({**line, "t_s": 1000.0 + k * 0.01}) + "\n" for k in range(count)))
+    frames = RunFollower(tmp_path).poll()
+    assert [len(f["t"]) for f in frames] == [MAX_FRAME_POSITIONS, MAX_FRAME_POSITIONS, 5]
+    assert len(positions(frames)) == count

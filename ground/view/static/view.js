@@ -1,13 +1,16 @@
 // NAC's view: the run's frames (positions in local metres, probes, iterations, link capacities, events) drawn
 // at a cursor time, live (Server-Sent Events) or replayed (all frames at once, then play/pause/scrub).
+// Ids and names come from files and links: they index Maps only, never plain objects (a vehicle named
+// "__proto__", "constructor" or "toString" draws like any other), and reach the page as text or escaped.
 "use strict";
 
 const SVGNS = "http://www.w3.org/2000/svg";
 const COLORS = ["#2471a3", "#d35400", "#27ae60", "#8e44ad", "#c0392b", "#16a085", "#b7950b", "#5d6d7e"];
 const TRAIL_S = 60, RATE_WINDOW_S = 60;
 const view = {
-  info: null, pos: {}, probes: {}, caps: [], its: [], events: [], t0: Infinity, t1: -Infinity,
-  cursor: 0, follow: true, playing: false, speed: 10, lastSeq: -1, bounds: null, dirty: true, color: {},
+  info: null, roles: new Map(), pos: new Map(), probes: new Map(), caps: [], its: [], events: [], t0: Infinity,
+  t1: -Infinity, cursor: 0, follow: true, playing: false, speed: 10, lastSeq: -1, bounds: null, dirty: true,
+  color: new Map(), notes: [],  // notes: what the page itself had to say (a ?at= it could not take as given)
 };
 window.nacView = view;
 
@@ -33,12 +36,19 @@ function at(list, t) {  // the last frame at or before t
 }
 const esc = (text) => String(text).replace(/[&<>"']/g, (c) => "&#" + c.charCodeAt(0) + ";");  // names come from files and links
 function colorOf(id) {
-  if (!(id in view.color)) view.color[id] = COLORS[Object.keys(view.color).length % COLORS.length];
-  return view.color[id];
+  if (!view.color.has(id)) view.color.set(id, COLORS[view.color.size % COLORS.length]);
+  return view.color.get(id);
 }
+const roleOf = (id) => { const v = view.roles.get(id); return (v && typeof v.role === "string") ? v.role : "?"; };
+function setInfo(info) {  // the state's vehicles, as a Map: their ids are keys only there
+  view.info = info;
+  view.roles = new Map(Object.entries(info.vehicles || {}));
+}
+const missionsOf = (info) => Object.entries((info && info.missions) || {});
 
 function ingestPositions(f) {  // a batch of one vehicle's positions, as columns: one object per position
-  const list = (view.pos[f.v] = view.pos[f.v] || []);
+  if (!view.pos.has(f.v)) view.pos.set(f.v, []);
+  const list = view.pos.get(f.v);
   for (let j = 0; j < f.t.length; j++) {
     const p = { v: f.v, t: f.t[j], e: f.e[j], n: f.n[j], u: f.u[j], hdg: f.hdg[j], mode: f.mode[j], armed: f.armed[j],
                 batt: f.batt[j], seq: f.seq[j], tot: f.tot[j], tb: f.tb[j] };
@@ -54,7 +64,11 @@ function ingest(frames) {
     if (f.k === "pos") { ingestPositions(f); continue; }
     view.t0 = Math.min(view.t0, f.t);
     view.t1 = Math.max(view.t1, f.t);
-    if (f.k === "probe") { const key = f.a + ">" + f.b; (view.probes[key] = view.probes[key] || []); insertByTime(view.probes[key], f); }
+    if (f.k === "probe") {
+      const key = JSON.stringify([f.a, f.b]);
+      if (!view.probes.has(key)) view.probes.set(key, []);
+      insertByTime(view.probes.get(key), f);
+    }
     else if (f.k === "cap") insertByTime(view.caps, f);
     else if (f.k === "it") insertByTime(view.its, f);
     else if (f.k === "ev") insertByTime(view.events, f);
@@ -96,14 +110,14 @@ function layoutMap() {
   label.textContent = step + " m";
   const missions = $("missions");
   missions.replaceChildren();
-  for (const [vid, points] of Object.entries((view.info && view.info.missions) || {})) {
+  for (const [vid, points] of missionsOf(view.info)) {
     if (!points.length) continue;
     el("polyline", { points: points.map((p) => p[0] + "," + -p[1]).join(" "), class: "mission", stroke: colorOf(vid), "vector-effect": "non-scaling-stroke" }, missions);
     for (const p of points) el("circle", { cx: p[0], cy: -p[1], r: view.textM * 0.25, class: "waypoint" }, missions);
   }
 }
 
-function probeAt(a, b, t) { const list = view.probes[a + ">" + b]; return list ? at(list, t) : null; }
+function probeAt(a, b, t) { const list = view.probes.get(JSON.stringify([a, b])); return list ? at(list, t) : null; }
 function capacityAt(a, b, t) {
   const cap = at(view.caps, t);
   if (!cap || !cap.a) return null;
@@ -117,45 +131,43 @@ function drawMap(t) {
   layoutMap();
   const vehicles = $("vehicles"), trails = $("trails"), links = $("links");
   vehicles.replaceChildren(); trails.replaceChildren(); links.replaceChildren();
-  const here = {};
-  for (const [vid, list] of Object.entries(view.pos)) {
+  const here = new Map();
+  for (const [vid, list] of view.pos) {
     const p = at(list, t);
     if (!p) continue;
-    here[vid] = p;
+    here.set(vid, p);
     const trail = list.filter((q) => q.t <= t && q.t >= t - TRAIL_S);
     el("polyline", { points: trail.map((q) => q.e + "," + -q.n).join(" "), class: "trail", stroke: colorOf(vid), "vector-effect": "non-scaling-stroke" }, trails);
   }
-  const roles = (view.info && view.info.vehicles) || {};
-  const master = Object.keys(roles).find((v) => roles[v].role === "master");
-  if (master && here[master]) {
-    for (const [vid, p] of Object.entries(here)) {
+  const master = [...view.roles.keys()].find((v) => roleOf(v) === "master");
+  if (master !== undefined && here.has(master)) {
+    for (const [vid, p] of here) {
       if (vid === master) continue;
       const probe = probeAt(master, vid, t), cap = capacityAt(master, vid, t);
       const out = (probe && !probe.ok) || cap === 0;
-      const m = here[master];
+      const m = here.get(master);
       el("line", { x1: m.e, y1: -m.n, x2: p.e, y2: -p.n, class: "link" + (out ? " out" : ""), "data-worker": vid, "data-state": out ? "out" : "up", "stroke-width": 2, "vector-effect": "non-scaling-stroke" }, links);
       const label = el("text", { x: (m.e + p.e) / 2, y: -(m.n + p.n) / 2, class: "link-label", "font-size": view.textM * 0.8 }, links);
       label.textContent = (out ? "out of range" : probe ? mbit(probe.bps) + " Mbit/s" : "no probe yet") + (cap != null ? " (model " + mbit(cap) + ")" : "");
     }
   }
-  for (const [vid, p] of Object.entries(here)) {
+  for (const [vid, p] of here) {
     const g = el("g", { class: "vehicle" + (p.armed === false ? " disarmed" : ""), id: "vehicle-" + vid, "data-id": vid, "data-e": p.e, "data-n": p.n, "data-t": p.t, "data-tb": p.tb,
                         transform: `translate(${p.e},${-p.n})` }, vehicles);
     const s = view.textM * 0.9;
     el("polygon", { points: `0,${-s} ${s * 0.6},${s * 0.7} 0,${s * 0.35} ${-s * 0.6},${s * 0.7}`, class: "body", fill: colorOf(vid), transform: `rotate(${p.hdg || 0})`, "vector-effect": "non-scaling-stroke" }, g);
     const label = el("text", { x: s * 1.1, y: s * 0.4, "font-size": view.textM }, g);
-    label.textContent = `${vid} (${(roles[vid] || {}).role || "?"}) ${p.mode || ""}`;
+    label.textContent = `${vid} (${roleOf(vid)}) ${p.mode || ""}`;
   }
   return here;
 }
 
 // ---- panels and charts ------------------------------------------------------------------------------------
 function drawPanels(t, here) {
-  const roles = (view.info && view.info.vehicles) || {};
-  const rows = Object.keys({ ...roles, ...view.pos }).sort().map((vid) => {
-    const p = here[vid] || {};
+  const rows = [...new Set([...view.roles.keys(), ...view.pos.keys()])].sort().map((vid) => {
+    const p = here.get(vid) || {};
     const total = p.tot;  // MISSION_CURRENT's total, as the agent logged it
-    return `<tr><td style="color:${colorOf(vid)}">${esc(vid)}</td><td>${esc((roles[vid] || {}).role || "?")}</td><td>${esc(p.mode || "-")}</td>` +
+    return `<tr data-id="${esc(vid)}"><td style="color:${colorOf(vid)}">${esc(vid)}</td><td>${esc(roleOf(vid))}</td><td>${esc(p.mode || "-")}</td>` +
            `<td>${p.armed == null ? "-" : p.armed ? "armed" : "disarmed"}</td><td>${p.batt == null ? "-" : p.batt + " %"}</td>` +
            `<td>${p.seq == null ? "-" : p.seq + (total ? "/" + total : "")}</td></tr>`;
   });
@@ -168,8 +180,8 @@ function drawPanels(t, here) {
       `workers present ${last.n}/${last.of}; training cost ${last.cost == null ? "-" : last.cost.toPrecision(4)}`
     : `<span id="iterations" data-count="0">0</span> iterations yet`;
   chart($("cost-chart"), [{ color: "#1d2430", points: done.filter((it) => it.cost != null).map((it) => [it.t, it.cost]) }], t, "cost");
-  const series = Object.entries(view.probes).map(([key, list]) => ({
-    color: colorOf(key.split(">")[1]), label: key.split(">")[1],
+  const series = [...view.probes.values()].map((list) => ({
+    color: colorOf(list[0].b), label: list[0].b,
     points: list.filter((p) => p.t <= t).map((p) => [p.t, p.bps / 1e6]),
   }));
   chart($("tp-chart"), series, t, "Mbit/s");
@@ -201,7 +213,8 @@ function drawTimeline() {
   slider.max = span.toFixed(1);
   slider.value = (view.cursor - view.t0).toFixed(1);
   $("cursor-label").textContent = `${(view.cursor - view.t0).toFixed(1)} s of ${span.toFixed(1)} s`;
-  $("clock").textContent = new Date(view.cursor * 1000).toISOString().replace("T", " ").slice(0, 21) + " UTC";
+  const ms = view.cursor * 1000;  // a Date holds +-8.64e15 ms: a t_s past that is not a time of day
+  $("clock").textContent = Math.abs(ms) <= 8.64e15 ? new Date(ms).toISOString().replace("T", " ").slice(0, 21) + " UTC" : "";
   const ticks = $("ticks");
   if (ticks.dataset.count !== String(view.events.length) || ticks.dataset.span !== span.toFixed(1)) {
     ticks.dataset.count = view.events.length; ticks.dataset.span = span.toFixed(1);
@@ -236,27 +249,55 @@ function seek(t) { view.follow = false; view.cursor = Math.max(view.t0, Math.min
 view.seek = seek;
 
 function showNotes(info) {
-  const notes = [...info.missing.map((m) => "missing: " + m), ...info.problems];
+  const notes = [...view.notes, ...info.missing.map((m) => "missing: " + m), ...info.problems];
   $("notes-summary").textContent = notes.length ? `${notes.length} thing(s) missing or damaged` : "nothing missing";
   $("notes-list").innerHTML = notes.map((n) => `<li>${esc(n)}</li>`).join("");
 }
 
+async function getJSON(url) {
+  const response = await fetch(url);
+  if (!response.ok) throw new Error(`${url}: ${response.status} ${(await response.text()).slice(0, 200)}`);
+  return [await response.json(), response];
+}
+async function fetchRecords() {  // every frame, a bounded page at a time (the server says when more follow)
+  const all = [];
+  let after = -1;
+  for (;;) {
+    const [frames, response] = await getJSON("/api/records?after=" + after);
+    for (const f of frames) all.push(f);
+    if (!frames.length || response.headers.get("X-More-Records") !== "yes") return all;
+    after = frames[frames.length - 1].s;
+  }
+}
+function startAt(text) {  // ?at=end or seconds from the start, as a cursor inside the run (and what was changed)
+  const given = JSON.stringify(text.slice(0, 40));
+  if (text === "end") return [view.t1, null];
+  const s = /^\s*$/.test(text) ? NaN : Number(text);
+  const span = view.t1 - view.t0;
+  if (!Number.isFinite(s)) return [view.t0, `?at=${given}: expected seconds from the run's start or "end"; showing the start`];
+  if (s < 0) return [view.t0, `?at=${given}: before the run's start; showing the start`];
+  if (s > span) return [view.t1, `?at=${given}: after the run's end (${span.toFixed(1)} s); showing the end`];
+  return [view.t0 + s, null];
+}
+
 async function start() {
-  const records = fetch("/api/records").then((r) => r.json());  // both requests at once: a replay's records are most of the wait
-  view.info = await (await fetch("/api/state")).json();
+  const records = fetchRecords();  // both at once: a replay's records are most of the wait
+  setInfo((await getJSON("/api/state"))[0]);
   $("title").textContent = view.info.title;
   $("mode").textContent = view.info.live ? "live" : "replay";
   $("mode").classList.toggle("live", view.info.live);
   showNotes(view.info);
-  for (const points of Object.values(view.info.missions || {})) points.forEach((q) => grow(q[0], q[1]));
+  for (const [, points] of missionsOf(view.info)) points.forEach((q) => grow(q[0], q[1]));
   ingest(await records);
   const query = new URLSearchParams(location.search);
   const start = query.get("at");  // ?at=end or seconds from the start
   const snapshot = query.has("snapshot");  // no stream: what is there now (a screenshot's headless browser
   // waits for the network to be idle, which an open stream never is)
-  if (!view.info.live || start) {
+  if ((!view.info.live || start !== null) && isFinite(view.t0)) {
     view.follow = false;
-    view.cursor = start === "end" ? view.t1 : view.t0 + (parseFloat(start) || 0);
+    const [cursor, note] = start === null ? [view.t0, null] : startAt(start);
+    view.cursor = cursor;
+    if (note) { view.notes.push(note); showNotes(view.info); }
   }
   $("cursor").addEventListener("input", (e) => seek(view.t0 + parseFloat(e.target.value)));
   $("play").addEventListener("click", () => {
@@ -271,11 +312,11 @@ async function start() {
     stream.addEventListener("records", (e) => ingest(JSON.parse(e.data)));
     stream.addEventListener("end", () => stream.close());
     setInterval(async () => {  // missions and notes change as files appear
-      const info = await (await fetch("/api/state")).json();
+      const [info] = await getJSON("/api/state");
       const missionsChanged = JSON.stringify(info.missions) !== JSON.stringify(view.info.missions);
-      view.info = info; showNotes(info);
+      setInfo(info); showNotes(info);
       if (missionsChanged) {
-        for (const points of Object.values(info.missions || {})) points.forEach((q) => grow(q[0], q[1]));
+        for (const [, points] of missionsOf(info)) points.forEach((q) => grow(q[0], q[1]));
         view.mapKey = null; view.dirty = true;
       }
     }, 2000);
@@ -285,4 +326,8 @@ async function start() {
   document.body.dataset.ready = "1";
   requestAnimationFrame(tick);
 }
-start();
+start().catch((err) => {  // said on the page, never a page left "loading"
+  $("mode").textContent = "error";
+  $("notes-summary").textContent = "the view could not load: " + err.message;
+  document.body.dataset.error = err.message;
+});
