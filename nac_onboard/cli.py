@@ -23,7 +23,7 @@ import logging
 import sys
 
 from nac_onboard.agent.config import load_agent_config
-from nac_onboard.errors import OperationFailed, run_cli
+from nac_onboard.errors import BadInput, OperationFailed, run_cli
 from nac_onboard.link.throughput import DEFAULT_PORT
 
 
@@ -149,9 +149,12 @@ def throughput_command(args) -> int:
             pass
         return 0
     duration_s = args.duration_s if args.duration_s is not None or args.nbytes is not None else 1.0
-    result = probe(args.host, args.port, duration_s=duration_s, nbytes=args.nbytes, interval_s=args.interval_s,
-                   rate_bps=args.rate_bps)
-    print(json.dumps(result, indent=2))
+    try:  # a bad answer is a ProbeError (exit 1, its sentence); our own settings out of range are bad input
+        result = probe(args.host, args.port, duration_s=duration_s, nbytes=args.nbytes,
+                       interval_s=args.interval_s, rate_bps=args.rate_bps)
+    except ValueError as err:
+        raise BadInput(f"throughput probe: {err}") from None
+    print(json.dumps(result, indent=2, allow_nan=False))  # checked values only: NaN or Infinity would be a bug
     return 0
 
 

@@ -3,7 +3,10 @@
 A probe occupies a path for duration_s out of every period_s (the duty cycle), and rate_bps can cap it further,
 so the compute traffic sharing the Wi-Fi is not starved. Each record is the iperf3-shaped result of
 `throughput.probe` plus who probed whom, both positions at the start and end of the probe and their distances.
-A probe that fails is logged too, with iperf3's `error` key: a broken link is a measurement, not a gap.
+A probe that fails is logged too, with iperf3's `error` key: a broken link is a measurement, not a gap; its
+`error_kind` says whose fault it was ("link": nothing more got through, kept in the analysis as a zero; "server":
+the server refused or answered wrongly, left out). A probe that raises anything else (a bug, a target out of
+range) is a `probe_failed` record, and the schedule goes on: no answer from any server stops later probes.
 With `emulate_channel` (SITL), each probe is paced at the channel model's capacity for the pair's distance at
 its start, and a pair beyond the model's range fails as a real one would: loopback then looks like the radio.
 Periods and durations are in the run's time (nac_onboard.clock): at a speed-up X a probe lasts duration_s / X on
@@ -50,16 +53,42 @@ class ProbeScheduler:
     def join(self, timeout_s: float) -> None:
         self._thread.join(timeout_s)
 
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
     def _run(self) -> None:
+        """Rounds until stopped. No probe, target list or answer can end the schedule: an exception from one
+        probe is logged as a probe_failed record and the round goes on to the next target."""
         next_round = time.monotonic()
         while not self.stop_event.wait(max(next_round - time.monotonic(), 0.0)):
             next_round += self.clock.wall_s(self.settings.period_s)
-            for peer_id, host, port in self.targets():
+            try:
+                targets = list(self.targets())
+            except Exception:
+                log.exception("throughput probes: the target list failed; trying again next round")
+                targets = []
+            for target in targets:
                 if self.stop_event.is_set():
                     return
-                self.probe_once(peer_id, host, port)
+                self._probe_guarded(target)
             self.rounds += 1
             next_round = max(next_round, time.monotonic())
+
+    def _probe_guarded(self, target) -> None:
+        try:
+            peer_id, host, port = target
+            self.probe_once(peer_id, host, port)
+        except Exception as err:  # a bug, or input nobody checked: one probe lost, never the schedule
+            log.exception("throughput probe to %r failed", target)
+            given = list(target)[:3] if isinstance(target, (tuple, list)) else [target]
+            peer_id, host, port = (given + [None, None, None])[:3]
+            try:
+                self.out.write(kinds.PROBE_FAILED, server=str(peer_id), host=str(host),
+                               port=port if isinstance(port, int) and not isinstance(port, bool) else -1,
+                               error=f"{type(err).__name__}: {err}"[:500])
+            except Exception:
+                log.exception("throughput probes: could not log the failed probe")
 
     def probe_once(self, peer_id: str, host: str, port: int) -> dict:
         s = self.settings

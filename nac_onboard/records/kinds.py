@@ -181,6 +181,10 @@ THROUGHPUT = Kind("throughput", THROUGHPUT_LOG, "one probe, shaped as iperf3 --j
 ), open="real iperf3's own JSON keys, kept as it wrote them")
 PROBE_SKIPPED = Kind("probe_skipped", THROUGHPUT_LOG, "no probe: a position of the pair is not known yet",
                      (*_PROBE, req("reason", "string", "", "why")))
+PROBE_FAILED = Kind("probe_failed", THROUGHPUT_LOG, "the probe could not be made (an error in the agent, not a "
+                    "measurement: left out of the analysis); the schedule goes on", (
+    req("server", "string", "", "the vehicle to be probed"), req("host", "string", "", "its address"),
+    req("port", "integer", "", "its port (as given, even out of range)"), req("error", "string", "", "what failed")))
 
 # ---- the MPI job: compute/compute.jsonl, compute/rank-N.jsonl ------------------------------------------------
 RUN_STARTED = Kind("run_started", COMPUTE_LOG, "the job is set up (after one untimed warm-up exchange)", (
