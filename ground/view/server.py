@@ -31,6 +31,7 @@ from urllib.parse import urlsplit
 
 import orjson
 from aiohttp import web
+from aiohttp.http_exceptions import HttpProcessingError
 
 from ground.view.records import RunFollower
 from nac_onboard.errors import NacError, OperationFailed
@@ -40,6 +41,23 @@ STATIC = Path(__file__).parent / "static"
 POLL_S = 0.1  # how often a live run's files are read: 10 updates a second
 HEARTBEAT_S = 15.0  # an SSE comment when nothing new: proxies and browsers keep the stream open
 MAX_RESPONSE_BYTES = 16 << 20  # of frames in one /api/records answer or one SSE event (a frame is bounded too)
+
+
+class _RequestLog(logging.Logger):
+    """aiohttp's log of the requests it serves: one it could not parse (no Host, a malformed line: hostile or
+    broken input) is a one-line warning, not a traceback; anything else as aiohttp logs it."""
+
+    def exception(self, msg, *args, exc_info=True, **kwargs):
+        if isinstance(exc_info, HttpProcessingError):
+            self.warning(msg + ": %s", *args, str(exc_info).strip().replace("\n", " "))
+        else:
+            super().exception(msg, *args, exc_info=exc_info, **kwargs)
+
+
+REQUEST_LOG = _RequestLog("ground.view.http")
+REQUEST_LOG.parent = log
+
+
 LOOPBACK_NAMES = frozenset({"localhost", "localhost.localdomain", "ip6-localhost", "ip6-loopback"})
 
 
@@ -72,7 +90,7 @@ class ViewServer:
         """Serve on host:port (0: any free port); returns the page's URL. A taken port: OperationFailed naming it."""
         self._changed = asyncio.Event()
         self.bind_host = host
-        self._runner = web.AppRunner(self.app(), access_log=None, shutdown_timeout=2.0)
+        self._runner = web.AppRunner(self.app(), access_log=None, shutdown_timeout=2.0, logger=REQUEST_LOG)
         await self._runner.setup()
         site = web.TCPSite(self._runner, host, port)
         try:

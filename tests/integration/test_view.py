@@ -496,11 +496,13 @@ def spoofed_hosts(port: int) -> list[str | None]:
             *made, *(f"{m}:{port}" for m in made)]
 
 
-def test_the_view_answers_only_to_its_own_address_and_given_names(tmp_path):
+def test_the_view_answers_only_to_its_own_address_and_given_names(tmp_path, caplog):
     """DNS rebinding: a page of another site whose name points at this machine sends its own name as Host. On a
     loopback bind only loopback addresses and localhost are answered (every route: the page, state, records,
     the stream, static files), names given by allowed_hosts too; anything else is 421 with a sentence, a
     cross-site Origin is 403. On an every-interface bind, any address is answered and names still are not."""
+    import socket
+
     run = write_damaged_run(tmp_path / "run")
     viewer = ViewThread(ViewServer(run, live=True, allowed_hosts=["nac-ground.lab"]), "127.0.0.1:0")
     port = int(viewer.start().rsplit(":", 1)[1].strip("/"))
@@ -520,6 +522,12 @@ def test_the_view_answers_only_to_its_own_address_and_given_names(tmp_path):
             status, text = raw_get(port, "/api/state", f"127.0.0.1:{port}", origin)
             assert status == 403 and "refuses requests from pages of" in text, (origin, status)
         assert raw_get(port, "/api/state", f"127.0.0.1:{port}", f"http://localhost:{port}")[0] == 200
+        with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:  # HTTP/1.1 needs a Host
+            sock.sendall(b"GET /api/state HTTP/1.1\r\nConnection: close\r\n\r\n")
+            assert sock.recv(100).split(b" ")[1] == b"400"
+        refused = [r for r in caplog.records if r.name.startswith("ground.view")]
+        assert refused and all(r.exc_info is None and "Host" in r.getMessage() for r in refused), \
+            "a request aiohttp cannot parse is one line in the log, not a traceback"
     finally:
         viewer.stop()
     wildcard = ViewThread(ViewServer(run, live=False), "0.0.0.0:0")
