@@ -138,6 +138,8 @@ def throughput_command(args) -> int:
     from nac_onboard.link.throughput import ThroughputServer, probe
 
     if args.action == "server":
+        if not 0 <= args.port <= 65535:
+            raise BadInput(f"throughput server: --port must be in 0..65535 (0: any free port), not {args.port}")
         try:
             server = ThroughputServer(args.bind, args.port)
         except OSError as err:

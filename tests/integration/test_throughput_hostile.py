@@ -238,6 +238,9 @@ def test_the_probe_cli_says_one_sentence_and_exits_1_on_every_bad_answer(hostile
         done = subprocess.run([sys.executable, "-m", "nac_onboard.cli", "throughput", "probe", "127.0.0.1", *bad],
                               capture_output=True, text=True, timeout=60, cwd=REPO)
         assert done.returncode == 2 and "Traceback" not in done.stderr and done.stderr.strip(), (bad, done.stderr)
+    done = subprocess.run([sys.executable, "-m", "nac_onboard.cli", "throughput", "server", "--port", "70000"],
+                          capture_output=True, text=True, timeout=60, cwd=REPO)
+    assert done.returncode == 2 and "Traceback" not in done.stderr and "--port" in done.stderr, done.stderr
 
 
 # ---- a path that stops carrying data -------------------------------------------------------------------------
