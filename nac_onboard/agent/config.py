@@ -7,7 +7,6 @@ that names the file, the key and what was expected (a typo must not silently fal
 from __future__ import annotations
 
 import dataclasses
-import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,7 +20,6 @@ from nac_onboard.radio.files import load_channel
 from nac_onboard.tomlfile import read_toml, to_dataclass
 
 ROLES = ("master", "worker")
-MIN_PASSPHRASE_CHARS = 16  # a fleet key file's passphrase (a file of 64 hex characters is the key itself)
 PROBE_TOOLS = ("nac", "iperf3")
 
 
@@ -38,7 +36,10 @@ class VehicleSection:
 
 @dataclass(frozen=True)
 class AutopilotSection:
-    uri: str = "serial:/dev/ttyTHS2:921600"  # Jetson TX2 TELEM2; SITL: udpin:0.0.0.0:<companion port>
+    uri: str = "serial:/dev/ttyTHS2:921600"  # Jetson TX2 TELEM2; SITL: udpin:127.0.0.1:<companion port>
+    # a listening link (udpin:, tcpin:) takes one peer: this IPv4 "HOST:PORT" or "HOST" (any port of it); "" = the
+    # first sender that speaks valid MAVLink, then locked. Everyone else is refused and counted (docs/security.md)
+    peer: str = ""
     link_timeout_s: float = 3.0  # no heartbeat this long = link lost
     reconnect_s: float = 2.0  # how often a lost serial/tcp link is reopened
     stream_hz: float = 10.0  # telemetry rate asked of the autopilot (REQUEST_DATA_STREAM); 0 = leave as is
@@ -72,12 +73,7 @@ class PeersSection:
     key_file: str = ""  # the fleet key, the same on every vehicle (docs/security.md); relative: beside this file
     key_id: str = "fleet"  # names the key in each message, so a fleet can change keys
     allow_unsigned: bool = False  # accept peers that do not sign (a lab without keys, at its own risk)
-    # a peer's new boot (or one first heard since our start) dated further from our clock is refused (needs clocks
-    # synced to within it); later messages of that boot are judged by the sender's own sequence (docs/security.md)
-    replay_window_s: float = 30.0
-    # the last sequence accepted from each peer, so our restart does not accept datagrams captured before it;
-    # "" = $STATE_DIRECTORY (systemd's, /var/lib/nac) or else log.dir, as peer-freshness-VEHICLE.json
-    state_file: str = ""
+    replay_window_s: float = 30.0  # signed messages dated further from our clock are refused (needs synced clocks)
 
 
 @dataclass(frozen=True)
@@ -145,7 +141,6 @@ def parse_agent_config(data: dict, source: str = "<config>") -> AgentConfig:
         if not key_path.is_absolute() and source != "<config>":
             key_path = Path(source).parent / key_path  # beside the config file, as install.sh puts it
         try:
-            _check_fleet_passphrase(key_path)
             secret = load_signing_key(key_path)
             config = dataclasses.replace(config, fleet_key=FleetKey(config.peers.key_id, secret))
         except BadInput as err:
@@ -196,6 +191,7 @@ def _check(c: AgentConfig) -> None:
 
         for uri in (c.autopilot.uri, *c.routing.endpoints, *c.routing.watch):
             mavutil_device(uri)
+        _check_autopilot_peer(c.autopilot)
         for text in c.routing.allow:
             parse_host_port(text, "routing.allow")
         for key, text in [("peers.listen", c.peers.listen), ("state_feed.listen", c.state_feed.listen)]:
@@ -215,30 +211,17 @@ def _check(c: AgentConfig) -> None:
         raise ConfigError(f"{src}: {err}") from None
 
 
-def _check_fleet_passphrase(path: Path) -> None:
-    """A fleet key file holds 64 hex characters (the secret) or a passphrase whose SHA-256 is the secret: anyone who
-    guesses a short passphrase can sign peer state for the whole fleet, so one under MIN_PASSPHRASE_CHARS is refused."""
-    try:
-        if not path.is_file():
-            return  # load_signing_key names what is wrong with it
-        with open(path, "rb") as f:
-            text = f.read(4096).decode().strip()
-    except (OSError, UnicodeDecodeError):
-        return
-    if len(text) == 64 and all(ch in "0123456789abcdefABCDEF" for ch in text):
-        return  # the 32-byte key itself
-    if len(text) < MIN_PASSPHRASE_CHARS:
-        raise BadInput(f"{path}: a passphrase of {len(text)} characters is too weak: at least {MIN_PASSPHRASE_CHARS} "
-                       "characters, or 64 hex characters (a 32-byte key, docs/security.md)")
 
 
-def peers_state_path(config: AgentConfig) -> Path:
-    """Where the agent keeps the last sequence accepted from each peer (peers.state_file)."""
-    if config.peers.state_file:
-        return Path(config.peers.state_file)
-    directory = os.environ.get("STATE_DIRECTORY", "").split(":")[0] or config.log.dir
-    return Path(directory) / f"peer-freshness-{config.vehicle.id}.json"
+def _check_autopilot_peer(a: AutopilotSection) -> None:
+    """autopilot.peer names who may be the autopilot on a listening link; the other schemes have one peer by
+    construction (the device, the address connected to), where a peer setting would be a misunderstanding."""
+    from nac_onboard.mavlink.client import parse_peer
 
-
+    parse_peer(a.peer, "autopilot.peer")
+    scheme = a.uri.partition(":")[0]
+    if a.peer and scheme not in ("udpin", "tcpin"):
+        raise BadInput(f"autopilot.peer is only for a listening link (udpin:, tcpin:); {a.uri} has one peer by "
+                       "construction: remove autopilot.peer")
 def load_agent_config(path: str | Path) -> AgentConfig:
     return parse_agent_config(read_toml(path, "agent config", ConfigError), str(path))

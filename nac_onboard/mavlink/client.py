@@ -7,9 +7,13 @@ holds one or more links and tracks every vehicle heard on them, by system id.
 
 from __future__ import annotations
 
+import errno
+import hashlib
+import ipaddress
 import logging
 import os
 import select
+import socket
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -28,7 +32,6 @@ LANDED_STATES = {M.MAV_LANDED_STATE_UNDEFINED: "unknown", M.MAV_LANDED_STATE_ON_
                  M.MAV_LANDED_STATE_IN_AIR: "in air", M.MAV_LANDED_STATE_TAKEOFF: "taking off",
                  M.MAV_LANDED_STATE_LANDING: "landing"}
 HEARTBEAT_PERIOD_S = 1.0
-UINT16_UNKNOWN = 65535  # SYS_STATUS.voltage_battery: "not sent by the autopilot"
 #: What TelemetryState and the client's own operations (commands, mission transfer) read.
 CLIENT_MESSAGES = frozenset({
     "HEARTBEAT", "GLOBAL_POSITION_INT", "ATTITUDE", "SYS_STATUS", "EXTENDED_SYS_STATE", "MISSION_CURRENT",
@@ -58,6 +61,174 @@ class CommandError(OperationFailed):
 #: URI scheme -> pymavlink options; the device string is the URI itself for network links.
 _NETWORK_SCHEMES = {"udpin": {}, "udpout": {}, "tcpin": {},
                     "tcp": {"retries": 0}}  # fail fast: callers that want to wait retry on their own schedule
+
+
+#: A refused datagram or connection costs one recvfrom_into (or accept) and a compare; at most this many are taken
+#: per read, so a flood cannot hold the caller's loop (10 ms of a 50,000/s flood).
+REFUSED_PER_READ = 512
+MAX_DATAGRAM_BYTES = 65535
+
+
+@dataclass(frozen=True)
+class PeerSpec:
+    """Who may be the other end of a listening link (udpin:, tcpin:): HOST (an IP address) and PORT, or HOST with
+    any port (port 0), or nobody named (host ""): the first sender that speaks a valid MAVLink frame (signed with
+    our key when signing is on), then locked to it. Everyone else is refused and counted. A peer taken as the first
+    that spoke is released only when its owner says the peer went silent (release())."""
+
+    host: str = ""
+    port: int = 0
+
+    def __str__(self) -> str:
+        return "first sender" if not self.host else f"{self.host}:{self.port}" if self.port else self.host
+
+
+def parse_peer(text: str, what: str) -> PeerSpec:
+    """PeerSpec from "" (the first that speaks), "HOST" or "HOST:PORT" with HOST an IPv4 address; BadInput naming
+    `what` otherwise."""
+    text = str(text).strip()
+    if not text:
+        return PeerSpec()
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        host, port = text, ""
+    expected = f"{what}: expected an IPv4 address, optionally with :PORT (1-65535), got {text!r}"
+    try:
+        address = ipaddress.IPv4Address(host)
+    except ValueError:
+        raise BadInput(expected) from None
+    if port and not (port.isdigit() and 1 <= int(port) <= 65535):
+        raise BadInput(expected)
+    if address.is_unspecified or address.is_multicast or address == ipaddress.IPv4Address("255.255.255.255"):
+        raise BadInput(f"{what}: {host} is not one peer's address; {expected[len(what) + 2:]}")
+    return PeerSpec(str(address), int(port) if port else 0)
+
+
+class _PeerLock:
+    """What both one-peer links share: the rule for who is taken, the refusal counters."""
+
+    def _init_lock(self, peer: PeerSpec, key: bytes | None) -> None:
+        self.peer_spec, self.key, self._configured = peer, key, peer
+        self.refused = 0  # datagrams or connections from anyone but the peer, since the link opened
+        self.last_refused_from: tuple[str, int] | None = None
+        self._checker = M.MAVLink(None)  # CRC only: decoding with the link's own parser would change its state
+
+    def release(self) -> None:
+        """Forget a peer taken as the first that spoke (the autopilot went silent: it may come back from another
+        port, as a restarted SITL does); a configured HOST:PORT is kept."""
+        self.peer_spec = self._configured
+        if hasattr(self, "peer") and not (self._configured.host and self._configured.port):
+            self.peer = None
+
+    def _refuse(self, sender) -> None:
+        self.refused += 1
+        self.last_refused_from = sender
+
+    def _host_allowed(self, sender) -> bool:
+        spec = self.peer_spec
+        return not spec.host or (sender[0] == spec.host and (not spec.port or sender[1] == spec.port))
+
+    def _speaks_mavlink(self, data) -> bool:
+        """Whether data holds a frame with a valid CRC (and, with a key, a valid signature)."""
+        for frame in split_frames(data)[0]:
+            if self.key is not None:
+                if not frame[2] & INCOMPAT_SIGNED or frame[0] != 0xFD or \
+                        hashlib.sha256(self.key + frame[:-6]).digest()[:6] != frame[-6:]:
+                    continue
+            try:  # the checker has no key: it checks the CRC and leaves signatures (and their state) alone
+                self._checker.decode(bytearray(frame))
+            except M.MAVError:
+                continue
+            except Exception:  # noqa: BLE001 - a hostile frame pymavlink cannot unpack
+                continue
+            return True
+        return False
+
+
+class OnePeerUdp(mavutil.mavudp, _PeerLock):
+    """udpin: a listening UDP link with one peer. pymavlink's own udpin answers every address that ever sent it a
+    datagram (and takes their frames as the autopilot's); this one takes frames only from its peer and sends only
+    to it. A refused datagram is read into one buffer and dropped before any decoding."""
+
+    def __init__(self, address: str, peer: PeerSpec, key: bytes | None, **kwargs):
+        super().__init__(address, input=True, **kwargs)
+        self._init_lock(peer, key)
+        self.peer: tuple[str, int] | None = (peer.host, peer.port) if peer.host and peer.port else None
+        self._buffer = bytearray(MAX_DATAGRAM_BYTES)
+        self._view = memoryview(self._buffer)
+
+    def recv(self, n=None):
+        receive, view = self.port.recvfrom_into, self._view
+        for _ in range(REFUSED_PER_READ):
+            try:
+                size, sender = receive(self._buffer)
+            except (BlockingIOError, InterruptedError):
+                return b""
+            except OSError:  # an ICMP error from an earlier send: nothing to read now
+                return b""
+            if sender == self.peer:
+                return bytes(view[:size])
+            if self.peer is None and self._host_allowed(sender) and self._speaks_mavlink(bytes(view[:size])):
+                self.peer = sender
+                return bytes(view[:size])
+            self._refuse(sender)
+        return b""
+
+    def write(self, buf):
+        if self.peer is None:
+            return  # nobody to answer yet: never anyone else
+        try:
+            self.port.sendto(buf, self.peer)
+        except OSError:
+            pass
+
+
+class OnePeerTcpIn(mavutil.mavtcpin, _PeerLock):
+    """tcpin: one connection at a time, from the peer's host (the configured one, else the first that connected);
+    every other connection is accepted and closed at once (so none waits in the backlog), and counted."""
+
+    def __init__(self, address: str, peer: PeerSpec, key: bytes | None, **kwargs):
+        super().__init__(address, **kwargs)
+        self._init_lock(PeerSpec(peer.host), key)  # a TCP client's port is ephemeral: its host is the peer
+
+    def recv(self, n=None):
+        for _ in range(REFUSED_PER_READ):
+            try:
+                conn, sender = self.listen.accept()
+            except OSError:
+                break
+            if self.port is None and self._host_allowed(sender):
+                if not self.peer_spec.host:
+                    self.peer_spec = PeerSpec(sender[0])  # locked to the first host that connected
+                conn.setsockopt(socket.SOL_TCP, socket.TCP_NODELAY, 1)
+                conn.setblocking(False)
+                mavutil.set_close_on_exec(conn.fileno())
+                self.port, self.fd = conn, conn.fileno()
+            else:
+                conn.close()
+                self._refuse(sender)
+        if self.port is None:
+            return b""
+        try:
+            data = self.port.recv(n or MAX_DATAGRAM_BYTES)
+        except (BlockingIOError, InterruptedError):
+            return b""
+        except OSError:
+            data = b""
+        if not data:  # the peer closed: wait for it to connect again (from its host)
+            self.port.close()
+            self.port, self.fd = None, self.listen.fileno()
+        return data
+
+    def write(self, buf):
+        if self.port is None:
+            return
+        try:
+            self.port.send(buf)
+        except OSError as err:
+            if err.errno in (errno.EPIPE, errno.ECONNRESET):
+                self.port.close()
+                self.port, self.fd = None, self.listen.fileno()
 
 
 def mavutil_device(uri: str) -> tuple[str, dict]:
@@ -94,8 +265,8 @@ class TelemetryState:
     roll_deg: float = 0.0
     pitch_deg: float = 0.0
     yaw_deg: float = 0.0
-    battery_pct: int | None = None  # None: unknown (MAVLink's battery_remaining = -1, or not heard yet)
-    voltage_v: float | None = None  # None: unknown (MAVLink's voltage_battery = UINT16_MAX, or not heard yet)
+    battery_pct: int = -1
+    voltage_v: float = float("nan")
     landed: str = "unknown"
     time_boot_ms: int = -1  # the autopilot's clock at the last position (GLOBAL_POSITION_INT)
     mission_seq: int = 0
@@ -128,10 +299,8 @@ class TelemetryState:
             self.roll_deg, self.pitch_deg, self.yaw_deg = (v * 57.29577951308232 for v in
                                                            (msg.roll, msg.pitch, msg.yaw))
         elif kind == "SYS_STATUS":
-            # MAVLink's "unknown" (-1, UINT16_MAX) and anything outside the field's range are unknown, not numbers
-            remaining = msg.battery_remaining
-            self.battery_pct = remaining if 0 <= remaining <= 100 else None
-            self.voltage_v = msg.voltage_battery / 1000 if msg.voltage_battery != UINT16_UNKNOWN else None
+            self.battery_pct = msg.battery_remaining
+            self.voltage_v = msg.voltage_battery / 1000
         elif kind == "EXTENDED_SYS_STATE":
             self.landed = LANDED_STATES.get(msg.landed_state, "unknown")
         elif kind == "MISSION_CURRENT":
@@ -166,12 +335,23 @@ class RawFrame:
 
 class Link:
     def __init__(self, uri: str, index: int, source_system: int, source_component: int,
-                 signing: SigningState | None, mav_type: int = M.MAV_TYPE_GCS):
+                 signing: SigningState | None, mav_type: int = M.MAV_TYPE_GCS, one_peer: PeerSpec | None = None):
+        """one_peer: a listening link (udpin:, tcpin:) takes frames from that one peer only (OnePeerUdp,
+        OnePeerTcpIn); None keeps pymavlink's listen-to-everyone (ground tools hearing several vehicles)."""
         self.uri, self.index, self.mav_type = uri, index, mav_type
         device, options = mavutil_device(uri)
+        scheme, _, address = uri.partition(":")
+        key = signing.key if signing is not None else None
         try:
-            self.conn = mavutil.mavlink_connection(device, source_system=source_system,
-                                                   source_component=source_component, **options)
+            if one_peer is not None and scheme == "udpin":
+                self.conn = OnePeerUdp(address, one_peer, key, source_system=source_system,
+                                       source_component=source_component)
+            elif one_peer is not None and scheme == "tcpin":
+                self.conn = OnePeerTcpIn(address, one_peer, key, source_system=source_system,
+                                         source_component=source_component)
+            else:
+                self.conn = mavutil.mavlink_connection(device, source_system=source_system,
+                                                       source_component=source_component, **options)
         except OSError as err:
             raise LinkError(f"cannot open {uri}: {err.strerror or err}") from None
         self.signing_key = signing.key if signing is not None else None
@@ -189,6 +369,22 @@ class Link:
 
     def fileno(self) -> int:
         return self.conn.fd if getattr(self.conn, "fd", None) is not None else self.conn.port.fileno()
+
+    @property
+    def refused(self) -> int:
+        """Datagrams or connections refused from others than the one peer (0 for links without one)."""
+        return getattr(self.conn, "refused", 0)
+
+    def release_peer(self) -> None:
+        """The peer went silent: a listening one-peer link takes the next that speaks (within autopilot.peer)."""
+        if hasattr(self.conn, "release"):
+            self.conn.release()
+
+    @property
+    def peer(self) -> str:
+        """HOST:PORT the link answers ("" while nobody has spoken, or for links without one peer)."""
+        peer = getattr(self.conn, "peer", None)
+        return f"{peer[0]}:{peer[1]}" if peer else ""
 
     def read_filtered(self, wanted_ids: frozenset) -> list:
         """Everything waiting on the link, decoding only the message ids in wanted_ids; other frames come back
@@ -241,9 +437,9 @@ class MavlinkClient(MissionTransfer):
     def __init__(self, uris: list[str] | str | None = None, sysid: int | None = None, signing_key: bytes | None = None,
                  source_system: int = 255, source_component: int = M.MAV_COMP_ID_MISSIONPLANNER,
                  mav_type: int = M.MAV_TYPE_GCS, decode_only: set[str] | None = None,
-                 signing_state_file: str | None = None):
+                 signing_state_file: str | None = None, one_peer: PeerSpec | None = None):
         """decode_only: message names to decode (plus what the client itself needs); every other frame is
-        returned as a RawFrame. None decodes everything."""
+        returned as a RawFrame. None decodes everything. one_peer: listening links take one peer only (Link)."""
         if uris is None or uris == []:
             uris = [os.environ.get("NAC_MAVLINK_URI", DEFAULT_URI)]
         elif isinstance(uris, str):
@@ -251,7 +447,7 @@ class MavlinkClient(MissionTransfer):
         self.links: list[Link] = []
         # one signing state for every link: the timestamps of one key on this machine (kept beside the key file)
         self.signing = SigningState(signing_key, signing_state_file) if signing_key is not None else None
-        self._link_args = (source_system, source_component, self.signing, mav_type)
+        self._link_args = (source_system, source_component, self.signing, mav_type, one_peer)
         try:
             for k, uri in enumerate(uris):
                 self.links.append(Link(uri, k, *self._link_args))

@@ -102,6 +102,7 @@ AGENT_STOPPED = Kind("agent_stopped", AGENT_LOG, "the agent stopped, with its co
         ("peer_msgs", "peer states taken"), ("bad_peer_msgs", "peer datagrams refused"),
         ("feed_requests", "state-feed answers"), ("bad_feed_requests", "state-feed requests refused"),
         ("routing_refused", "frames refused by routing.allow"))),
+    opt("autopilot_refused", "integer", "", "datagrams or connections refused on the autopilot link (not its peer)"),
 ))
 WARNING = Kind("warning", AGENT_LOG, "a setting that lowers safety", (req("text", "string", "", "what and why"),))
 ROUTING_ERROR = Kind("routing_error", AGENT_LOG, "a routing endpoint could not open", (
@@ -128,11 +129,8 @@ MISSION_CURRENT = Kind("mission_current", AGENT_LOG, "the current mission item c
 MISSION_STATE = Kind("mission_state", AGENT_LOG, "MISSION_CURRENT's mission state changed", _CHANGE)
 MISSION_ITEM_REACHED = Kind("mission_item_reached", AGENT_LOG, "MISSION_ITEM_REACHED",
                             (req("seq", "integer", "", "the item"),))
-STATUSTEXT = Kind("statustext", AGENT_LOG, "the autopilot's STATUSTEXT (rate-limited: the same text at most once "
-                  "per 5 s, at most 10 records a second)", (
-    req("severity", "integer", "", "MAV_SEVERITY"), req("text", "string", "", "the text"),
-    opt("repeated", "integer", "", "times the previous record's text came again, not logged, since that record"),
-    opt("dropped_since_last", "integer", "", "other texts not logged since the previous record (over the rate)")))
+STATUSTEXT = Kind("statustext", AGENT_LOG, "the autopilot's STATUSTEXT", (
+    req("severity", "integer", "", "MAV_SEVERITY"), req("text", "string", "", "the text")))
 LINK_OPEN_FAILED = Kind("link_open_failed", AGENT_LOG, "the autopilot link could not open (retried)", (
     req("uri", "string", "", "autopilot URI"), req("error", "string", "", "why"),
     req("attempts", "integer", "", "failed attempts so far")))
@@ -140,6 +138,15 @@ LINK_OPENED = Kind("link_opened", AGENT_LOG, "the autopilot link opened", (
     req("uri", "string", "", "autopilot URI"), req("after_attempts", "integer", "", "attempts it took")))
 LINK_ERROR = Kind("link_error", AGENT_LOG, "the autopilot link failed", (
     req("uri", "string", "", "autopilot URI"), req("error", "string", "", "why")))
+AUTOPILOT_PEER = Kind("autopilot_peer", AGENT_LOG, "a listening autopilot link took its one peer (autopilot.peer)", (
+    req("uri", "string", "", "autopilot URI"), req("peer", "string", "", "HOST:PORT taken as the autopilot"),
+    req("configured", "string", "", "autopilot.peer as set (\"\" = the first sender that speaks MAVLink)")))
+AUTOPILOT_REFUSED = Kind("autopilot_refused", AGENT_LOG,
+                         "datagrams or connections refused on the autopilot link from others than its peer "
+                         "(rate-limited)", (
+                             req("refused_since_last_record", "integer", "", "refused since the last such record"),
+                             req("last_sender", "string", "", "HOST:PORT of the last refused sender"),
+                             req("peer", "string", "", "HOST:PORT of the autopilot (\"\" before it spoke)")))
 LINK_UP = Kind("link_up", AGENT_LOG, "the autopilot's first heartbeat", (
     req("sysid", "integer", "", "its system id"), req("autopilot", "integer", "", "MAV_AUTOPILOT"),
     req("vehicle_type", "integer", "", "MAV_TYPE"), req("mavlink_version", "integer", "", "from HEARTBEAT")))
