@@ -18,7 +18,7 @@ def vehicle_rows(vehicles: dict, now_s: float) -> list[tuple[str, ...]]:
         rows.append((
             str(sysid), v.mode, "yes" if v.armed else "no", _num(v.lat_deg, ".7f"), _num(v.lon_deg, ".7f"),
             _num(v.rel_alt_m, ".1f"), _num(v.ground_speed_mps, ".1f"),
-            "-" if v.battery_pct < 0 else str(v.battery_pct), f"{v.mission_seq}/{v.mission_total}",
+            "-" if v.battery_pct is None else str(v.battery_pct), f"{v.mission_seq}/{v.mission_total}",
             _num(v.link_age_s(now_s), ".1f"),
         ))
     return rows

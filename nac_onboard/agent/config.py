@@ -7,6 +7,7 @@ that names the file, the key and what was expected (a typo must not silently fal
 from __future__ import annotations
 
 import dataclasses
+import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,6 +21,7 @@ from nac_onboard.radio.files import load_channel
 from nac_onboard.tomlfile import read_toml, to_dataclass
 
 ROLES = ("master", "worker")
+MIN_PASSPHRASE_CHARS = 16  # a fleet key file's passphrase (a file of 64 hex characters is the key itself)
 PROBE_TOOLS = ("nac", "iperf3")
 
 
@@ -73,7 +75,12 @@ class PeersSection:
     key_file: str = ""  # the fleet key, the same on every vehicle (docs/security.md); relative: beside this file
     key_id: str = "fleet"  # names the key in each message, so a fleet can change keys
     allow_unsigned: bool = False  # accept peers that do not sign (a lab without keys, at its own risk)
-    replay_window_s: float = 30.0  # signed messages dated further from our clock are refused (needs synced clocks)
+    # a peer's new boot (or one first heard since our start) dated further from our clock is refused (needs clocks
+    # synced to within it); later messages of that boot are judged by the sender's own sequence (docs/security.md)
+    replay_window_s: float = 30.0
+    # the last sequence accepted from each peer, so our restart does not accept datagrams captured before it;
+    # "" = $STATE_DIRECTORY (systemd's, /var/lib/nac) or else log.dir, as peer-freshness-VEHICLE.json
+    state_file: str = ""
 
 
 @dataclass(frozen=True)
@@ -141,6 +148,7 @@ def parse_agent_config(data: dict, source: str = "<config>") -> AgentConfig:
         if not key_path.is_absolute() and source != "<config>":
             key_path = Path(source).parent / key_path  # beside the config file, as install.sh puts it
         try:
+            _check_fleet_passphrase(key_path)
             secret = load_signing_key(key_path)
             config = dataclasses.replace(config, fleet_key=FleetKey(config.peers.key_id, secret))
         except BadInput as err:
@@ -209,6 +217,31 @@ def _check(c: AgentConfig) -> None:
             parse_host_port(address, "throughput.targets")
     except BadInput as err:
         raise ConfigError(f"{src}: {err}") from None
+
+
+def _check_fleet_passphrase(path: Path) -> None:
+    """A fleet key file holds 64 hex characters (the secret) or a passphrase whose SHA-256 is the secret: anyone who
+    guesses a short passphrase can sign peer state for the whole fleet, so one under MIN_PASSPHRASE_CHARS is refused."""
+    try:
+        if not path.is_file():
+            return  # load_signing_key names what is wrong with it
+        with open(path, "rb") as f:
+            text = f.read(4096).decode().strip()
+    except (OSError, UnicodeDecodeError):
+        return
+    if len(text) == 64 and all(ch in "0123456789abcdefABCDEF" for ch in text):
+        return  # the 32-byte key itself
+    if len(text) < MIN_PASSPHRASE_CHARS:
+        raise BadInput(f"{path}: a passphrase of {len(text)} characters is too weak: at least {MIN_PASSPHRASE_CHARS} "
+                       "characters, or 64 hex characters (a 32-byte key, docs/security.md)")
+
+
+def peers_state_path(config: AgentConfig) -> Path:
+    """Where the agent keeps the last sequence accepted from each peer (peers.state_file)."""
+    if config.peers.state_file:
+        return Path(config.peers.state_file)
+    directory = os.environ.get("STATE_DIRECTORY", "").split(":")[0] or config.log.dir
+    return Path(directory) / f"peer-freshness-{config.vehicle.id}.json"
 
 
 

@@ -12,22 +12,25 @@ from __future__ import annotations
 
 import logging
 import os
+import secrets
 import select
 import signal
 import socket
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
 from nac_onboard.address import parse_host_port
 from nac_onboard.agent.autopilot_link import AutopilotLink
-from nac_onboard.agent.config import AgentConfig
+from nac_onboard.agent.config import AgentConfig, peers_state_path
 from nac_onboard.agent.peers import (
     MAX_DATAGRAM_BYTES,
     SIGNED_MAGIC,
     PeerMessageError,
     PeerState,
+    PeerStateFileError,
     PeerTable,
     SenderMute,
     decode_peer_state,
@@ -55,6 +58,8 @@ REJECT_LOG_PERIOD_S = 10.0
 SUPERVISE_S = 1.0
 MIN_WAKE_S = 0.002  # at most 500 turns of the loop a second: routed frames wait 2 ms at most for it
 FLOOD_WAKE_S, FLOOD_REFUSED = 0.01, 20  # a turn that refused this many datagrams: the next waits 10 ms (a flood)
+STATUSTEXT_PER_S = 10  # statustext records a second at most (an autopilot's flood is counted, not logged)
+STATUSTEXT_REPEAT_S = 5.0  # the same text again within this: counted, not logged
 
 
 def run_directory(config: AgentConfig, run_id: str | None = None) -> Path:
@@ -93,7 +98,12 @@ class Agent:
         self.endpoints: list[RawEndpoint] = []
         p = config.peers
         self.peers = PeerTable(config.vehicle.id, p.timeout_s, p.max_peers, p.forget_s,
-                               p.replay_window_s if config.fleet_key else None)
+                               p.replay_window_s if config.fleet_key else None,
+                               peers_state_path(config) if config.fleet_key else None)
+        self.boot_id = secrets.token_hex(8)  # our peer messages' boot: random per start, with seq counting from it
+        self._boot_mono_s, self._seq = time.monotonic(), 0
+        self.statustext = TextLimiter(STATUSTEXT_PER_S, STATUSTEXT_REPEAT_S)
+        self._freshness_warned = False
         self.peer_rejects: dict[str, int] = {}  # refused peer datagrams by reason, since the start
         self._rejects_logged: dict[str, int] = {}
         self._last_reject_log_s = -1e9
@@ -144,6 +154,11 @@ class Agent:
             emulation = SleepEmulation(c.emulated_channel, clock) if c.emulated_channel else None
             self.scheduler = ProbeScheduler(t, c.vehicle.id, self._probe_targets, self.snapshot,
                                             self.throughput_log, self.stop_event, emulation, clock).start()
+        try:
+            self.peers.load()
+        except PeerStateFileError as err:  # replay protection after our restart falls back to replay_window_s
+            self.log.write(kinds.WARNING, text=f"{err}: starting without it")
+            log.warning("%s: starting without it", err)
         self.log.write(kinds.AGENT_READY, peers_listen=c.peers.listen, state_feed=c.state_feed.listen,
                        throughput_port=self.throughput_server.port if self.throughput_server else None,
                        probing=t.probe, probe_duty_cycle=t.duty_cycle if t.probe else None)
@@ -162,6 +177,10 @@ class Agent:
         for sock in (self.peer_sock, self.feed_sock):
             if sock is not None:
                 sock.close()
+        self._save_peer_freshness()
+        pending = self.statustext.flush()
+        if pending is not None:
+            self.log.write(kinds.STATUSTEXT, **pending)
         self.log.write(kinds.AGENT_STOPPED, reason=self.stop_reason or "closed", peer_rejects=self.peer_rejects,
                        autopilot_refused=self.autopilot.refused, **self.counters)
         for f in (self.log, self.throughput_log, self.tlog):
@@ -226,6 +245,7 @@ class Agent:
                 self.notifier.watchdog()
             if supervise.fire(now):
                 self._supervise_throughput_server()
+                self._save_peer_freshness()
 
     def stop(self, reason: str) -> None:
         self.stop_reason = reason
@@ -265,7 +285,9 @@ class Agent:
         elif kind == "EXTENDED_SYS_STATE":
             self._note_change("landed", vehicle.landed)
         elif kind == "STATUSTEXT":
-            self.log.write(kinds.STATUSTEXT, severity=msg.severity, text=msg.text)
+            record = self.statustext.offer(msg.severity, msg.text, time.monotonic())
+            if record is not None:
+                self.log.write(kinds.STATUSTEXT, **record)
 
     def _note_change(self, key: str, value, **extra) -> None:
         previous = self._last[key]
@@ -285,6 +307,17 @@ class Agent:
                        roll_deg=round(v.roll_deg, 3), pitch_deg=round(v.pitch_deg, 3), yaw_deg=round(v.yaw_deg, 3),
                        battery_pct=v.battery_pct, voltage_v=v.voltage_v, mode=v.mode, armed=v.armed,
                        landed=v.landed, mission_seq=v.mission_seq, mission_total=v.mission_total)
+
+    def _save_peer_freshness(self) -> None:
+        """Keep the last sequence accepted per peer on disk (at most once a second, and at the stop)."""
+        try:
+            with self._state_lock:
+                self.peers.save()
+        except OSError as err:
+            if not self._freshness_warned:
+                self._freshness_warned = True
+                self.log.write(kinds.WARNING, text=f"cannot save {self.peers.freshness_path}: {err.strerror}: "
+                                                   "after a restart, peers are judged by replay_window_s alone")
 
     def _supervise_throughput_server(self) -> None:
         """A server thread that died is started again on its port: without it every probe would read as a lost
@@ -325,12 +358,16 @@ class Agent:
         v = self.autopilot.vehicle()
         known = v is not None and v.time_boot_ms >= 0
         port = self.throughput_server.port if self.throughput_server else 0
+        with self._state_lock:  # the probe thread asks too: each message its own, strictly increasing seq
+            self._seq = max(self._seq + 1, int((time.monotonic() - self._boot_mono_s) * 1000))
+            seq = self._seq
         if not known:
             return PeerState(id=c.vehicle.id, role=c.vehicle.role, t_s=time.time(), sysid=self.autopilot.sysid or 0,
-                             probe_port=port, mpi_build=mpi_build())
+                             probe_port=port, mpi_build=mpi_build(), boot=self.boot_id, seq=seq)
         return PeerState(id=c.vehicle.id, role=c.vehicle.role, t_s=time.time(), sysid=v.sysid, lat_deg=v.lat_deg,
                          lon_deg=v.lon_deg, alt_m=v.alt_m, vel_ned_mps=tuple(v.vel_ned_mps),
-                         battery_pct=v.battery_pct, probe_port=port, mpi_build=mpi_build())
+                         battery_pct=v.battery_pct, probe_port=port, mpi_build=mpi_build(), boot=self.boot_id,
+                         seq=seq)
 
     def _publish_state(self) -> None:
         data = encode_peer_state(self.own_state(), self.config.fleet_key)
@@ -419,6 +456,49 @@ class Agent:
         with self._state_lock:
             live = self.peers.live()
         return [(p.id, p.host, p.probe_port) for p in live if p.role == "worker" and p.probe_port]
+
+
+class TextLimiter:
+    """Which of an autopilot's STATUSTEXTs to log: the same text again within repeat_s is counted, not logged (its
+    count goes on the next record as `repeated`); beyond per_s records a second, others are counted, not logged
+    (`dropped_since_last` on the next record). A flood of texts then grows the log by per_s records a second."""
+
+    def __init__(self, per_s: int, repeat_s: float):
+        self.per_s, self.repeat_s = per_s, repeat_s
+        self._last: tuple | None = None  # (severity, text) of the last record
+        self._last_logged_s = -1e18
+        self._logged_s: deque[float] = deque(maxlen=per_s)  # when the last per_s records were written
+        self.repeated = self.dropped = 0  # since the last record
+
+    def offer(self, severity: int, text: str, now_s: float) -> dict | None:
+        """The record's fields to write for this text, or None when it is only counted."""
+        key = (severity, text)
+        if key == self._last and now_s - self._last_logged_s < self.repeat_s:
+            self.repeated += 1
+            return None
+        if len(self._logged_s) == self.per_s and now_s - self._logged_s[0] < 1.0:  # per_s in the last second
+            if key == self._last:
+                self.repeated += 1
+            else:
+                self.dropped += 1
+            return None
+        self._logged_s.append(now_s)
+        return self._record(key, now_s)
+
+    def flush(self) -> dict | None:
+        """At the stop: a last record carrying what was counted since the last, if anything."""
+        if self._last is None or not (self.repeated or self.dropped):
+            return None
+        return self._record(self._last, self._last_logged_s)
+
+    def _record(self, key: tuple, now_s: float) -> dict:
+        record = {"severity": key[0], "text": key[1]}
+        if self.repeated:
+            record["repeated"] = self.repeated
+        if self.dropped:
+            record["dropped_since_last"] = self.dropped
+        self._last, self._last_logged_s, self.repeated, self.dropped = key, now_s, 0, 0
+        return record
 
 
 def _udp_socket(address: str, key: str, broadcast: bool = False) -> socket.socket:

@@ -1,13 +1,17 @@
 """Peer state over the vehicle network: the message every agent broadcasts, and the table of peers heard.
 
-Pure: no sockets or clocks here; the agent passes datagrams and times in. A peer message is one UDP datagram:
-the JSON body {"nac": "peer-state/1", "id", "role", "sysid", "lat_deg", "lon_deg", "alt_m", "vel_ned_mps",
-"battery_pct", "t_s", "probe_port", "mpi_build"} (unknown positions are null), authenticated with the fleet key as
-`NACS1 KEY_ID HMAC_SHA256_HEX\\n` + body, the HMAC over `KEY_ID\\n` + body (docs/security.md).
+No sockets or clocks here; the agent passes datagrams and times in (the table reads and writes its freshness
+file, below). A peer message is one UDP datagram: the JSON body {"nac": "peer-state/2", "id", "role", "boot", "seq",
+"sysid", "lat_deg", "lon_deg", "alt_m", "vel_ned_mps", "battery_pct", "t_s", "probe_port", "mpi_build"} (unknown
+positions and battery are null), authenticated with the fleet key as `NACS1 KEY_ID HMAC_SHA256_HEX\\n` + body, the
+HMAC over `KEY_ID\\n` + body (docs/security.md). `boot` is random per start of the sending agent and `seq` its
+monotonic clock in milliseconds since that start, strictly increasing: freshness is judged by the sender's own
+sequence, not its wall clock (PeerTable). Version 1 (no boot, no seq) is refused by name: the fleet runs one version.
 
 Everything that arrives is hostile until checked: the size before parsing, the signature before the body is
-read, every field against its type and range, the sender's clock against a replay window, and the table against
-its size. A datagram that fails any check raises PeerMessageError with a short reason the agent counts.
+read, every field against its type and range, the sender's sequence against what we accepted before (and a new
+boot against our clock), and the table against its size. A datagram that fails any check raises
+PeerMessageError with a short reason the agent counts.
 """
 
 from __future__ import annotations
@@ -15,12 +19,15 @@ from __future__ import annotations
 import hmac
 import json
 import math
+import os
 import re
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 from nac_onboard.errors import BadInput
 
-PEER_PROTOCOL = "peer-state/1"
+PEER_PROTOCOL = "peer-state/2"
+OLD_PROTOCOLS = ("peer-state/1",)
 MAX_DATAGRAM_BYTES = 2048
 SIGNED_MAGIC = b"NACS1 "
 ID_PATTERN = re.compile(r"[A-Za-z0-9._-]{1,32}")
@@ -28,6 +35,12 @@ ROLES = ("master", "worker")
 MAX_SPEED_MPS = 1000.0
 MPI_BUILD_PATTERN = re.compile(r"[ -~]{0,160}")  # printable ASCII: it is printed when builds disagree
 ALT_RANGE_M = (-1000.0, 100_000.0)
+BOOT_PATTERN = re.compile(r"[0-9a-f]{16}")
+MAX_SEQ = 2**53  # JSON's exact integers: 285,000 years of milliseconds
+MAX_AHEAD_S = 2.0  # a sender's sequence may run this far ahead of the time we have seen pass since its anchor
+MAX_DRIFT = 1e-3  # and this much more per second since (two monotonic clocks NTP slews by up to 500 ppm each)
+MAX_BOOTS_PER_PEER = 4  # boots of one id tracked at once (a key holder's forged boot does not retire the real one)
+FRESHNESS_VERSION = 1
 
 
 class PeerMessageError(BadInput):
@@ -66,6 +79,8 @@ class PeerState:
     probe_port: int = 0  # its throughput server (0 = none)
     mpi_build: str = ""  # "MPICH 5.0.2 ch4:ucx ofi": every rank of a job needs the same ("": not reported)
     host: str = ""  # filled in by the receiver: the address the datagram came from
+    boot: str = ""  # 16 hex digits, random per start of the sending agent
+    seq: int = 0  # the sender's monotonic clock in ms since that start, strictly increasing
 
     def position(self) -> dict | None:
         if self.lat_deg is None or self.lon_deg is None or self.alt_m is None:
@@ -120,6 +135,8 @@ def _parse(body: bytes) -> dict:
         parsed = json.loads(body, parse_constant=_reject_constant)
     except (ValueError, UnicodeDecodeError, RecursionError):
         raise PeerMessageError("not_json") from None
+    if isinstance(parsed, dict) and parsed.get("nac") in OLD_PROTOCOLS:
+        raise PeerMessageError("old_version", f"{parsed['nac']}: this agent speaks {PEER_PROTOCOL} (update the fleet)")
     if not isinstance(parsed, dict) or parsed.get("nac") != PEER_PROTOCOL:
         raise PeerMessageError("not_peer_state", f"not a {PEER_PROTOCOL} message")
     return parsed
@@ -148,6 +165,12 @@ def _check(body: dict, host: str) -> PeerState:
     mpi_build = body.get("mpi_build", "")
     if not isinstance(mpi_build, str) or not MPI_BUILD_PATTERN.fullmatch(mpi_build):
         raise PeerMessageError("schema", "mpi_build: expected up to 160 printable ASCII characters")
+    boot = body.get("boot")
+    if not isinstance(boot, str) or not BOOT_PATTERN.fullmatch(boot):
+        raise PeerMessageError("schema", "boot: expected 16 lowercase hex digits")
+    battery = body.get("battery_pct")
+    if battery == -1 and not isinstance(battery, bool):
+        battery = None  # MAVLink's "unknown" (SYS_STATUS.battery_remaining = -1): unknown, not a reason to refuse
     vel = body.get("vel_ned_mps")
     if vel is not None:
         if not isinstance(vel, list) or len(vel) != 3:
@@ -159,9 +182,9 @@ def _check(body: dict, host: str) -> PeerState:
         lat_deg=_number(body, "lat_deg", -90.0, 90.0, optional=True),
         lon_deg=_number(body, "lon_deg", -180.0, 180.0, optional=True),
         alt_m=_number(body, "alt_m", *ALT_RANGE_M, optional=True), vel_ned_mps=vel,
-        battery_pct=_number(body, "battery_pct", 0, 100, optional=True, integer=True),
+        battery_pct=_number({"battery_pct": battery}, "battery_pct", 0, 100, optional=True, integer=True),
         probe_port=_number(body, "probe_port", 0, 65535, integer=True) if "probe_port" in body else 0,
-        mpi_build=mpi_build, host=host)
+        mpi_build=mpi_build, host=host, boot=boot, seq=_number(body, "seq", 0, MAX_SEQ, integer=True))
 
 
 @dataclass(frozen=True)
@@ -180,42 +203,106 @@ class _Entry:
     lost: bool = False
 
 
+@dataclass
+class _Boot:
+    """What we accepted from one boot of a peer: its last sequence, and the anchor that maps its sequence onto our
+    monotonic clock (None until a message of it is accepted in this run of ours, or after the peer was forgotten)."""
+
+    seq: int
+    anchor_mono_s: float | None = None
+    anchor_seq: int = 0
+    last_mono_s: float = 0.0
+
+
+class PeerStateFileError(BadInput):
+    """The freshness file cannot be read or is not ours; the message names it."""
+
+
 class PeerTable:
     """Peers by id with the age of their last message; a peer silent for timeout_s is lost until heard again and
-    forgotten after forget_s. At most max_peers are kept: a forged flood of new ids cannot grow it."""
+    forgotten after forget_s. At most max_peers are kept: a forged flood of new ids cannot grow it.
+
+    With replay_window_s set (signed fleets), a message must be fresh by its sender's own sequence:
+      - a boot of the peer already heard in this run of ours: `seq` must be above the last accepted, and the time it
+        claims to have passed since the boot's anchor (the first message of it we accepted) may run at most
+        MAX_AHEAD_S (+ MAX_DRIFT per second since) ahead of the time that passed here, and at most replay_window_s
+        behind. The sender's wall clock plays no part: a peer whose clock steps back keeps being heard, and a
+        datagram stamped ahead (by `t_s` or by `seq`) is refused or leads by at most MAX_AHEAD_S (+ drift), so it
+        cannot lock the peer out for longer.
+      - a boot not heard in this run (a peer's restart, our restart, a peer forgotten): its `seq` must be above the
+        last accepted for that boot if we know one (from the freshness file, so a datagram captured before our
+        restart is refused after it), and its `t_s` within replay_window_s of our clock either way.
+    A new boot does not retire the others (a forged one from a key holder does not silence the real one); at most
+    MAX_BOOTS_PER_PEER are tracked per id, the least recently heard dropped first.
+    """
 
     def __init__(self, self_id: str, timeout_s: float, max_peers: int = 64, forget_s: float = 60.0,
-                 replay_window_s: float | None = None):
+                 replay_window_s: float | None = None, freshness_path: str | Path | None = None):
         self.self_id, self.timeout_s = self_id, timeout_s
         self.max_peers, self.forget_s = max_peers, max(forget_s, timeout_s)
-        self.replay_window_s = replay_window_s  # None: the sender's clock is not checked (unsigned fleets)
+        self.replay_window_s = replay_window_s  # None: freshness is not checked (unsigned fleets)
         self._entries: dict[str, _Entry] = {}
+        self._boots: dict[str, dict[str, _Boot]] = {}  # peer id -> boot -> what we accepted from it
+        self.freshness_path = Path(freshness_path) if freshness_path else None
+        self._dirty = False
 
     def update(self, state: PeerState, now_mono_s: float, now_unix_s: float) -> bool:
         """Record a message; returns whether the peer is new or back after being lost (seen). Raises
-        PeerMessageError for a replayed or stale message, or a new peer when the table is full."""
+        PeerMessageError for a replayed, stale or too-far-ahead message, or a new peer when the table is full."""
         if state.id == self.self_id:
             return False  # our own broadcast, looped back
         entry = self._entries.get(state.id)
-        if self.replay_window_s is not None:
-            if abs(state.t_s - now_unix_s) > self.replay_window_s:
-                raise PeerMessageError("stale", f"{state.id}: sent at {state.t_s:.3f}, now {now_unix_s:.3f}")
-            if entry is not None and state.t_s <= entry.state.t_s:
-                raise PeerMessageError("replayed", f"{state.id}: not newer than its last message")
         if entry is None and len(self._entries) >= self.max_peers:
             raise PeerMessageError("table_full", f"{self.max_peers} peers already")
+        if self.replay_window_s is not None:
+            self._check_fresh(state, now_mono_s, now_unix_s)
         seen = entry is None or entry.lost
         self._entries[state.id] = _Entry(state, now_mono_s)
         return seen
 
+    def _check_fresh(self, state: PeerState, now_mono_s: float, now_unix_s: float) -> None:
+        window_s = self.replay_window_s
+        boots = self._boots.get(state.id, {})
+        boot = boots.get(state.boot)
+        if boot is not None and state.seq <= boot.seq:
+            raise PeerMessageError("replayed", f"{state.id}: seq {state.seq} not above {boot.seq} of boot {state.boot}")
+        if boot is None or boot.anchor_mono_s is None:
+            # nothing of this boot heard in this run of ours: only the sender's clock can vouch for it
+            if not now_unix_s - window_s <= state.t_s <= now_unix_s + window_s:
+                raise PeerMessageError("stale", f"{state.id}: a new boot sent at {state.t_s:.3f}, now "
+                                                f"{now_unix_s:.3f} (window {window_s:g} s)")
+            if boot is None:
+                if len(boots) >= MAX_BOOTS_PER_PEER:
+                    del boots[min(boots, key=lambda b: boots[b].last_mono_s)]
+                if state.id not in self._boots and len(self._boots) >= 4 * self.max_peers:
+                    del self._boots[min(self._boots, key=lambda p: max(
+                        (b.last_mono_s for b in self._boots[p].values()), default=0.0))]
+                boot = self._boots.setdefault(state.id, boots).setdefault(state.boot, _Boot(state.seq))
+            boot.anchor_mono_s, boot.anchor_seq = now_mono_s, state.seq
+        else:
+            passed_s = now_mono_s - boot.anchor_mono_s
+            claimed_s = (state.seq - boot.anchor_seq) / 1000.0
+            drift_s = MAX_DRIFT * max(passed_s, 0.0)
+            if claimed_s > passed_s + MAX_AHEAD_S + drift_s:
+                raise PeerMessageError("ahead", f"{state.id}: seq {state.seq} is {claimed_s - passed_s:.3f} s "
+                                                f"ahead of the time passed here (at most {MAX_AHEAD_S:g} s)")
+            if claimed_s < passed_s - window_s - drift_s:
+                raise PeerMessageError("stale", f"{state.id}: seq {state.seq} was sent {passed_s - claimed_s:.3f} "
+                                                f"s ago by its own clock (window {window_s:g} s)")
+        boot.seq, boot.last_mono_s = state.seq, now_mono_s
+        self._dirty = True
+
     def expire(self, now_mono_s: float) -> list[tuple[PeerState, float]]:
         """Peers that just went silent for longer than timeout_s, with how long they have been silent; peers
-        silent past forget_s leave the table."""
+        silent past forget_s leave the table (their boots keep their last sequence, but a message of them is then
+        judged as a new boot's: a badly anchored boot cannot keep its peer out for longer)."""
         lost = []
         for peer_id, entry in list(self._entries.items()):
             silent_s = now_mono_s - entry.heard_mono_s
             if silent_s > self.forget_s:
                 del self._entries[peer_id]
+                for boot in self._boots.get(peer_id, {}).values():
+                    boot.anchor_mono_s = None
             elif not entry.lost and silent_s > self.timeout_s:
                 entry.lost = True
                 lost.append((entry.state, silent_s))
@@ -228,6 +315,52 @@ class PeerTable:
         """Every peer in the table by id: its last state, its age and whether it is lost."""
         return {peer_id: HeardPeer(e.state, round(now_mono_s - e.heard_mono_s, 3), e.lost)
                 for peer_id, e in self._entries.items()}
+
+    # ---- the freshness file: the last sequence accepted per peer and boot, so a restart of ours forgets nothing --
+    def load(self) -> None:
+        """Read the freshness file (a missing one is an empty start); PeerStateFileError names a bad one."""
+        path = self.freshness_path
+        if path is None or not path.exists():
+            return
+        try:
+            if not path.is_file():
+                raise PeerStateFileError(f"peer freshness file {path}: not a regular file")
+            with open(path, "rb") as f:
+                data = json.loads(f.read(1 << 20), parse_constant=_reject_constant)
+            if not isinstance(data, dict) or data.get("version") != FRESHNESS_VERSION:
+                raise ValueError(f"expected version {FRESHNESS_VERSION}")
+            boots: dict[str, dict[str, _Boot]] = {}
+            for peer_id, seqs in data["peers"].items():
+                if not ID_PATTERN.fullmatch(peer_id) or not isinstance(seqs, dict):
+                    raise ValueError(f"peer {peer_id[:40]!r}")
+                for boot, seq in list(seqs.items())[:MAX_BOOTS_PER_PEER]:
+                    if not BOOT_PATTERN.fullmatch(boot) or isinstance(seq, bool) or not isinstance(seq, int) \
+                            or not 0 <= seq <= MAX_SEQ:
+                        raise ValueError(f"peer {peer_id}: boot {boot[:20]!r}")
+                    boots.setdefault(peer_id, {})[boot] = _Boot(seq)
+                if len(boots) >= 4 * self.max_peers:
+                    break
+        except OSError as err:
+            raise PeerStateFileError(f"cannot read peer freshness file {path}: {err.strerror}") from None
+        except (ValueError, KeyError, TypeError, AttributeError, UnicodeDecodeError, RecursionError) as err:
+            raise PeerStateFileError(f"peer freshness file {path}: not one this agent wrote ({err})") from None
+        self._boots = boots
+
+    def save(self) -> None:
+        """Write the freshness file if anything was accepted since the last save (atomically: a crash leaves the
+        old or the new one). Raises OSError."""
+        path = self.freshness_path
+        if path is None or not self._dirty:
+            return
+        peers = {peer_id: {boot: b.seq for boot, b in boots.items()} for peer_id, boots in self._boots.items()}
+        data = json.dumps({"version": FRESHNESS_VERSION, "peers": peers}, separators=(",", ":")).encode()
+        temporary = path.with_name(path.name + ".tmp")
+        with open(temporary, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(temporary, path)
+        self._dirty = False
 
 
 class SenderMute:

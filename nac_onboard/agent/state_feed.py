@@ -44,9 +44,16 @@ def fetch_state(address: str = "127.0.0.1:47200", timeout_s: float = 1.0) -> dic
 
 
 def answer_of(snapshot: AgentSnapshot) -> dict:
-    """The answer's JSON object: "self" is the own state, each peer its last message with age_s and lost."""
-    peers = {p.state.id: {**asdict(p.state), "age_s": p.age_s, "lost": p.lost} for p in snapshot.peers}
+    """The answer's JSON object: "self" is the own state, each peer its last message with age_s and lost (without
+    its boot and seq: they are the peer messages' freshness, not the feed's)."""
+    peers = {p.state.id: {**_without_freshness(asdict(p.state)), "age_s": p.age_s, "lost": p.lost}
+             for p in snapshot.peers}
     return {"t_s": snapshot.t_s, "self": asdict(snapshot.own), "peers": peers}
+
+
+def _without_freshness(fields: dict) -> dict:
+    del fields["boot"], fields["seq"]
+    return fields
 
 
 def encode_snapshot(snapshot: AgentSnapshot) -> bytes:

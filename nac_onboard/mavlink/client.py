@@ -32,6 +32,7 @@ LANDED_STATES = {M.MAV_LANDED_STATE_UNDEFINED: "unknown", M.MAV_LANDED_STATE_ON_
                  M.MAV_LANDED_STATE_IN_AIR: "in air", M.MAV_LANDED_STATE_TAKEOFF: "taking off",
                  M.MAV_LANDED_STATE_LANDING: "landing"}
 HEARTBEAT_PERIOD_S = 1.0
+UINT16_UNKNOWN = 65535  # SYS_STATUS.voltage_battery: "not sent by the autopilot"
 #: What TelemetryState and the client's own operations (commands, mission transfer) read.
 CLIENT_MESSAGES = frozenset({
     "HEARTBEAT", "GLOBAL_POSITION_INT", "ATTITUDE", "SYS_STATUS", "EXTENDED_SYS_STATE", "MISSION_CURRENT",
@@ -265,8 +266,8 @@ class TelemetryState:
     roll_deg: float = 0.0
     pitch_deg: float = 0.0
     yaw_deg: float = 0.0
-    battery_pct: int = -1
-    voltage_v: float = float("nan")
+    battery_pct: int | None = None  # None: unknown (MAVLink's battery_remaining = -1, or not heard yet)
+    voltage_v: float | None = None  # None: unknown (MAVLink's voltage_battery = UINT16_MAX, or not heard yet)
     landed: str = "unknown"
     time_boot_ms: int = -1  # the autopilot's clock at the last position (GLOBAL_POSITION_INT)
     mission_seq: int = 0
@@ -299,8 +300,10 @@ class TelemetryState:
             self.roll_deg, self.pitch_deg, self.yaw_deg = (v * 57.29577951308232 for v in
                                                            (msg.roll, msg.pitch, msg.yaw))
         elif kind == "SYS_STATUS":
-            self.battery_pct = msg.battery_remaining
-            self.voltage_v = msg.voltage_battery / 1000
+            # MAVLink's "unknown" (-1, UINT16_MAX) and anything outside the field's range are unknown, not numbers
+            remaining = msg.battery_remaining
+            self.battery_pct = remaining if 0 <= remaining <= 100 else None
+            self.voltage_v = msg.voltage_battery / 1000 if msg.voltage_battery != UINT16_UNKNOWN else None
         elif kind == "EXTENDED_SYS_STATE":
             self.landed = LANDED_STATES.get(msg.landed_state, "unknown")
         elif kind == "MISSION_CURRENT":

@@ -129,8 +129,11 @@ MISSION_CURRENT = Kind("mission_current", AGENT_LOG, "the current mission item c
 MISSION_STATE = Kind("mission_state", AGENT_LOG, "MISSION_CURRENT's mission state changed", _CHANGE)
 MISSION_ITEM_REACHED = Kind("mission_item_reached", AGENT_LOG, "MISSION_ITEM_REACHED",
                             (req("seq", "integer", "", "the item"),))
-STATUSTEXT = Kind("statustext", AGENT_LOG, "the autopilot's STATUSTEXT", (
-    req("severity", "integer", "", "MAV_SEVERITY"), req("text", "string", "", "the text")))
+STATUSTEXT = Kind("statustext", AGENT_LOG, "the autopilot's STATUSTEXT (rate-limited: the same text at most once "
+                  "per 5 s, at most 10 records a second)", (
+    req("severity", "integer", "", "MAV_SEVERITY"), req("text", "string", "", "the text"),
+    opt("repeated", "integer", "", "times the previous record's text came again, not logged, since that record"),
+    opt("dropped_since_last", "integer", "", "other texts not logged since the previous record (over the rate)")))
 LINK_OPEN_FAILED = Kind("link_open_failed", AGENT_LOG, "the autopilot link could not open (retried)", (
     req("uri", "string", "", "autopilot URI"), req("error", "string", "", "why"),
     req("attempts", "integer", "", "failed attempts so far")))

@@ -8,9 +8,12 @@ import struct
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from missions.geo import Home, distance_m, enu_to_lla
 from nac_onboard.agent.config import ConfigError, load_agent_config, parse_agent_config
+from nac_onboard.agent.daemon import TextLimiter
 from nac_onboard.agent.peers import PeerMessageError, PeerState, PeerTable, decode_peer_state, encode_peer_state
 from nac_onboard.agent.snapshot import AgentSnapshot, OwnState
 from nac_onboard.agent.state_feed import distance_between, encode_snapshot
@@ -74,11 +77,11 @@ def test_deploy_examples_are_valid_configs(tmp_path):
 
 def test_peer_message_round_trip_and_bad_datagrams():
     state = PeerState("uav2", "worker", 1.7e9, sysid=2, lat_deg=47.1, lon_deg=8.5, alt_m=500.0,
-                      vel_ned_mps=(1.0, 0.5, 0.0), battery_pct=80, probe_port=5201)
+                      vel_ned_mps=(1.0, 0.5, 0.0), battery_pct=80, probe_port=5201, boot="00ff00ff00ff00ff", seq=7)
     back = decode_peer_state(encode_peer_state(state), "10.0.0.2", None)
     assert back == PeerState(**{**state.__dict__, "host": "10.0.0.2"})
-    for garbage in (b"\xff\x00", b"[1, 2]", b'{"nac": "other/1"}', b'{"nac": "peer-state/1", "id": "x"}',
-                    b'{"nac": "peer-state/1", "id": "x", "role": "worker", "t_s": "soon"}'):
+    for garbage in (b"\xff\x00", b"[1, 2]", b'{"nac": "other/1"}', b'{"nac": "peer-state/2", "id": "x"}',
+                    b'{"nac": "peer-state/2", "id": "x", "role": "worker", "t_s": "soon"}'):
         with pytest.raises(PeerMessageError):
             decode_peer_state(garbage, "10.0.0.9", None)
 
@@ -212,3 +215,26 @@ def test_systemd_notifier_speaks_the_notify_protocol(tmp_path):
     assert not outside.ready() and outside.watchdog_period_s is None
     other_pid = SystemdNotifier({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "2000000", "WATCHDOG_PID": "1"})
     assert other_pid.watchdog_period_s is None, "the watchdog is meant for another process"
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 3), st.integers(0, 7), st.floats(0.0, 0.3)), min_size=1, max_size=400))
+def test_statustext_floods_are_logged_rate_limited_and_every_text_counted(texts):
+    """Any sequence of STATUSTEXTs: at most per_s records in any second, the same text at most once per repeat_s,
+    and every text either logged or counted on a later record (nothing vanishes without a count)."""
+    limiter = TextLimiter(per_s=5, repeat_s=2.0)
+    now, records = 0.0, []
+    for text, severity, step_s in texts:
+        now += step_s
+        record = limiter.offer(severity, f"text {text}", now)
+        if record is not None:
+            records.append((now, record))
+    final = limiter.flush()
+    counted = sum(1 + r.get("repeated", 0) + r.get("dropped_since_last", 0) for _, r in records)
+    counted += (final.get("repeated", 0) + final.get("dropped_since_last", 0)) if final else 0
+    assert counted == len(texts)
+    times = [t for t, _ in records]
+    assert all(times[k + 5] - times[k] >= 1.0 for k in range(len(times) - 5)), "at most 5 records a second"
+    for (t0, r0), (t1, r1) in zip(records, records[1:], strict=False):
+        if (r0["severity"], r0["text"]) == (r1["severity"], r1["text"]):
+            assert t1 - t0 >= 2.0, "the same text again at once is counted, not logged"
