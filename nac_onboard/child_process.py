@@ -1,12 +1,18 @@
-"""Child processes that announce readiness with a line on stdout (nac-sitl, nac-onboard agent).
+"""Child processes that announce readiness with a line on stdout (nac-sitl, nac-onboard agent), and children that
+die with their parent.
 
 start() waits, with a timeout, for the line; stop() sends the child's stop signal and kills it if it does not exit
 in time. Its output keeps being read after the ready line (into .output), so a chatty child never blocks on a full
 pipe; stderr goes to a temporary file whose text is quoted when the child fails to start.
+
+Every child started here gets a parent-death signal (Linux prctl PR_SET_PDEATHSIG, SIGKILL): a parent killed with
+SIGKILL, which runs no clean-up, takes its children with it instead of leaving them running as orphans
+(`die_with_parent_preexec` for any other subprocess.Popen).
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
 import selectors
 import signal
@@ -16,12 +22,49 @@ import tempfile
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 
 from nac_onboard.errors import OperationFailed
+
+PR_SET_PDEATHSIG = 1  # prctl(2)
 
 
 class ChildStartError(OperationFailed):
     pass
+
+
+def _prctl():
+    try:
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):  # not Linux: the parent's own clean-up has to do
+        return None
+
+
+def die_with_parent() -> None:
+    """This process is killed (SIGKILL) when the thread that started it ends: the parent's death, SIGKILL included.
+    Called by a process itself (MPI ranks, whose launcher's proxy starts them in sessions of their own)."""
+    prctl = _prctl()
+    if prctl is not None:
+        prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+
+
+def die_with_parent_preexec() -> Callable[[], None] | None:
+    """A preexec_fn for subprocess.Popen that gives the child the parent-death signal. prctl is looked up here, in
+    the parent: between fork and exec the child only calls it (no import, no library loading, so other threads'
+    locks cannot deadlock it), then exits if the parent already died before the signal was set. The signal
+    survives exec (`ip netns exec`, mpiexec, iperf3 keep it) and is sent when the *thread* that started the child
+    ends, so start long-lived children from the main thread or a thread that lives as long as they do."""
+    prctl = _prctl()
+    if prctl is None:
+        return None
+    parent = os.getpid()
+
+    def preexec() -> None:
+        prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+        if os.getppid() != parent:
+            os._exit(1)
+
+    return preexec
 
 
 class ReadyProcess:
@@ -40,7 +83,8 @@ class ReadyProcess:
 
     def start(self):
         self._stderr = tempfile.TemporaryFile()  # noqa: SIM115 (kept open for the child's whole life)
-        self.proc = subprocess.Popen(self.command, stdout=subprocess.PIPE, stderr=self._stderr, env=self.env)
+        self.proc = subprocess.Popen(self.command, stdout=subprocess.PIPE, stderr=self._stderr, env=self.env,
+                                     preexec_fn=die_with_parent_preexec())
         fd = self.proc.stdout.fileno()  # raw reads: a buffered readline would hide lines from select()
         deadline = time.monotonic() + self.ready_timeout_s
         pending = b""

@@ -188,9 +188,8 @@ def experiment(args: argparse.Namespace, out=None) -> int:
     if not 0 < speedup <= scenario.max_speedup:
         raise BadInput(f"{scenario.name}: --speedup {speedup:g} is outside what this scenario allows "
                          f"(up to {scenario.max_speedup:g}x: {' '.join(scenario.notes) or 'fidelity'})")
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    result = run_scenario(scenario, args.out, speedup, args.base_port, out, stop, analyze=not args.no_analysis,
+    # SIGTERM is Ctrl-C (run_cli): the run stops, its partial report is written, and it exits 143
+    result = run_scenario(scenario, args.out, speedup, args.base_port, out, analyze=not args.no_analysis,
                           network=args.network, links=args.links, view=args.view)
     return result.outcome.exit_code
 

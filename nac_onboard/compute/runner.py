@@ -21,7 +21,8 @@ Records (JSON Lines, --out DIR/compute.jsonl): run_started, one `iteration` reco
 
 from __future__ import annotations
 
-import ctypes
+import contextlib
+import errno
 import json
 import math
 import os
@@ -32,6 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from nac_onboard.child_process import die_with_parent
 from nac_onboard.compute import kernels
 from nac_onboard.compute.iteration import IterationLinks
 from nac_onboard.compute.messages import (
@@ -64,7 +66,7 @@ from nac_onboard.records import kinds
 IDLE_FIRST_S, IDLE_MAX_S = 0.05, 1.0  # back-off while no worker is in range
 UNRESPONSIVE_AFTER = 3  # iterations missed in a row before a worker is no longer waited for
 PING_S = 1.0  # how often an unresponsive worker is asked whether it is back
-PR_SET_PDEATHSIG = 1  # prctl(2)
+DISK_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)  # a checkpoint that fails with these is skipped, not fatal
 
 
 class _Poller:
@@ -210,6 +212,7 @@ class Master:
         self.lost: dict[int, str] = {}  # rank -> the MPI error that ended communication with it
         self._stalled_s = 0.0  # wall seconds this iteration spent on sends that missed their deadline
         self._next_checkpoint_s = 0.0
+        self.checkpoint_iteration: int | None = None  # the iteration of the last whole checkpoint on disk
         self.end_at_s = options.end_at_s
 
     def link(self, distances: dict) -> IterationLinks:
@@ -501,14 +504,27 @@ class Master:
         self.log.write(kinds.STARTED, start_file=path, end_at_s=self.end_at_s)
 
     def checkpoint(self, iteration: int) -> None:
-        """results.npz as of this iteration, replaced atomically: a crash of the master leaves the last whole one."""
+        """results.npz as of this iteration, replaced atomically: a crash of the master leaves the last whole one.
+        A full disk (ENOSPC, EDQUOT, EFBIG) costs this checkpoint only: the partial file is removed, the previous
+        whole one kept, a checkpoint_failed record says so, training goes on and the next checkpoint tries again."""
         results = self.task.results()
         if not results and not self.options.save_results:
             return
         path = os.path.join(self.options.out, kinds.RESULTS.name)
         partial = path + ".partial.npz"
-        np.savez(partial, iteration=np.array(iteration), **results)
-        os.replace(partial, path)
+        try:
+            np.savez(partial, iteration=np.array(iteration), **results)
+            os.replace(partial, path)
+        except OSError as err:
+            if err.errno not in DISK_FULL:
+                raise
+            with contextlib.suppress(OSError):
+                os.remove(partial)
+            self.log.write(kinds.CHECKPOINT_FAILED, iteration=iteration,
+                           error=f"{errno.errorcode.get(err.errno, err.errno)}: {err.strerror}",
+                           kept_iteration=self.checkpoint_iteration)
+            return
+        self.checkpoint_iteration = iteration
 
     def write_pending(self) -> None:
         """The previous iteration's bookkeeping and record, done once this iteration's inputs are out: it overlaps
@@ -569,16 +585,6 @@ def end_without_finalize(code: int) -> None:
     os._exit(code)
 
 
-def die_with_parent() -> None:
-    """Ranks run in sessions of their own (hydra's doing): if their proxy is killed, they go with it instead of
-    computing on as orphans."""
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
-    except (OSError, AttributeError):  # not Linux: the launcher's own clean-up has to do
-        pass
-
-
 def main(argv: list[str] | None = None) -> int:
     options = parse_args(argv)  # bad input: exit 2 on every rank, before MPI starts any work
     from mpi4py import MPI
@@ -587,7 +593,7 @@ def main(argv: list[str] | None = None) -> int:
     comm.Set_errhandler(MPI.ERRORS_RETURN)  # a dead peer is an exception to handle, not the end of this rank
     # hydra's notice that a rank died: the job finds lost ranks by their silence and needs no handler for it
     signal.signal(signal.SIGUSR1, signal.SIG_IGN)
-    die_with_parent()
+    die_with_parent()  # ranks run in sessions of their own (hydra's doing): if their proxy is killed, they go too
     if comm.Get_size() < 2:
         sys.stderr.write("nac-onboard compute: needs at least 2 ranks (mpiexec -n N+1 ...): a master and a worker\n")
         return 2

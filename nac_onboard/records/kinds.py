@@ -246,6 +246,11 @@ WORKER_UNRESPONSIVE = Kind("worker_unresponsive", COMPUTE_LOG, "a worker missed 
     req("iteration", "integer", "", "when"), req("missed", "integer", "", "iterations missed in a row")))
 WORKER_BACK = Kind("worker_back", COMPUTE_LOG, "an unresponsive worker answered again", (
     req("rank", "integer", "", "MPI rank"), req("vehicle", "string", "", "its vehicle")))
+CHECKPOINT_FAILED = Kind("checkpoint_failed", COMPUTE_LOG, "a checkpoint could not be written (a full disk): its "
+                         "partial file removed, the previous one kept, training goes on, the next one tries again", (
+    req("iteration", "integer", "", "the iteration it was for"),
+    req("error", "string", "", "why, e.g. ENOSPC: No space left on device"),
+    req("kept_iteration", "any", "", "the iteration of the checkpoint kept (null: none yet)")))
 WORKER_STARTED = Kind("worker_started", RANK_LOG, "a worker rank started", (
     req("rank", "integer", "", "MPI rank"), req("pid", "integer", "", "process id"),
     req("host", "string", "", "MPI processor name")))

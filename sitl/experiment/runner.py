@@ -3,8 +3,10 @@
 The simulator (in this process), one `nac-onboard agent` process per vehicle (its own config and log directory),
 the missions uploaded, armed and started through the MAVLink client on each vehicle's ground link, the MPI job
 under `mpiexec` fed by the master agent's live positions; at the end the vehicles land, everything stops, and
-the run directory is analysed into report.md. Whatever happens (Ctrl-C, a part failing) every child is stopped,
-the partial run is analysed, and the outcome says what ended it.
+the run directory is analysed into report.md. Whatever happens (Ctrl-C, SIGTERM, a part failing) every child is
+stopped, the partial run is analysed, and the outcome says what ended it. SIGKILLed, it leaves nothing running
+either: its children die with it (their parent-death signal) and its watchdog kills the rest of the run (MPI's
+ranks) and removes its network namespaces (watchdog.py).
 """
 
 from __future__ import annotations
@@ -25,9 +27,9 @@ from pathlib import Path
 
 from missions.model import MavCmd
 from nac_onboard import clock
-from nac_onboard.child_process import AgentProcess, ChildStartError
+from nac_onboard.child_process import AgentProcess, ChildStartError, die_with_parent_preexec
 from nac_onboard.compute.options import options_from_argv
-from nac_onboard.errors import NacError, OperationFailed
+from nac_onboard.errors import NacError, OperationFailed, Terminated
 from nac_onboard.flight_log import JsonlLog, read_jsonl
 from nac_onboard.link.iperf3 import iperf3_server
 from nac_onboard.mavlink.client import CommandError, LinkError, VehicleClient
@@ -49,6 +51,7 @@ from sitl.experiment.commands import (
 from sitl.experiment.faults import Fault, FaultInjector, FaultKind
 from sitl.experiment.progress import VehicleProgress, follow, render_progress
 from sitl.experiment.scenario import Scenario
+from sitl.experiment.watchdog import TOKEN_ENV, Watchdog
 from sitl.network.air import AirNetwork
 from sitl.network.netns import NetworkError, remove_leftovers
 from sitl.network.replay import parse_links
@@ -65,6 +68,7 @@ CLOCK_PUBLISH_S = 0.2  # wall seconds between publications of the simulator's cl
 class Outcome(enum.Enum):
     COMPLETED = (0, "completed")
     INTERRUPTED = (130, "interrupted (Ctrl-C)")
+    TERMINATED = (143, "terminated (SIGTERM)")
     COMPUTE_FAILED = (1, "the MPI job failed")
     AGENT_FAILED = (1, "an agent failed")
     MISSION_FAILED = (1, "a mission could not be started")
@@ -127,6 +131,7 @@ class Experiment:
         self.mission_start_sim_s: float | None = None
         self.fault_log: list[dict] = []
         self.step_observers = []  # (t_s, state) callbacks handed to the simulator (tests record the truth)
+        self.watchdog: Watchdog | None = None
 
     # ---- the run ---------------------------------------------------------------------------------------------
     def run(self) -> ExperimentResult:
@@ -147,16 +152,22 @@ class Experiment:
                                      for v in self.scenario.vehicles if v.mission is not None})
         try:
             self._preflight()
+            self._start_watchdog()
             self._start()
             self._fly()
         except ExperimentError as err:
             outcome, detail = err.outcome, err.detail
+        except Terminated:
+            outcome, detail = Outcome.TERMINATED, "stopped by SIGTERM"
         except KeyboardInterrupt:
             outcome, detail = Outcome.INTERRUPTED, "stopped by the operator"
         finally:
             if self.stop_event.is_set() and outcome is Outcome.COMPLETED:
                 outcome, detail = Outcome.INTERRUPTED, "stopped by the operator"
-            self._shutdown(land=outcome is not Outcome.INTERRUPTED)
+            try:
+                self._shutdown(land=outcome not in (Outcome.INTERRUPTED, Outcome.TERMINATED))
+            finally:
+                self._stop_watchdog()
         self._write_record(kinds.EXPERIMENT_ENDED, outcome=outcome.name.lower(), detail=detail, faults=self.fault_log)
         result = ExperimentResult(outcome, detail, self.run_dir)
         if self.analyze:
@@ -204,6 +215,18 @@ class Experiment:
                                            self.network == "kernel"))
             except NacError as err:
                 raise ExperimentError(Outcome.BAD_INPUT, f"the MPI job's options: {err}") from None
+
+    def _start_watchdog(self) -> None:
+        """The watchdog first, then the run's token in this process's environment: every child started from here
+        on (agents, mpiexec and its ranks, iperf3 servers, tc and nft) inherits it, and the watchdog kills what
+        carries it once this process has ended, however it ended."""
+        self.watchdog = Watchdog().start()
+        os.environ.update(self.watchdog.environ)
+
+    def _stop_watchdog(self) -> None:
+        if self.watchdog is not None:
+            os.environ.pop(TOKEN_ENV, None)
+            self.watchdog.close()  # it finds nothing left after a clean end; it waits for that
 
     def _start(self) -> None:
         s = self.scenario
@@ -259,7 +282,10 @@ class Experiment:
         ids = [v.id for v in s.vehicles]
         probe_ports = [self.ports.throughput(i) if v.role == "worker" else None for i, v in enumerate(s.vehicles)]
         try:
-            self.air = AirNetwork(ids, ids.index(s.master.id), s.network.sharing, probe_ports, self.speedup).create()
+            air = AirNetwork(ids, ids.index(s.master.id), s.network.sharing, probe_ports, self.speedup)
+            if self.watchdog is not None:  # before they exist: a SIGKILL while they are being made leaves none
+                self.watchdog.watch_namespaces(air.prefix)
+            self.air = air.create()
         except NetworkError as err:
             raise ExperimentError(Outcome.NETWORK_FAILED, str(err)) from None
 
@@ -368,7 +394,7 @@ class Experiment:
             command = mpi_command(self.scenario, self.run_dir, self.ports, end_at_sim_s)
         env = {**os.environ, clock.ENV: str(self.clock_path)}
         self.mpi = subprocess.Popen(command, stdout=self.mpi_log, stderr=subprocess.STDOUT, start_new_session=True,
-                                    env=env)
+                                    env=env, preexec_fn=die_with_parent_preexec())
         print(f"MPI job started (pid {self.mpi.pid}): {self.scenario.compute.task}, "
               f"{len(self.scenario.workers)} workers", file=self.out, flush=True)
 

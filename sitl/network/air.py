@@ -20,6 +20,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from nac_onboard.child_process import die_with_parent_preexec
 from sitl.network import netns
 from sitl.network.shaping import Layout
 
@@ -38,7 +39,7 @@ class CommandStream:
         self.what = what
         self.errors = 0
         self.proc = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.PIPE, text=True, bufsize=1)
+                                     stderr=subprocess.PIPE, text=True, bufsize=1, preexec_fn=die_with_parent_preexec())
         self._reader = threading.Thread(target=self._read_errors, name=f"{what}-stderr", daemon=True)
         self._reader.start()
 

@@ -1,17 +1,22 @@
 """A full disk under the agent: logging stops, everything else goes on, and the log resumes with a record of what
-was lost (it once exited on ENOSPC, and systemd restarted it into the same failure)."""
+was lost (it once exited on ENOSPC, and systemd restarted it into the same failure). A full disk under the MPI
+job's checkpoint: that checkpoint is skipped, training goes on."""
 
 import os
 import subprocess
 import time
 
+import numpy as np
 import pytest
 
 from nac_onboard.agent.state_feed import fetch_state
+from nac_onboard.compute import forestfires
 from nac_onboard.flight_log import RETRY_S, read_jsonl
 from tests.conftest import free_port
 from tests.integration.agents import agent_toml, kind, wait_for_record
 from tests.integration.test_agent import companion_uri
+from tests.integration.test_compute import iterations_logged, job
+from tests.integration.test_compute import wait_until as wait_job
 
 needs_root = pytest.mark.skipif(os.geteuid() != 0, reason="mounting a small tmpfs needs root (CI runs as root)")
 
@@ -69,3 +74,38 @@ def test_the_agent_keeps_working_on_a_full_disk_and_logs_the_gap_afterwards(star
     read = read_jsonl(log_path)
     assert len(read.problems) <= 1, read.problems  # at most the one record the disk cut in half
     assert read.records[-1]["kind"] == "agent_stopped"
+
+
+@needs_root
+def test_a_checkpoint_into_a_full_disk_is_skipped_and_training_goes_on(small_disk, tmp_path):
+    """The master's checkpoint (np.savez) on a full disk once aborted the whole job and left a 0-byte partial file:
+    now the partial file is removed, the last whole checkpoint stays, a checkpoint_failed record says so, training
+    goes on, and the next checkpoint after the disk has room again is written. The job's logs are kept off the small
+    disk (symlinks to tmp_path) so the record of the failure can be read while the disk is full."""
+    out = small_disk / "compute"
+    out.mkdir()
+    for name in ("compute.jsonl", "rank-1.jsonl", "rank-2.jsonl"):
+        (out / name).symlink_to(tmp_path / name)
+    results, partial = out / "results.npz", out / "results.npz.partial.npz"
+
+    def failures() -> list[dict]:
+        return read_jsonl(tmp_path / "compute.jsonl").of_kind("checkpoint_failed")
+
+    with job("--task", "linreg", "--iterations", "1000000", "--out", str(out), "--checkpoint-s", "0.1") as proc:
+        wait_job(lambda: results.exists() and iterations_logged(tmp_path) >= 5, proc)
+        fill(small_disk)
+        wait_job(lambda: len(failures()) >= 2, proc)
+        failed = failures()
+        assert all(f["error"].startswith("ENOSPC") for f in failed), failed
+        kept = int(np.load(results)["iteration"])
+        assert failed[-1]["kept_iteration"] == kept and failed[-1]["iteration"] > kept
+        assert not partial.exists(), "the partial file is removed"
+        before = iterations_logged(tmp_path)
+        wait_job(lambda: iterations_logged(tmp_path) > before + 5, proc)  # training goes on
+
+        (small_disk / "filler").unlink()
+        wait_job(lambda: int(np.load(results)["iteration"]) > failed[-1]["iteration"], proc)
+        assert proc.poll() is None
+    checkpoint = np.load(results)
+    assert checkpoint["weights"].shape == (len(forestfires.FEATURES),) and np.isfinite(checkpoint["weights"]).all()
+    assert not partial.exists()

@@ -40,3 +40,25 @@ def test_a_runtime_error_is_not_mistaken_for_an_operator_error(capsys):
 
 def test_interrupt_is_130():
     assert run_cli("nac-x", _raise(KeyboardInterrupt())) == 130
+
+
+def test_sigterm_is_ctrl_c_with_exit_143_and_the_callers_handler_comes_back():
+    """SIGTERM raises KeyboardInterrupt (Terminated) in the command, so its Ctrl-C clean-up runs; exit 143."""
+    import signal
+
+    from nac_onboard.errors import Terminated
+
+    cleaned = []
+
+    def command():
+        try:
+            signal.raise_signal(signal.SIGTERM)  # its handler runs before raise_signal returns
+            return 0
+        except KeyboardInterrupt as err:
+            cleaned.append(type(err))
+            raise
+
+    before = signal.getsignal(signal.SIGTERM)
+    assert run_cli("nac-x", command) == 143
+    assert cleaned == [Terminated]
+    assert signal.getsignal(signal.SIGTERM) is before
