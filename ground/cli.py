@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 from nac_onboard.errors import BadInput, run_cli
+from nac_onboard.inputs import id_arg, number_arg
 from nac_onboard.records import kinds
 
 
@@ -26,9 +27,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--connect", action="append", metavar="URI",
                         help=f"link to listen on or dial (repeatable; default {DEFAULT_URI} or $NAC_MAVLINK_URI): "
                              "udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, serial:DEVICE:BAUD")
-    parser.add_argument("--sysid", type=int, help="vehicle to command (default: the first one heard)")
+    parser.add_argument("--sysid", type=number_arg(1, 255, integer=True),
+                        help="vehicle to command (default: the first one heard)")
     parser.add_argument("--signing-key-file", type=Path, help="MAVLink 2 signing key (64 hex chars or passphrase)")
-    parser.add_argument("--wait-s", type=float, default=5.0, help="how long to wait for the vehicle's heartbeat")
+    parser.add_argument("--wait-s", type=number_arg(0, 3600, low_open=True, unit="s"), default=5.0,
+                        help="how long to wait for the vehicle's heartbeat")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     mission = sub.add_parser("mission", help="upload, download, clear, validate, convert, start")
@@ -45,18 +48,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     sub.add_parser("arm", help="arm the motors")
     sub.add_parser("disarm", help="disarm the motors")
-    sub.add_parser("takeoff", help="GUIDED takeoff to ALT_M above home").add_argument("alt_m", type=float)
+    sub.add_parser("takeoff", help="GUIDED takeoff to ALT_M above home").add_argument("alt_m", type=number_arg(
+        0, 10_000, low_open=True, unit="m"))
     sub.add_parser("mode", help=f"set a flight mode ({', '.join(sorted(COPTER_MODES))})").add_argument("name")
     sub.add_parser("land", help="land where the vehicle is")
     sub.add_parser("rtl", help="return to launch")
     wait = sub.add_parser("wait", help="block until the mission is complete or the vehicle has landed")
     wait.add_argument("what", choices=["mission-complete", "landed"])
-    wait.add_argument("--timeout-s", type=float, default=600.0)
+    wait.add_argument("--timeout-s", type=number_arg(0, 86400, low_open=True, unit="s"), default=600.0)
     status = sub.add_parser("status", help="one table of every vehicle heard")
-    status.add_argument("--listen-s", type=float, default=3.0)
+    status.add_argument("--listen-s", type=number_arg(0, 3600, low_open=True, unit="s"), default=3.0)
     monitor = sub.add_parser("monitor", help="live table of every vehicle heard (Ctrl-C to stop)")
-    monitor.add_argument("--refresh-s", type=float, default=1.0)
-    monitor.add_argument("--duration-s", type=float, help="stop after this long (default: until Ctrl-C)")
+    monitor.add_argument("--refresh-s", type=number_arg(0.05, 3600, unit="s"), default=1.0)
+    monitor.add_argument("--duration-s", type=number_arg(0, 7 * 86400, low_open=True, unit="s"),
+                         help="stop after this long (default: until Ctrl-C)")
     _add_logs_parser(sub)
     _add_view_parser(sub)
     return parser
@@ -99,9 +104,11 @@ def _add_logs_parser(sub) -> None:
     compare.add_argument("run_b", type=Path)
     compare.add_argument("--out", type=Path, required=True, help="where to write the comparison")
     for p in (analyze, compare):
-        p.add_argument("--master", help="the master's vehicle id (default: the vehicle whose agent says master)")
-        p.add_argument("--bin-m", type=float, default=2.0, help="distance bin width for throughput vs distance")
-        p.add_argument("--threshold-mbps", type=float, default=1.0,
+        p.add_argument("--master", type=id_arg,
+                       help="the master's vehicle id (default: the vehicle whose agent says master)")
+        p.add_argument("--bin-m", type=number_arg(0.01, 10_000, unit="m"), default=2.0,
+                       help="distance bin width for throughput vs distance")
+        p.add_argument("--threshold-mbps", type=number_arg(0, 1e6, unit="Mbit/s"), default=1.0,
                        help="throughput counted as 'in range' for the summary's range figure")
     calibrate = lsub.add_parser("calibrate", help="fit path loss and shadowing to measured throughput: a preset")
     calibrate.add_argument("run_dir", type=Path)
@@ -109,7 +116,7 @@ def _add_logs_parser(sub) -> None:
     calibrate.add_argument("--base", default="wifi-flight",
                            help="preset or TOML giving the radio (bandwidth, noise, power, rate limits)")
     calibrate.add_argument("--name", help="the preset's name (default calibrated-RUN)")
-    calibrate.add_argument("--samples-per-probe", type=int, default=10,
+    calibrate.add_argument("--samples-per-probe", type=number_arg(1, 10_000, integer=True), default=10,
                            help="independent fades one probe averages (about 10 for a 1 s probe while moving)")
 
 

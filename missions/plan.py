@@ -423,9 +423,32 @@ def _fence_json(mission: Mission, source: str) -> dict:
 
 
 # ---- files -----------------------------------------------------------------------------------------------------
+MAX_MISSION_BYTES = 8 * 1024 * 1024  # a mission of 10,000 items is about 4 MB of .plan
+
+
 def read_text(path: str | Path) -> str:
+    """A mission file's text: only a regular file of at most MAX_MISSION_BYTES, checked with os.stat before it is
+    opened and opened without blocking, so a FIFO, a device (/dev/zero) or a huge file is refused, not read (the
+    mission library's own copy of nac_onboard.inputs.read_bounded: missions imports nothing of NAC's)."""
+    import os
+    import stat
+
     try:
-        return Path(path).read_text(encoding="utf-8-sig")  # tolerate a BOM from Windows editors
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
+            raise MissionFileError(str(path), "", "not a regular file (a FIFO, device or directory); expected a "
+                                                  "mission file")
+        if st.st_size > MAX_MISSION_BYTES:
+            raise MissionFileError(str(path), "", f"{st.st_size} bytes; a mission file may have at most "
+                                                  f"{MAX_MISSION_BYTES}")
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY)
+        with os.fdopen(fd, "rb") as f:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                raise MissionFileError(str(path), "", "not a regular file; expected a mission file")
+            data = f.read(MAX_MISSION_BYTES + 1)
+        if len(data) > MAX_MISSION_BYTES:
+            raise MissionFileError(str(path), "", f"grew past {MAX_MISSION_BYTES} bytes while read")
+        return data.decode("utf-8-sig")  # tolerate a BOM from Windows editors
     except (OSError, UnicodeDecodeError) as err:
         reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
         raise MissionFileError(str(path), "", f"cannot read the file ({reason})") from None

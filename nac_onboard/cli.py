@@ -20,10 +20,12 @@ import argparse
 import dataclasses
 import json
 import logging
+import os
 import sys
 
 from nac_onboard.agent.config import load_agent_config
 from nac_onboard.errors import BadInput, OperationFailed, run_cli
+from nac_onboard.inputs import check_name, name_arg
 from nac_onboard.link.throughput import DEFAULT_PORT
 
 
@@ -35,7 +37,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     agent = sub.add_parser("agent", help="run the onboard agent")
     agent.add_argument("--config", required=True, help="agent TOML file (see deploy/)")
-    agent.add_argument("--run-id", help="run directory name (default: log.run_id, $NAC_RUN_ID or the start time)")
+    agent.add_argument("--run-id", type=name_arg,
+                       help="run directory name (default: log.run_id, $NAC_RUN_ID or the start time)")
     agent.add_argument("--log-dir", help="override log.dir")
 
     tp = sub.add_parser("throughput", help="iperf3-style throughput server and probe")
@@ -126,6 +129,8 @@ def agent_command(args) -> int:
     from nac_onboard.agent.daemon import run_agent
 
     config = load_agent_config(args.config)
+    if not args.run_id and not config.log.run_id and os.environ.get("NAC_RUN_ID"):
+        check_name(os.environ["NAC_RUN_ID"], "$NAC_RUN_ID (the run directory's name)")
     if args.log_dir:
         config = dataclasses.replace(config, log=dataclasses.replace(config.log, dir=args.log_dir))
     try:
@@ -166,9 +171,9 @@ def log_check(files: list[str]) -> int:
     status = 0
     for name in files:
         try:
-            read = read_jsonl(name)
-        except OSError as err:
-            print(f"{name}: cannot read: {err.strerror}", file=sys.stderr)
+            read = read_jsonl(name)  # a regular file within the log limit, else BadInput naming it
+        except BadInput as err:
+            print(f"nac-onboard log check: {err}", file=sys.stderr)
             status = 2
             continue
         kinds: dict[str, int] = {}

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from nac_onboard.errors import BadInput
+from nac_onboard.inputs import MAX_LOG_BYTES, read_bounded
 from nac_onboard.mavlink.frames import TLOG_STAMP
 from nac_onboard.records import READABLE_VERSIONS, SCHEMA_VERSION, Kind, kinds
 from nac_onboard.records.schema import check
@@ -205,7 +206,7 @@ def read_jsonl(path: str | Path) -> LogRead:
     taken out of .records; kinds and fields this code does not know are kept."""
     path = Path(path)
     out = LogRead(path)
-    data = path.read_bytes()
+    data = read_bounded(path, "log", MAX_LOG_BYTES)  # a regular file within the limit: BadInput names it otherwise
     lines = data.split(b"\n")
     complete = data.endswith(b"\n") or not data
     if complete:

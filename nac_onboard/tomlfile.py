@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 from nac_onboard.errors import BadInput
+from nac_onboard.inputs import MAX_CONFIG_BYTES, check_number, read_bounded_text
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -19,16 +20,25 @@ else:
 _MISSING = object()
 
 
-def read_toml(path: str | Path, what: str, error: type[BadInput] = BadInput) -> dict:
-    """The file's tables; `error` names the file and the parser's line and column."""
+def read_toml(path: str | Path, what: str, error: type[BadInput] = BadInput,
+              limit_bytes: int = MAX_CONFIG_BYTES) -> dict:
+    """The file's tables; `error` names the file and the parser's line and column. Only a regular file of at most
+    limit_bytes is read (nac_onboard.inputs.read_bounded: a FIFO or /dev/zero is refused, never waited on)."""
     path = Path(path)
+    text = read_bounded_text(path, what, limit_bytes, error)
     try:
-        with path.open("rb") as f:
-            return tomllib.load(f)
-    except OSError as err:
-        raise error(f"cannot read {what} {path}: {err.strerror}") from None
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise error(f"{path}: not valid TOML: {err}") from None
+    except RecursionError:
+        raise error(f"{path}: not valid TOML: nested too deeply") from None
+
+
+def ranged(default=dataclasses.MISSING, low: float | None = None, high: float | None = None, *,
+           low_open: bool = False, unit: str = ""):
+    """A dataclass field whose TOML value must lie within [low, high] ((low, high] with low_open): to_dataclass
+    refuses anything else naming the key and the range."""
+    return dataclasses.field(default=default, metadata={"range": (low, high, low_open, unit)})
 
 
 def check_value(value, type_name: str, where: str, error: type[BadInput] = BadInput):
@@ -81,8 +91,14 @@ def to_dataclass(cls, values: dict, where: str, error: type[BadInput] = BadInput
     unknown = sorted(set(values) - set(fields))
     if unknown:
         raise error(f"{where}: unknown key {prefix}{unknown[0]} (known: {', '.join(fields)})")
-    checked = {key: check_value(value, str(fields[key].type), f"{where}: {prefix}{key}", error)
-               for key, value in values.items()}
+    checked = {}
+    for key, value in values.items():
+        checked[key] = value = check_value(value, str(fields[key].type), f"{where}: {prefix}{key}", error)
+        limits = fields[key].metadata.get("range")
+        if limits is not None and value is not None:
+            low, high, low_open, unit = limits
+            check_number(value, f"{where}: {prefix}{key}", low, high, integer=isinstance(value, int),
+                         low_open=low_open, error=error, unit=unit)
     missing = [f.name for f in fields.values() if f.name not in checked
                and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
     if missing:

@@ -16,6 +16,7 @@ from pathlib import Path
 from missions.geo import Home
 from nac_onboard.address import parse_host_port
 from nac_onboard.errors import BadInput, run_cli
+from nac_onboard.inputs import MAX_CONFIG_BYTES, check_name, number_arg, parse_number, read_bounded_text
 from nac_onboard.mavlink.signing import load_signing_key, state_path
 from nac_onboard.records import kinds
 from sitl.server import Sitl, SitlConfig, SitlError
@@ -24,14 +25,19 @@ from sitl.vehicle.params import parse_param_file
 log = logging.getLogger(__name__)
 
 
+MAX_VEHICLES = 250
+
+
 def _home(text: str) -> Home:
     parts = text.split(",")
+    if len(parts) != 3:
+        raise argparse.ArgumentTypeError(f"expected LAT,LON,ALT_M (e.g. 47.39,8.54,488), got {text[:60]!r}")
     try:
-        lat, lon, alt = (float(p) for p in parts)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected LAT,LON,ALT_M (e.g. 47.39,8.54,488), got {text!r}") from None
-    if not (-90 <= lat <= 90 and -180 <= lon <= 180):
-        raise argparse.ArgumentTypeError(f"{text!r}: latitude must be within ±90 and longitude within ±180")
+        lat, lon, alt = (parse_number(p, name, low, high, unit=unit) for p, name, low, high, unit in zip(
+            parts, ("latitude", "longitude", "altitude"), (-90, -180, -500), (90, 180, 10_000),
+            ("degrees", "degrees", "m"), strict=True))
+    except BadInput as err:
+        raise argparse.ArgumentTypeError(f"LAT,LON,ALT_M {text[:60]!r}: {err}") from None
     return Home(lat, lon, alt)
 
 
@@ -46,21 +52,27 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="nac-sitl", description="NAC multi-vehicle MAVLink SITL")
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="serve N simulated vehicles until interrupted")
-    run.add_argument("--vehicles", type=int, default=1, help="number of vehicles (sysid 1..N)")
-    run.add_argument("--speedup", type=float, default=1.0, help="simulated seconds per wall-clock second")
+    run.add_argument("--vehicles", type=number_arg(1, MAX_VEHICLES, integer=True), default=1,
+                     help="number of vehicles (sysid 1..N)")
+    run.add_argument("--speedup", type=number_arg(0.1, 1000), default=1.0,
+                     help="simulated seconds per wall-clock second")
     run.add_argument("--home", type=_home, default=Home(47.397742, 8.545594, 488.0), metavar="LAT,LON,ALT_M",
                      help="the first vehicle's home (default: 47.397742,8.545594,488, PX4's Zurich field; "
                           "south and west negative, e.g. --home -35.363261,149.165230,584)")
-    run.add_argument("--spacing-m", type=float, default=5.0, help="vehicle i starts i*D metres east of home")
-    run.add_argument("--seed", type=int, default=0, help="seed for GPS noise and injected packet loss")
+    run.add_argument("--spacing-m", type=number_arg(0, 10_000, unit="m"), default=5.0,
+                     help="vehicle i starts i*D metres east of home")
+    run.add_argument("--seed", type=number_arg(0, 2**32 - 1, integer=True), default=0,
+                     help="seed for GPS noise and injected packet loss")
     run.add_argument("--params", type=Path, help="parameter file (NAME VALUE per line) applied to every vehicle")
     run.add_argument("--host", default="127.0.0.1", help="where the UDP links are sent")
-    run.add_argument("--gcs-base-port", type=int, default=14550, help="ground link of vehicle i: base + step*i")
-    run.add_argument("--companion-base-port", type=int, default=14551, help="companion link: base + step*i")
-    run.add_argument("--tcp-base-port", type=int, default=5760, help="TCP server: base + step*i (0 = off)")
+    run.add_argument("--gcs-base-port", type=_port, default=14550, help="ground link of vehicle i: base + step*i")
+    run.add_argument("--companion-base-port", type=_port, default=14551, help="companion link: base + step*i")
+    run.add_argument("--tcp-base-port", type=number_arg(0, 65535, integer=True), default=5760,
+                     help="TCP server: base + step*i (0 = off)")
     run.add_argument("--tcp-bind", default="127.0.0.1",
                      help="address the TCP servers listen on (another address exposes the vehicles to that network)")
-    run.add_argument("--port-step", type=int, default=10, help="port increment between vehicles")
+    run.add_argument("--port-step", type=number_arg(1, 1000, integer=True), default=10,
+                     help="port increment between vehicles")
     run.add_argument("--out", type=_host_port, action="append", default=[],
                      help="extra ground link HOST:PORT (port + step*i per vehicle); repeatable")
     run.add_argument("--signing-key-file", type=Path,
@@ -73,10 +85,12 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("-v", "--verbose", action="store_true")
     exp = sub.add_parser("experiment", help="run a scenario end to end: SITL, agents, missions, MPI job, report")
     exp.add_argument("scenario", help="scenario TOML, or the name of a shipped one (sitl/scenarios/)")
-    exp.add_argument("--speedup", type=float, help="simulated seconds per wall-clock second (default: the "
+    exp.add_argument("--speedup", type=number_arg(0.1, 1000),
+                     help="simulated seconds per wall-clock second (default: the "
                                                    "scenario's, real time unless it says otherwise)")
     exp.add_argument("--out", type=Path, help="run directory (default runs/SCENARIO-YYYYmmddTHHMMSS)")
-    exp.add_argument("--base-port", type=int, default=14550, help="first UDP port; each vehicle uses 10")
+    exp.add_argument("--base-port", type=number_arg(1024, 65535, integer=True), default=14550,
+                     help="first UDP port; each vehicle uses 10")
     exp.add_argument("--no-analysis", action="store_true", help="leave the run directory unanalysed")
     exp.add_argument("--network", choices=["kernel", "sleep"],
                      help="kernel: each companion in its own network namespace, links shaped by tc/nftables from "
@@ -93,7 +107,8 @@ def build_parser() -> argparse.ArgumentParser:
     radio.add_argument("channel", help="preset (paper-sim, wifi-flight, wifi-open-field) or channel TOML")
     radio.add_argument("--distances-m", default="1,2,5,8,10,12,15,18,20,22,25,28,30",
                        help="comma-separated distances (m)")
-    radio.add_argument("--draws", type=int, default=2000, help="independent links drawn per distance")
+    radio.add_argument("--draws", type=number_arg(10, 100_000, integer=True), default=2000,
+                       help="independent links drawn per distance")
     radio.add_argument("-v", "--verbose", action="store_true")
     return parser
 
@@ -103,10 +118,8 @@ def radio_table(channel: str, distances_text: str, draws: int, out=None) -> None
     from nac_onboard.radio.air_link import rate_band
     from nac_onboard.radio.files import load_channel
 
-    try:
-        distances = [float(x) for x in distances_text.split(",")]
-    except ValueError:
-        raise BadInput(f"--distances-m: expected comma-separated metres, got {distances_text!r}") from None
+    distances = [parse_number(x, "--distances-m (comma-separated metres)", 0, 1e6, low_open=True, unit="m")
+                 for x in distances_text.split(",")[:1000]]
     if not distances or min(distances) <= 0 or not 10 <= draws <= 100_000:
         raise BadInput("--distances-m must be positive and --draws 10..100000")
     model = load_channel(channel)
@@ -121,17 +134,24 @@ def radio_table(channel: str, distances_text: str, draws: int, out=None) -> None
               f"{band['high_bps'][k] / 1e6:>11.2f} {band['in_range_fraction'][k]:>9.0%}", file=out)
 
 
+def _port(text: str) -> int:
+    return number_arg(1, 65535, integer=True)(text)
+
+
 def config_from_args(args: argparse.Namespace) -> SitlConfig:
-    if not 1 <= args.vehicles <= 250:
-        raise BadInput(f"--vehicles must be 1..250, got {args.vehicles}")
+    if not 1 <= args.vehicles <= MAX_VEHICLES:
+        raise BadInput(f"--vehicles must be 1..{MAX_VEHICLES}, got {args.vehicles}")
     if not 0.1 <= args.speedup <= 1000:
         raise BadInput(f"--speedup must be 0.1..1000, got {args.speedup}")
+    for option, base in [("--gcs-base-port", args.gcs_base_port), ("--companion-base-port",
+                         args.companion_base_port), ("--tcp-base-port", args.tcp_base_port or 1),
+                         *(("--out", port) for _, port in args.out)]:
+        if base + args.port_step * (args.vehicles - 1) > 65535:
+            raise BadInput(f"{option} {base}: {args.vehicles} vehicles {args.port_step} ports apart need ports up to "
+                           f"{base + args.port_step * (args.vehicles - 1)}, beyond 65535")
     params = {}
     if args.params is not None:
-        try:
-            text = args.params.read_text()
-        except OSError as err:
-            raise BadInput(f"cannot read parameter file {args.params}: {err.strerror}") from None
+        text = read_bounded_text(args.params, "parameter file", MAX_CONFIG_BYTES)
         params = parse_param_file(text, str(args.params))
     signing_key = signing_state = None
     if args.signing_key_file is not None:
@@ -183,8 +203,16 @@ def experiment(args: argparse.Namespace, out=None) -> int:
     from sitl.experiment.runner import run_scenario
     from sitl.experiment.scenario import load_scenario
 
+    if args.out is not None:  # its last part names the run in every agent's log root (log.run_id)
+        check_name(args.out.resolve().name, f"--out {args.out}: the run directory's own name")
     scenario = load_scenario(args.scenario)
-    speedup = args.speedup or scenario.default_speedup
+    speedup = args.speedup if args.speedup is not None else scenario.default_speedup
+    from sitl.experiment.commands import PORTS_PER_VEHICLE
+
+    top = args.base_port + PORTS_PER_VEHICLE * len(scenario.vehicles) - 1
+    if top > 65535:
+        raise BadInput(f"--base-port {args.base_port}: {len(scenario.vehicles)} vehicles need {PORTS_PER_VEHICLE} "
+                       f"ports each, up to {top}, beyond 65535")
     if not 0 < speedup <= scenario.max_speedup:
         raise BadInput(f"{scenario.name}: --speedup {speedup:g} is outside what this scenario allows "
                          f"(up to {scenario.max_speedup:g}x: {' '.join(scenario.notes) or 'fidelity'})")

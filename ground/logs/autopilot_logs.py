@@ -21,6 +21,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
 from ground.logs.dataflash import read_positions_fast  # noqa: E402
 from nac_onboard.errors import BadInput
+from nac_onboard.inputs import MAX_AUTOPILOT_LOG_BYTES, check_regular_file, read_bounded
 from nac_onboard.mavlink.frames import TLOG_STAMP, frame_length, msgid_at  # noqa: E402
 
 STAMP_BYTES = TLOG_STAMP.size
@@ -88,10 +89,7 @@ def read_tlog(path: str | Path, wanted=("GLOBAL_POSITION_INT",)) -> TlogRead:
     """Decode the wanted message types of a `.tlog` (8-byte big-endian µs stamp before each frame)."""
     path = Path(path)
     out = TlogRead(path)
-    try:
-        data = path.read_bytes()
-    except OSError as err:
-        raise FlightLogError(f"{path}: cannot read ({err.strerror})") from None
+    data = read_bounded(path, "autopilot log", MAX_AUTOPILOT_LOG_BYTES, FlightLogError)
     wanted_ids = message_ids(wanted)
     decoder = mavlink.MAVLink(None)
     decoder.robust_parsing = True
@@ -194,10 +192,7 @@ def dataflash_positions(path: str | Path, vehicle: str) -> tuple[list[dict], lis
     seconds since boot (then said, and the rows' time_base is "boot"). Modern logs are walked by record length
     (ground.logs.dataflash); the rest go through pymavlink's DFReader."""
     path = Path(path)
-    try:
-        fast = read_positions_fast(path.read_bytes())
-    except OSError as err:
-        raise FlightLogError(f"{path}: cannot read ({err.strerror or err})") from None
+    fast = read_positions_fast(read_bounded(path, "autopilot log", MAX_AUTOPILOT_LOG_BYTES, FlightLogError))
     if fast is None:
         return _dataflash_positions_dfreader(path, vehicle)
     pos, gps = fast.columns.get("POS"), fast.columns.get("GPS")
@@ -269,6 +264,7 @@ def ulog_positions(path: str | Path, vehicle: str) -> tuple[list[dict], list[str
     from pyulog import ULog
 
     path = Path(path)
+    check_regular_file(path, "autopilot log", MAX_AUTOPILOT_LOG_BYTES, FlightLogError)  # before pyulog opens it
     topics = ["vehicle_global_position", "vehicle_gps_position", "sensor_gps"]
     problems: list[str] = []
     with _reference_reader(path, problems):

@@ -18,6 +18,7 @@ from pathlib import Path
 from ground.logs.autopilot_logs import FlightLogError, reader_for
 from nac_onboard.errors import BadInput
 from nac_onboard.flight_log import read_jsonl
+from nac_onboard.inputs import MAX_LOG_BYTES, read_bounded_text
 from nac_onboard.records import kinds
 
 log = logging.getLogger(__name__)
@@ -180,8 +181,8 @@ def _iperf3_probe(path: Path, client: str) -> tuple[dict | None, str | None]:
     later from the two vehicles' positions)."""
     server = path.name[len("iperf3-"):].split(".")[0]
     try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError) as err:
+        data = json.loads(read_bounded_text(path, "iperf3 JSON", MAX_LOG_BYTES))
+    except (BadInput, ValueError, RecursionError) as err:
         return None, f"{path}: not iperf3 JSON (expected the output of `iperf3 --client PEER --json`): {err}"
     start = data.get("start") if isinstance(data, dict) else None
     timesecs = (start or {}).get("timestamp", {}).get("timesecs") if isinstance(start, dict) else None

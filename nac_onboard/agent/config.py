@@ -15,6 +15,7 @@ from pathlib import Path
 from nac_onboard.address import is_loopback, parse_host_port
 from nac_onboard.agent.peers import FleetKey
 from nac_onboard.errors import BadInput
+from nac_onboard.inputs import check_id, check_name, check_number
 from nac_onboard.mavlink.signing import load_signing_key
 from nac_onboard.radio.channel import ChannelModel
 from nac_onboard.radio.files import load_channel
@@ -166,9 +167,9 @@ def _check(c: AgentConfig) -> None:
     src = c.source
     if c.vehicle.role not in ROLES:
         raise ConfigError(f"{src}: vehicle.role must be one of {', '.join(ROLES)}, got {c.vehicle.role!r}")
-    if not c.vehicle.id or not all(ch.isalnum() or ch in "-_." for ch in c.vehicle.id):
-        raise ConfigError(f"{src}: vehicle.id must be a non-empty name of letters, digits, '-', '_' or '.', "
-                          f"got {c.vehicle.id!r}")
+    check_id(c.vehicle.id, f"{src}: vehicle.id", ConfigError)
+    if c.log.run_id:
+        check_name(c.log.run_id, f"{src}: log.run_id (a directory name; \"\" for the start time)", ConfigError)
     positive = {"autopilot.link_timeout_s": c.autopilot.link_timeout_s, "autopilot.reconnect_s":
                 c.autopilot.reconnect_s, "log.telemetry_hz": c.log.telemetry_hz, "peers.rate_hz": c.peers.rate_hz,
                 "peers.timeout_s": c.peers.timeout_s, "peers.forget_s": c.peers.forget_s,
@@ -178,6 +179,7 @@ def _check(c: AgentConfig) -> None:
     for key, value in positive.items():
         if not value > 0:
             raise ConfigError(f"{src}: {key} must be > 0, got {value}")
+    _check_ranges(c)
     if c.throughput.interval_s < 0.05:
         raise ConfigError(f"{src}: throughput.interval_s must be >= 0.05 s (servers refuse finer intervals)")
     if not c.peers.key_file and not c.peers.allow_unsigned:
@@ -234,6 +236,28 @@ def _check_fleet_passphrase(path: Path) -> None:
     if len(text) < MIN_PASSPHRASE_CHARS:
         raise BadInput(f"{path}: a passphrase of {len(text)} characters is too weak: at least {MIN_PASSPHRASE_CHARS} "
                        "characters, or 64 hex characters (a 32-byte key, docs/security.md)")
+
+
+#: numeric keys with the range they must lie in (low, high[, unit]): checked before anything starts, so a value a
+#: MAVLink field or a socket cannot carry is refused naming the key instead of failing when the link comes up
+RANGES = {
+    "vehicle.sysid": (0, 255, "(0: the first autopilot heard)"), "autopilot.link_timeout_s": (0.1, 3600, "s"),
+    "autopilot.reconnect_s": (0.1, 3600, "s"), "autopilot.stream_hz": (0, 1000, "Hz (0: leave as is)"),
+    "log.telemetry_hz": (0.01, 1000, "Hz"), "log.fsync_s": (0, 86400, "s (0: never)"),
+    "peers.rate_hz": (0.01, 1000, "Hz"), "peers.timeout_s": (0.1, 86400, "s"), "peers.forget_s": (0.1, 86400, "s"),
+    "peers.max_peers": (1, 100_000, "peers"), "peers.replay_window_s": (0.1, 86400, "s"),
+    "throughput.port": (1, 65535, ""), "throughput.period_s": (0.05, 86400, "s"),
+    "throughput.duration_s": (0.05, 3600, "s"), "throughput.bytes": (0, 2**40, "bytes (0: by duration)"),
+    "throughput.interval_s": (0.05, 3600, "s"), "throughput.rate_bps": (0, 1e12, "bit/s (0: no cap)"),
+}
+
+
+def _check_ranges(c: AgentConfig) -> None:
+    for key, (low, high, unit) in RANGES.items():
+        section, _, name = key.partition(".")
+        value = getattr(getattr(c, section), name)
+        check_number(value, f"{c.source}: {key}", low, high, integer=isinstance(value, int), unit=unit,
+                     error=ConfigError)
 
 
 def peers_state_path(config: AgentConfig) -> Path:

@@ -17,6 +17,14 @@ from nac_onboard.compute.positions import (
 from nac_onboard.compute.task import Task
 from nac_onboard.compute.tasks import all_tasks
 from nac_onboard.errors import BadInput, NacError
+from nac_onboard.inputs import (
+    MAX_AUTOPILOT_LOG_BYTES,
+    MAX_CONFIG_BYTES,
+    check_id,
+    check_regular_file,
+    number_arg,
+    parse_number,
+)
 from nac_onboard.radio.channel import PRESETS, ChannelModel
 from nac_onboard.radio.files import load_channel
 from nac_onboard.records import kinds
@@ -61,6 +69,11 @@ class ComputeOptions:
         return self.vehicles[rank] if rank < len(self.vehicles) else f"rank{rank}"
 
 
+MAX_ITERATIONS = 10_000_000
+MAX_DURATION_S = 7 * 86400.0  # a week: far beyond any battery
+_size = number_arg(1, 10_000_000, integer=True)
+
+
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str):
         raise BadInput(message)
@@ -72,23 +85,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--task", choices=list(tasks), required=True,
                    help="; ".join(f"{name}: {cls.summary}" for name, cls in tasks.items()))
     stop = p.add_mutually_exclusive_group()
-    stop.add_argument("--iterations", type=int, help="iterations to run (default: " + ", ".join(
+    stop.add_argument("--iterations", type=number_arg(1, MAX_ITERATIONS, integer=True),
+                      help="iterations to run (default: " + ", ".join(
         f"{cls.default_iterations} for {name}" for name, cls in tasks.items()) + ")")
-    stop.add_argument("--duration-s", type=float, help="run this long instead of a fixed number of iterations")
-    stop.add_argument("--end-at-s", type=float,
+    stop.add_argument("--duration-s", type=number_arg(0, MAX_DURATION_S, low_open=True, unit="s"),
+                      help="run this long instead of a fixed number of iterations")
+    stop.add_argument("--end-at-s", type=number_arg(0, 1e11, unit="s"),
                       help="run until this time on the run's clock (unix time; simulated seconds in SITL)")
     p.add_argument("--start-file", help="after setting up, wait until this file exists before the first iteration "
                                         "(an orchestrator's go: the vehicles are in the air); a JSON object in it "
                                         "may give end_at_s, as --end-at-s does")
     p.add_argument("--out", default="compute-out",
                    help=f"directory for {kinds.COMPUTE_LOG.name} (and {kinds.RESULTS.name})")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--m", type=int, default=100, help="matmul: rows of A")
-    p.add_argument("--n", type=int, default=10000, help="matmul: columns of A, rows of B")
-    p.add_argument("--l", type=int, default=1, help="matmul: columns of B")
+    p.add_argument("--seed", type=number_arg(0, 2**32 - 1, integer=True), default=0)
+    p.add_argument("--m", type=_size, default=100, help="matmul: rows of A")
+    p.add_argument("--n", type=_size, default=10000, help="matmul: columns of A, rows of B")
+    p.add_argument("--l", type=_size, default=1, help="matmul: columns of B")
     p.add_argument("--a", dest="a_path", help="matmul: A from this .npy file (every rank reads it) instead of the seed")
     p.add_argument("--data", help="linreg: forestfires.csv (default $NAC_DATA_DIR, then the user cache)")
-    p.add_argument("--learning-rate", type=float, default=0.05)
+    p.add_argument("--learning-rate", type=number_arg(0, 1000, low_open=True), default=0.05)
     p.add_argument("--emulate", choices=["none", "sleep"], default="none",
                    help="sleep: delay each transfer by bits / capacity (SITL); none: the network is real")
     p.add_argument("--channel", default="paper-sim", help="channel preset (paper-sim, wifi-flight) or TOML file")
@@ -97,16 +112,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--positions-script", help="script: JSON file of distances by iteration or time")
     p.add_argument("--feed", default="127.0.0.1:47200", help="feed: the local agent's state feed")
     p.add_argument("--vehicles", help="feed: vehicle ids in rank order, master first (comma-separated)")
-    p.add_argument("--timeout-s", type=float, default=5.0, help="how long the master waits for an iteration's results")
-    p.add_argument("--idle-timeout-s", type=float, default=600.0, help="a worker that hears nothing this long aborts")
+    p.add_argument("--timeout-s", type=number_arg(0, 86400, low_open=True, unit="s"), default=5.0,
+                   help="how long the master waits for an iteration's results")
+    p.add_argument("--idle-timeout-s", type=number_arg(0, 7 * 86400, low_open=True, unit="s"), default=600.0,
+                   help="a worker that hears nothing this long aborts")
     p.add_argument("--on-missing", choices=["incomplete", "reassign"], default="incomplete",
                    help="matmul: a worker's rows that did not arrive are re-assigned or the iteration is incomplete")
     p.add_argument("--allocation", choices=["equal", "capacity"], default="equal",
                    help="capacity: shard sizes proportional to each link's predicted capacity at the start")
     p.add_argument("--save-results", action="store_true", help="matmul: keep every B and A@B in results.npz")
-    p.add_argument("--checkpoint-s", type=float, default=10.0,
+    p.add_argument("--checkpoint-s", type=number_arg(0, 86400, unit="s"), default=10.0,
                    help="rewrite results.npz this often while running (0: only at the end)")
-    p.add_argument("--pad-bits", type=float, default=0.0,
+    p.add_argument("--pad-bits", type=number_arg(0, 1e9, unit="bits"), default=0.0,
                    help="append this many bits of zeros to every message (a transfer's overhead, as real bytes)")
     return p
 
@@ -133,8 +150,9 @@ def options_from_argv(argv: list[str] | None) -> ComputeOptions:
         raise BadInput("--pad-bits must be between 0 and 1e9")
     if args.timeout_s <= 0 or args.idle_timeout_s <= 0:
         raise BadInput("--timeout-s and --idle-timeout-s must be > 0")
-    distances = tuple(float(d) for d in args.distances.split(",")) if args.distances else ()
-    vehicles = tuple(v.strip() for v in args.vehicles.split(",")) if args.vehicles else ()
+    distances = tuple(parse_number(d, "--distances", 0, 1e6, unit="m") for d in args.distances.split(",")) \
+        if args.distances else ()
+    vehicles = tuple(check_id(v.strip(), "--vehicles") for v in args.vehicles.split(",")) if args.vehicles else ()
     options = ComputeOptions(
         task=args.task, iterations=iterations, duration_s=args.duration_s, end_at_s=args.end_at_s,
         start_file=args.start_file, out=args.out, seed=args.seed, m=args.m,
@@ -143,6 +161,12 @@ def options_from_argv(argv: list[str] | None) -> ComputeOptions:
         positions_script=args.positions_script, feed=args.feed, vehicles=vehicles, timeout_s=args.timeout_s,
         idle_timeout_s=args.idle_timeout_s, on_missing=args.on_missing, allocation=args.allocation,
         save_results=args.save_results, checkpoint_s=args.checkpoint_s, pad_bits=args.pad_bits, clock=from_env())
+    for option, path, what, limit in [("--a", options.a_path, "matrix A (.npy)", MAX_AUTOPILOT_LOG_BYTES),
+                                      ("--data", options.data, "data set (CSV)", MAX_AUTOPILOT_LOG_BYTES),
+                                      ("--positions-script", options.positions_script, "positions script",
+                                       MAX_CONFIG_BYTES)]:
+        if path is not None:  # regular and bounded before numpy, pandas or json open it
+            check_regular_file(path, f"{option} {what}", limit)
     if options.emulate == "sleep" and options.positions == "none":
         raise BadInput("--emulate sleep needs positions: --positions fixed|script|feed")
     task.check(options)

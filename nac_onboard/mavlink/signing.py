@@ -35,13 +35,11 @@ class SigningKeyError(BadInput):
 
 
 def load_signing_key(path: str | Path) -> bytes:
+    from nac_onboard.inputs import read_bounded_text
+
     path = Path(path)
-    try:
-        text = path.read_text().strip()
-    except OSError as err:
-        raise SigningKeyError(f"cannot read signing key file {path}: {err.strerror}") from None
-    except UnicodeDecodeError:
-        raise SigningKeyError(f"signing key file {path}: expected 64 hex characters or a passphrase") from None
+    # a regular file of at most 64 KiB, read without blocking: a FIFO or /dev/zero is refused, not waited on
+    text = read_bounded_text(path, "signing key file", 64 * 1024, SigningKeyError).strip()
     if not text:
         raise SigningKeyError(f"signing key file {path} is empty: expected 64 hex characters or a passphrase")
     if len(text) == 64:

@@ -9,6 +9,7 @@ import dataclasses
 import json
 from pathlib import Path
 
+from nac_onboard.inputs import MAX_LOG_BYTES, read_bounded_text
 from nac_onboard.radio.channel import PRESETS, ChannelError, ChannelModel
 from nac_onboard.radio.replay import EXPECTED_JSON, ReplayError, ReplayLinks
 from nac_onboard.tomlfile import read_toml, to_dataclass, write_toml
@@ -32,8 +33,10 @@ def save_channel(model: ChannelModel, path: str | Path) -> None:
 
 def load_replay(path: str | Path) -> ReplayLinks:
     try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, ValueError) as err:
+        data = json.loads(read_bounded_text(path, "replay table", MAX_LOG_BYTES, ReplayError))
+    except ReplayError:
+        raise
+    except (ValueError, RecursionError) as err:
         raise ReplayError(f"{path}: not a replay table (expected {EXPECTED_JSON}): {err}") from None
     return ReplayLinks.from_json(data, str(path))
 

@@ -28,14 +28,22 @@ from missions.geo import Home
 from missions.model import Mission
 from nac_onboard.compute.tasks import all_tasks
 from nac_onboard.errors import BadInput
+from nac_onboard.inputs import check_id, check_number
 from nac_onboard.mavlink.dialect import mission_catalogue
 from nac_onboard.radio.channel import ChannelError, ChannelModel
 from nac_onboard.radio.files import load_channel
-from nac_onboard.tomlfile import get_value, read_toml, to_dataclass
+from nac_onboard.tomlfile import get_value, ranged, read_toml, to_dataclass
 from sitl.experiment.faults import Fault, FaultKind
 from sitl.vehicle.params import PARAMS_BY_NAME
 
 SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
+MAX_VEHICLES = 250  # the simulator's limit (nac-sitl run --vehicles), and 10 ports each must fit below 65536
+MAX_DURATION_S = 7 * 86400.0  # simulated seconds: a week, far beyond any battery
+MAX_SPEEDUP = 1000.0  # as nac-sitl run --speedup
+TOP_KEYS = ("name", "description", "duration_s", "max_speedup", "default_speedup", "notes", "params", "channel",
+            "compute", "throughput", "network", "vehicle", "fault")
+VEHICLE_KEYS = ("id", "role", "mission", "home")
+FAULT_VALUE_RANGES = {"battery_pct": (0.0, 100.0), "packet_loss_pct": (0.0, 100.0)}
 
 
 class ScenarioError(BadInput):
@@ -54,8 +62,8 @@ class VehiclePlan:
 @dataclass(frozen=True)
 class ComputePlan:
     task: str
-    iterations: int = 0  # 0: until the scenario ends
-    timeout_s: float = 3.0
+    iterations: int = ranged(0, 0, 10_000_000)  # 0: until the scenario ends
+    timeout_s: float = ranged(3.0, 0.0, 3600.0, low_open=True, unit="s")
     on_missing: str = "incomplete"
     allocation: str = "equal"
     args: tuple[str, ...] = ()
@@ -63,9 +71,9 @@ class ComputePlan:
 
 @dataclass(frozen=True)
 class ProbePlan:
-    period_s: float = 2.0
-    duration_s: float = 0.5
-    interval_s: float = 0.1
+    period_s: float = ranged(2.0, 0.0, 3600.0, low_open=True, unit="s")
+    duration_s: float = ranged(0.5, 0.0, 3600.0, low_open=True, unit="s")
+    interval_s: float = ranged(0.1, 0.05, 3600.0, unit="s")  # agents refuse finer intervals
     tool: str = "nac"  # or "iperf3": the real iperf3 between the namespaces (kernel network only)
 
 
@@ -114,13 +122,21 @@ def find_scenario(name_or_path: str) -> Path:
 
 
 def load_scenario(name_or_path: str) -> Scenario:
+    """The scenario, every key checked (type, finite, range, ids, files) before anything starts: ScenarioError
+    (exit 2) names the file, the key and what was expected."""
     path = find_scenario(name_or_path).resolve()
     data = read_toml(path, "scenario", ScenarioError)
     where = str(path)
-    duration_s = get_value(data, "duration_s", "float", where, ScenarioError)
-    if duration_s <= 0:
-        raise ScenarioError(f"{where}: duration_s must be > 0, got {duration_s}")
-    vehicles = tuple(_vehicle(v, path, f"{where}: vehicle {k + 1}") for k, v in enumerate(data.get("vehicle", [])))
+    unknown = sorted(set(data) - set(TOP_KEYS))
+    if unknown:
+        raise ScenarioError(f"{where}: unknown key {unknown[0]!r} at the top level (known: {', '.join(TOP_KEYS)})")
+    duration_s = check_number(get_value(data, "duration_s", "float", where, ScenarioError), f"{where}: duration_s",
+                              0.0, MAX_DURATION_S, low_open=True, unit="simulated s", error=ScenarioError)
+    vehicle_tables = _tables(data, "vehicle", where)
+    if len(vehicle_tables) > MAX_VEHICLES:
+        raise ScenarioError(f"{where}: [[vehicle]]: at most {MAX_VEHICLES} vehicles (10 UDP ports each), "
+                            f"got {len(vehicle_tables)}")
+    vehicles = tuple(_vehicle(v, path, f"{where}: vehicle {k + 1}") for k, v in enumerate(vehicle_tables))
     roles = [v.role for v in vehicles]
     if roles.count("master") != 1 or len(vehicles) < 2:
         raise ScenarioError(f"{where}: needs one [[vehicle]] with role \"master\" and at least one worker "
@@ -128,25 +144,46 @@ def load_scenario(name_or_path: str) -> Scenario:
     ids = [v.id for v in vehicles]
     if len(set(ids)) != len(ids):
         raise ScenarioError(f"{where}: vehicle ids must be unique, got {ids}")
-    speedup = data.get("max_speedup", 1.0)
+    max_speedup = check_number(data.get("max_speedup", 1.0), f"{where}: max_speedup", 0.1, MAX_SPEEDUP,
+                               unit="x real time", error=ScenarioError)
+    default_speedup = check_number(data.get("default_speedup", 1.0), f"{where}: default_speedup", 0.1,
+                                   max_speedup, unit="x real time (0.1 to max_speedup)", error=ScenarioError)
+    name = get_value(data, "name", "str", where, ScenarioError, path.stem)
+    check_id(name, f"{where}: name (it names the run directory)", ScenarioError)
     scenario = Scenario(
-        name=get_value(data, "name", "str", where, ScenarioError, path.stem), path=path,
-        description=data.get("description", ""),
-        duration_s=duration_s, vehicles=vehicles, channel=_channel(data.get("channel", {}), path, where),
-        compute=_compute(data["compute"], f"{where}: [compute]") if "compute" in data else None,
-        throughput=_probes(data["throughput"], f"{where}: [throughput]") if "throughput" in data else None,
-        faults=tuple(_fault(f, ids, f"{where}: fault {k + 1}") for k, f in enumerate(data.get("fault", []))),
-        network=_network(data.get("network", {}), f"{where}: [network]"),
-        max_speedup=float(speedup), default_speedup=float(data.get("default_speedup", 1.0)),
-        notes=tuple(data.get("notes", [])), params=_params(data.get("params", {}), f"{where}: [params]"))
+        name=name, path=path,
+        description=get_value(data, "description", "str", where, ScenarioError, ""),
+        duration_s=duration_s, vehicles=vehicles,
+        channel=_channel(_table(data, "channel", where), path, where),
+        compute=_compute(_table(data, "compute", where), f"{where}: [compute]") if "compute" in data else None,
+        throughput=(_probes(_table(data, "throughput", where), f"{where}: [throughput]")
+                    if "throughput" in data else None),
+        faults=tuple(_fault(f, ids, duration_s, f"{where}: fault {k + 1}")
+                     for k, f in enumerate(_tables(data, "fault", where))),
+        network=_network(_table(data, "network", where), f"{where}: [network]"),
+        max_speedup=max_speedup, default_speedup=default_speedup,
+        notes=get_value(data, "notes", "tuple[str, ...]", where, ScenarioError, ()),
+        params=_params(_table(data, "params", where), f"{where}: [params]"))
     for k, fault in enumerate(scenario.faults):
         if fault.kind is FaultKind.KILL_WORKER and (scenario.compute is None or fault.vehicle not in
                                             [w.id for w in scenario.workers]):
             raise ScenarioError(f"{where}: fault {k + 1}: kill_worker needs a worker of the MPI job ([compute]), "
                                 f"got {fault.vehicle!r}")
-    if not 0 < scenario.default_speedup <= scenario.max_speedup:
-        raise ScenarioError(f"{where}: default_speedup must be within (0, max_speedup]")
     return scenario
+
+
+def _table(data: dict, key: str, where: str) -> dict:
+    value = data.get(key, {})
+    if not isinstance(value, dict):
+        raise ScenarioError(f"{where}: {key}: expected a table [{key}], got {value!r:.60}")
+    return value
+
+
+def _tables(data: dict, key: str, where: str) -> list[dict]:
+    value = data.get(key, [])
+    if not isinstance(value, list) or not all(isinstance(t, dict) for t in value):
+        raise ScenarioError(f"{where}: {key}: expected tables [[{key}]], got {value!r:.60}")
+    return value
 
 
 def _params(table: dict, where: str) -> tuple[tuple[str, float], ...]:
@@ -185,7 +222,11 @@ def _channel(table: dict, scenario_path: Path, where: str) -> ChannelModel:
 
 
 def _vehicle(table: dict, scenario_path: Path, where: str) -> VehiclePlan:
+    unknown = sorted(set(table) - set(VEHICLE_KEYS))
+    if unknown:
+        raise ScenarioError(f"{where}: unknown key vehicle.{unknown[0]} (known: {', '.join(VEHICLE_KEYS)})")
     vehicle_id = get_value(table, "id", "str", where, ScenarioError)
+    check_id(vehicle_id, f"{where}: id (a directory and host name)", ScenarioError)
     role = get_value(table, "role", "str", where, ScenarioError)
     if role not in ("master", "worker"):
         raise ScenarioError(f"{where}: role must be \"master\" or \"worker\", got {role!r}")
@@ -200,9 +241,12 @@ def _vehicle(table: dict, scenario_path: Path, where: str) -> VehiclePlan:
         home = Home(mission.home.lat_deg, mission.home.lon_deg, mission.home.alt_m)
         return VehiclePlan(vehicle_id, role, home, mission, mission_path)
     home = table.get("home")
-    if not (isinstance(home, list) and len(home) == 3 and all(isinstance(x, (int, float)) for x in home)):
+    if not (isinstance(home, list) and len(home) == 3):
         raise ScenarioError(f"{where} ({vehicle_id}): give mission = \"FILE.plan\" or home = [lat, lon, alt_m]")
-    return VehiclePlan(vehicle_id, role, Home(*map(float, home)))
+    lat, lon, alt = (check_number(x, f"{where} ({vehicle_id}): home[{k}] ({name})", low, high, error=ScenarioError)
+                     for k, (x, name, low, high) in enumerate(zip(home, ("latitude", "longitude", "altitude m"),
+                                                                  (-90, -180, -500), (90, 180, 10_000), strict=True)))
+    return VehiclePlan(vehicle_id, role, Home(lat, lon, alt))
 
 
 def _compute(table: dict, where: str) -> ComputePlan:
@@ -210,6 +254,11 @@ def _compute(table: dict, where: str) -> ComputePlan:
     tasks = all_tasks()
     if plan.task not in tasks:
         raise ScenarioError(f"{where}: compute.task must be one of {', '.join(tasks)}, got {plan.task!r}")
+    choices = {"on_missing": ("incomplete", "reassign"), "allocation": ("equal", "capacity")}
+    for key, allowed in choices.items():
+        if getattr(plan, key) not in allowed:
+            raise ScenarioError(f"{where}: compute.{key} must be one of {', '.join(allowed)}, "
+                                f"got {getattr(plan, key)!r}")
     return plan
 
 
@@ -229,7 +278,7 @@ def _network(table: dict, where: str) -> NetworkPlan:
     return plan
 
 
-def _fault(table: dict, ids: list[str], where: str) -> Fault:
+def _fault(table: dict, ids: list[str], duration_s: float, where: str) -> Fault:
     kinds = [k.value for k in FaultKind]
     kind = get_value(table, "kind", "str", where, ScenarioError)
     if kind not in kinds:
@@ -238,4 +287,10 @@ def _fault(table: dict, ids: list[str], where: str) -> Fault:
                          kind=FaultKind(kind))
     if fault.vehicle not in ids:
         raise ScenarioError(f"{where}: no vehicle {fault.vehicle!r} in this scenario ({', '.join(ids)})")
+    check_number(fault.at_s, f"{where}: fault.at_s", 0.0, duration_s, unit="simulated s (within duration_s)",
+                 error=ScenarioError)
+    check_number(fault.duration_s, f"{where}: fault.duration_s", 0.0, MAX_DURATION_S,
+                 unit="simulated s (0: until the end)", error=ScenarioError)
+    if kind in FAULT_VALUE_RANGES:
+        check_number(fault.value, f"{where}: fault.value", *FAULT_VALUE_RANGES[kind], unit="%", error=ScenarioError)
     return fault

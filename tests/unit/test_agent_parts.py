@@ -35,7 +35,7 @@ def test_minimal_config_takes_the_jetson_defaults():
     ({}, "missing [vehicle]"),
     ({"vehicle": {"id": "uav1"}}, "[vehicle] needs role"),
     ({"vehicle": {"id": "uav1", "role": "boss"}}, "vehicle.role must be one of master, worker"),
-    ({"vehicle": {"id": "uav 1", "role": "worker"}}, "vehicle.id must be"),
+    ({"vehicle": {"id": "uav 1", "role": "worker"}}, "vehicle.id: expected an id of 1-32"),
     ({**MINIMAL, "log": {"telemetry_hz": "fast"}}, "log.telemetry_hz: expected a finite number, got 'fast'"),
     ({**MINIMAL, "log": {"telemetry_hz": float("inf")}}, "log.telemetry_hz: expected a finite number, got inf"),
     ({**MINIMAL, "log": {"telemetryhz": 5}}, "unknown key log.telemetryhz"),

@@ -1,5 +1,6 @@
 """Scenario files: the shipped ones load and agree with their missions; bad ones are refused by name and key."""
 
+import os
 
 import pytest
 
@@ -9,6 +10,8 @@ from sitl import cli
 from sitl.experiment.scenario import SCENARIO_DIR, ScenarioError, load_scenario
 
 SHIPPED = sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
+TWO = ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
+       "role = 'worker'\nhome = [47, 8, 500]\n")  # the smallest valid scenario: a master and a worker, no missions
 
 
 def test_the_shipped_scenarios_load_with_the_research_geometry():
@@ -61,6 +64,33 @@ def test_the_shipped_scenarios_load_with_the_research_geometry():
     ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
      "role = 'worker'\nhome = [47, 8, 500]\n[compute]\ntask = 'sorting'\n",
      "compute.task must be one of linreg, matmul"),
+    # the issue's examples (34): each a sentence naming the key and what was expected, never a traceback
+    ("max_speedup = 'fast'\n" + TWO, "max_speedup: expected a finite number within [0.1, 1000] x real time, "
+                                    "got 'fast'"),
+    ("notes = 5\n" + TWO, "notes: expected a list of strings, got 5"),
+    (TWO.replace("duration_s = 10\n", "duration_s = 10\nfault = [1]\n"), "fault: expected tables [[fault]]"),
+    (TWO.replace("id = 'b'", "id = 'w/1'"), "vehicle 2: id (a directory and host name): expected an id of 1-32"),
+    (TWO.replace("id = 'b'", "id = '<b>w</b>'"), "vehicle 2: id (a directory and host name): expected an id"),
+    (TWO.replace("id = 'b'", "id = '..'"), "vehicle 2: id (a directory and host name): expected an id"),
+    (TWO.replace("id = 'b'", f"id = '{'w' * 40}'"), "vehicle 2: id (a directory and host name): expected an id"),
+    (TWO.replace("home = [47, 8, 500]", "home = [nan, 8, 500]", 1), "vehicle 1 (a): home[0] (latitude): expected "
+                                                                     "a finite number within [-90, 90], got nan"),
+    (TWO.replace("home = [47, 8, 500]", "home = [47, 181, 500]", 1), "home[1] (longitude): expected a finite number "
+                                                                      "within [-180, 180], got 181"),
+    (TWO + "[compute]\ntask = 'matmul'\niterations = -5\n", "compute.iterations: expected an integer within "
+                                                             "[0, 10000000], got -5"),
+    (TWO + "[[fault]]\nat_s = 5\nvehicle = 'b'\nkind = 'link_down'\nduration_s = -5\n",
+     "fault 1: fault.duration_s: expected a finite number within [0, 604800] simulated s (0: until the end), got -5"),
+    (TWO + "[[fault]]\nat_s = 50\nvehicle = 'b'\nkind = 'link_down'\n", "fault.at_s: expected a finite number "
+                                                                         "within [0, 10] simulated s"),
+    (TWO + "[[fault]]\nat_s = 5\nvehicle = 'b'\nkind = 'battery_pct'\nvalue = 150\n",
+     "fault.value: expected a finite number within [0, 100] %"),
+    (TWO + "[throughput]\ninterval_s = 0.001\n", "throughput.interval_s: expected a finite number within [0.05, "),
+    ("max_speedup_x = 2\n" + TWO, "unknown key 'max_speedup_x' at the top level"),
+    (TWO.replace("role = 'worker'", "role = 'worker'\ncolour = 'red'"), "vehicle 2: unknown key vehicle.colour"),
+    ("compute = 5\n" + TWO, "compute: expected a table [compute]"),
+    ("name = '../escape'\n" + TWO, "name (it names the run directory): expected an id"),
+    (TWO.replace("duration_s = 10", "duration_s = inf"), "duration_s: expected a finite number"),
 ])
 def test_bad_scenarios_name_the_file_and_the_key(tmp_path, text, message):
     path = tmp_path / "bad.toml"
@@ -133,6 +163,30 @@ def test_the_cli_refuses_bad_scenarios_and_speedups_with_exit_2(tmp_path, capsys
     assert "no such scenario file, nor a shipped scenario (paper-flight-moving" in capsys.readouterr().err
     assert cli.main(["experiment", "range-sweep", "--speedup", "5"]) == 2
     assert "--speedup 5 is outside what this scenario allows (up to 1x" in capsys.readouterr().err
+
+
+def test_a_mission_that_is_not_a_regular_bounded_file_is_refused_naming_the_vehicle(tmp_path):
+    fifo = tmp_path / "fifo.plan"
+    os.mkfifo(fifo)
+    huge = tmp_path / "huge.plan"
+    with open(huge, "wb") as f:
+        f.truncate(2 * 1024 ** 3)  # sparse: refused by its size, never read
+    for mission, words in ((fifo, "not a regular file"), ("/dev/zero", "not a regular file"),
+                           (tmp_path, "not a regular file"), (huge, "2147483648 bytes; a mission file may have")):
+        path = tmp_path / "bad.toml"
+        path.write_text(TWO.replace("home = [47, 8, 500]\n[[vehicle]]", f"mission = '{mission}'\n[[vehicle]]"))
+        with pytest.raises(ScenarioError) as err:
+            load_scenario(str(path))
+        assert f"vehicle 1 (a): {mission}" in str(err.value) and words in str(err.value)
+
+
+def test_experiment_speedups_below_the_floor_are_refused_not_taken_as_real_time(tmp_path, capsys):
+    """--speedup 0 used to fall back to the scenario's default (1x) and 1e-300 was taken."""
+    for speedup in ("0", "1e-300", "nan", "-1"):
+        with pytest.raises(SystemExit) as exit_:
+            cli.main(["experiment", "range-sweep", f"--speedup={speedup}"])
+        assert exit_.value.code == 2
+        assert "argument --speedup: expected a finite number within [0.1, 1000]" in capsys.readouterr().err
 
 
 def test_iperf3_probes_need_the_kernel_network(tmp_path):
