@@ -2,7 +2,9 @@
 commands that build and remove one, sockets opened inside a namespace, and the cleanup of what a killed run left.
 
 Every namespace a run creates is named `nacnet-<pid>-<tag>-...` after the process that owns it, so a later run
-finds leftovers (an owner that no longer exists) and removes them, and parallel runs never share a name.
+finds leftovers (an owner that no longer exists) and removes them, and parallel runs never share a name. A run
+killed with SIGKILL has its namespaces removed at once by its watchdog (sitl/experiment/watchdog.py, which calls
+delete_namespace); remove_leftovers is for what even that missed (the watchdog killed too, a reboot's /run kept).
 """
 
 from __future__ import annotations
