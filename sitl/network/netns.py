@@ -4,7 +4,7 @@ commands that build and remove one, sockets opened inside a namespace, and the c
 Every namespace a run creates is named `nacnet-<pid>-<tag>-...` after the process that owns it, so a later run
 finds leftovers (an owner that no longer exists) and removes them, and parallel runs never share a name. A run
 killed with SIGKILL has its namespaces removed at once by its watchdog (sitl/experiment/watchdog.py, which calls
-delete_namespace); remove_leftovers is for what even that missed (the watchdog killed too, a reboot's /run kept).
+delete_namespace); remove_leftovers is for what even that missed (the watchdog killed as well).
 """
 
 from __future__ import annotations
