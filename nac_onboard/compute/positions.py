@@ -11,11 +11,13 @@ A source answers distances_m(iteration, elapsed_s) -> {worker rank: metres or No
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 
 from nac_onboard.agent.state_feed import StateFeedError, distance_between, fetch_state
 from nac_onboard.errors import BadInput
+from nac_onboard.inputs import MAX_CONFIG_BYTES, read_bounded_text
 
 
 class PositionsError(BadInput):
@@ -34,12 +36,17 @@ class ScriptedDistances:
     def __init__(self, by: str, schedule: dict[int, list[tuple[float, float]]]):
         if by not in ("iteration", "time_s"):
             raise PositionsError(f"positions script: 'by' must be 'iteration' or 'time_s', got {by!r}")
+        for rank, points in schedule.items():
+            for at, d in points:  # NaN or infinity would become a NaN link time, or an endless sleep
+                if not (math.isfinite(at) and at >= 0 and math.isfinite(d) and 0 <= d <= 1e6):
+                    raise PositionsError(f"positions script: rank {rank}: [{at!r}, {d!r}]: expected a finite time "
+                                         ">= 0 and a distance within [0, 1000000] m")
         self.by, self.schedule = by, {rank: sorted(points) for rank, points in schedule.items()}
 
     @classmethod
     def load(cls, path: str | Path) -> ScriptedDistances:
         try:
-            data = json.loads(Path(path).read_text())
+            data = json.loads(read_bounded_text(path, "positions script", MAX_CONFIG_BYTES, PositionsError))
             schedule = {int(rank): [(float(at), float(d)) for at, d in points]
                         for rank, points in data["distances_m"].items()}
             return cls(data.get("by", "iteration"), schedule)

@@ -334,6 +334,18 @@ def test_every_invalid_option_is_exit_2_naming_the_option(case):
 def test_a_bad_positional_number_names_its_argument(value):
     assert_clear_error(*call(ground_cli.main, ["takeoff", "--", value]), "alt_m")
 
+@FUZZ
+@given(at=st.one_of(NON_FINITE, st.floats(max_value=0, exclude_max=True, allow_nan=False)) | st.just(0.0),
+       d=st.one_of(NON_FINITE, st.floats(max_value=0, exclude_max=True, allow_nan=False),
+                   st.floats(min_value=1e6, exclude_min=True, allow_nan=False, allow_infinity=False)))
+def test_a_positions_script_with_non_finite_times_or_distances_is_refused_naming_it(tmp_path, at, d):
+    """Every distance drawn is invalid (non-finite, negative or beyond 1,000 km), whatever the time."""
+    path = write(tmp_path, json.dumps({"by": "time_s", "distances_m": {"1": [[at, d]]}}), ".json")
+    code, err = call(compute_options.parse_args, ["--task", "linreg", "--positions", "script",
+                                                  "--positions-script", str(path)])
+    assert_clear_error(code, err, str(path), "positions script: rank 1", "expected a finite time >= 0")
+
+
 # ------------------------------------------------------------------------ files that are not files: subprocesses
 
 
