@@ -221,21 +221,16 @@ def _check(c: AgentConfig) -> None:
         raise ConfigError(f"{src}: {err}") from None
 
 
-def _check_fleet_passphrase(path: Path) -> None:
-    """A fleet key file holds 64 hex characters (the secret) or a passphrase whose SHA-256 is the secret: anyone who
-    guesses a short passphrase can sign peer state for the whole fleet, so one under MIN_PASSPHRASE_CHARS is refused."""
-    try:
-        if not path.is_file():
-            return  # load_signing_key names what is wrong with it
-        with open(path, "rb") as f:
-            text = f.read(4096).decode().strip()
-    except (OSError, UnicodeDecodeError):
-        return
-    if len(text) == 64 and all(ch in "0123456789abcdefABCDEF" for ch in text):
-        return  # the 32-byte key itself
-    if len(text) < MIN_PASSPHRASE_CHARS:
-        raise BadInput(f"{path}: a passphrase of {len(text)} characters is too weak: at least {MIN_PASSPHRASE_CHARS} "
-                       "characters, or 64 hex characters (a 32-byte key, docs/security.md)")
+def _check_autopilot_peer(a: AutopilotSection) -> None:
+    """autopilot.peer names who may be the autopilot on a listening link; the other schemes have one peer by
+    construction (the device, the address connected to), where a peer setting would be a misunderstanding."""
+    from nac_onboard.mavlink.client import parse_peer
+
+    parse_peer(a.peer, "autopilot.peer")
+    scheme = a.uri.partition(":")[0]
+    if a.peer and scheme not in ("udpin", "tcpin"):
+        raise BadInput(f"autopilot.peer is only for a listening link (udpin:, tcpin:); {a.uri} has one peer by "
+                       "construction: remove autopilot.peer")
 
 
 #: numeric keys with the range they must lie in (low, high[, unit]): checked before anything starts, so a value a
@@ -260,6 +255,23 @@ def _check_ranges(c: AgentConfig) -> None:
                      error=ConfigError)
 
 
+def _check_fleet_passphrase(path: Path) -> None:
+    """A fleet key file holds 64 hex characters (the secret) or a passphrase whose SHA-256 is the secret: anyone who
+    guesses a short passphrase can sign peer state for the whole fleet, so one under MIN_PASSPHRASE_CHARS is refused."""
+    try:
+        if not path.is_file():
+            return  # load_signing_key names what is wrong with it
+        with open(path, "rb") as f:
+            text = f.read(4096).decode().strip()
+    except (OSError, UnicodeDecodeError):
+        return
+    if len(text) == 64 and all(ch in "0123456789abcdefABCDEF" for ch in text):
+        return  # the 32-byte key itself
+    if len(text) < MIN_PASSPHRASE_CHARS:
+        raise BadInput(f"{path}: a passphrase of {len(text)} characters is too weak: at least {MIN_PASSPHRASE_CHARS} "
+                       "characters, or 64 hex characters (a 32-byte key, docs/security.md)")
+
+
 def peers_state_path(config: AgentConfig) -> Path:
     """Where the agent keeps the last sequence accepted from each peer (peers.state_file)."""
     if config.peers.state_file:
@@ -268,17 +280,5 @@ def peers_state_path(config: AgentConfig) -> Path:
     return Path(directory) / f"peer-freshness-{config.vehicle.id}.json"
 
 
-
-
-def _check_autopilot_peer(a: AutopilotSection) -> None:
-    """autopilot.peer names who may be the autopilot on a listening link; the other schemes have one peer by
-    construction (the device, the address connected to), where a peer setting would be a misunderstanding."""
-    from nac_onboard.mavlink.client import parse_peer
-
-    parse_peer(a.peer, "autopilot.peer")
-    scheme = a.uri.partition(":")[0]
-    if a.peer and scheme not in ("udpin", "tcpin"):
-        raise BadInput(f"autopilot.peer is only for a listening link (udpin:, tcpin:); {a.uri} has one peer by "
-                       "construction: remove autopilot.peer")
 def load_agent_config(path: str | Path) -> AgentConfig:
     return parse_agent_config(read_toml(path, "agent config", ConfigError), str(path))
