@@ -26,8 +26,8 @@ demo: $(STAMP)
 # host's namespaces, alone on a quiet machine (marked `exclusive`).
 test: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -m "not exclusive" -n 2 --dist worksteal
-	$(BIN)/python -m pytest -m exclusive
+	$(BIN)/python -m pytest -m "not exclusive" -n 2 --dist worksteal --durations=20
+	$(BIN)/python -m pytest -m exclusive --durations=20
 
 # The lint rules are ruff's, set in pyproject.toml (pycodestyle, pyflakes, isort, bugbear, naming...). The code
 # keeps its own line wrapping: `ruff format` would rewrite some 4,500 lines for no change in behaviour.

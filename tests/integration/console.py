@@ -27,3 +27,11 @@ class Console:
 
     def join(self, timeout_s: float = 2.0) -> None:
         self._reader.join(timeout_s)
+
+
+def as_at_a_terminal() -> None:
+    """preexec_fn for a child a test will Ctrl-C: SIGINT back to its default, as in a terminal's foreground job (a
+    suite started in the background by a non-interactive shell has SIGINT ignored, and Python keeps it so)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

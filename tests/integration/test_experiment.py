@@ -27,7 +27,7 @@ from sitl.experiment.runner import Experiment, Outcome
 from sitl.experiment.scenario import load_scenario
 from sitl.scenarios.generate import at, hover, route
 from tests.conftest import SHARED_DATA, allocate_base_port
-from tests.integration.console import Console
+from tests.integration.console import Console, as_at_a_terminal
 
 ENV = dict(os.environ, NAC_DATA_DIR=str(SHARED_DATA))
 # Logged positions against the truth at 10x, measured rates and per-minute counts: a busy core skews them.
@@ -234,7 +234,8 @@ def stop_a_running_experiment(tmp_path: Path, signum: int, exit_code: int) -> tu
     proc = subprocess.Popen([sys.executable, "-m", "sitl.cli", "experiment", str(scenario), "--speedup", "4",
                              "--network", "sleep",
                              "--out", str(run), "--base-port", str(allocate_base_port(3, slots=5))],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV,
+                            preexec_fn=as_at_a_terminal)
     console = Console(proc, "MPI job started")
     try:
         assert console.seen.wait(60.0), console.text()

@@ -25,7 +25,7 @@ from sitl.network import netns
 from sitl.network.air import AirNetwork
 from sitl.network.shaper import Shaper
 from tests.conftest import SHARED_DATA, allocate_base_port
-from tests.integration.console import Console
+from tests.integration.console import Console, as_at_a_terminal
 from tests.stats import MIN_SAMPLES, agrees_within, median_interval
 
 ENV = dict(os.environ, NAC_DATA_DIR=str(SHARED_DATA))
@@ -280,7 +280,8 @@ def test_ctrl_c_on_a_kernel_network_leaves_nothing_behind(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "sitl.cli", "experiment", str(scenario), "--network", "kernel",
                              "--speedup", "4", "--out", str(tmp_path / "run"), "--base-port",
                              str(allocate_base_port(3, slots=5))],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV,
+                            preexec_fn=as_at_a_terminal)
     console = Console(proc, r"\| it \d+ ")  # the progress line once the MPI job computes
     try:
         assert console.seen.wait(90.0), console.text()
@@ -312,7 +313,8 @@ def test_sigterm_and_sigkill_on_a_kernel_network_leave_nothing_within_10_s(tmp_p
     proc = subprocess.Popen([sys.executable, "-m", "sitl.cli", "experiment", str(scenario), "--network", "kernel",
                              "--speedup", "4", "--out", str(tmp_path / "run"), "--base-port",
                              str(allocate_base_port(3, slots=5))],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV,
+                            preexec_fn=as_at_a_terminal)
     console = Console(proc, r"\| it \d+ ")  # the progress line once the MPI job computes
 
     def ours() -> list[str]:
