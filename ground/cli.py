@@ -91,6 +91,9 @@ def _add_view_parser(sub) -> None:
                                                           "positions of every peer)")
     view.add_argument("--screenshot", type=Path, metavar="FILE",
                       help="save a PNG of the page at the end of the run (headless Chromium) and exit")
+    view.add_argument("--allow-host", action="append", dest="allowed_hosts", metavar="NAME", default=[],
+                      help="a name browsers may use for this server beside its address (and localhost on a "
+                           "loopback bind); any other Host header is refused (421), against DNS rebinding")
 
 
 def _add_logs_parser(sub) -> None:
@@ -172,10 +175,12 @@ def run(args: argparse.Namespace, out=None) -> int:
         if args.live:
             from ground.view.serve import watch
 
-            return watch(args.view_connect, args.feed, args.run_dir, args.address, out)
+            return watch(args.view_connect, args.feed, args.run_dir, args.address, out,
+                         allowed_hosts=tuple(args.allowed_hosts))
         if args.run_dir is None:
             raise BadInput("view: give a RUN_DIR, or --live with --connect URI and/or --feed HOST:PORT")
-        return replay(args.run_dir, args.address, args.screenshot, out, live=args.follow)
+        return replay(args.run_dir, args.address, args.screenshot, out, live=args.follow,
+                      allowed_hosts=tuple(args.allowed_hosts))
     return _run_vehicle_command(args, out)
 
 

@@ -19,6 +19,7 @@ from nac_onboard.inputs import check_id, check_name, check_number
 from nac_onboard.mavlink.signing import load_signing_key
 from nac_onboard.radio.channel import ChannelModel
 from nac_onboard.radio.files import load_channel
+from nac_onboard.records import kinds
 from nac_onboard.tomlfile import read_toml, to_dataclass
 
 ROLES = ("master", "worker")
@@ -277,7 +278,7 @@ def peers_state_path(config: AgentConfig) -> Path:
     if config.peers.state_file:
         return Path(config.peers.state_file)
     directory = os.environ.get("STATE_DIRECTORY", "").split(":")[0] or config.log.dir
-    return Path(directory) / f"peer-freshness-{config.vehicle.id}.json"
+    return Path(directory) / kinds.PEER_FRESHNESS.file_name(config.vehicle.id)
 
 
 def load_agent_config(path: str | Path) -> AgentConfig:

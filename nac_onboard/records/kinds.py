@@ -46,6 +46,9 @@ AGENT_CONFIG = RunFile("VEHICLE.toml", "config/VEHICLE.toml", "vehicle", RUNNER_
                        jsonl=False)
 FLEET_KEY = RunFile("fleet.key", "config/fleet.key", "run", RUNNER_WRITER,
                     "the fleet's peer-state signing key, fresh per run (mode 0600)", jsonl=False)
+PEER_FRESHNESS = RunFile("peer-freshness-VEHICLE.json", "config/peer-freshness-VEHICLE.json", "vehicle",
+                         AGENT_WRITER, "the last sequence the agent accepted from each peer (peers.state_file; on a "
+                         "companion $STATE_DIRECTORY or log.dir)", jsonl=False)
 HOSTFILE = RunFile("hostfile", "config/hostfile", "run", RUNNER_WRITER, "MPICH's hostfile", jsonl=False)
 REPORT = RunFile("report.md", "report.md", "run", "nac-ground logs analyze (ground/logs/report.py)",
                  "the analysis report", jsonl=False)
@@ -61,7 +64,7 @@ ANALYSIS_DIR = "analysis"
 IPERF3_GLOB = "iperf3-*.json"
 
 FILES = (AGENT_LOG, THROUGHPUT_LOG, TLOG, COMPUTE_LOG, RANK_LOG, RESULTS, MPIEXEC_LOG, START_FILE, NETWORK_LOG,
-         EXPERIMENT_LOG, CLOCK_FILE, CHANNEL_FILE, REPLAY_TABLE, AGENT_CONFIG, FLEET_KEY,
+         EXPERIMENT_LOG, CLOCK_FILE, CHANNEL_FILE, REPLAY_TABLE, AGENT_CONFIG, FLEET_KEY, PEER_FRESHNESS,
          HOSTFILE, REPORT, SUMMARY, VIEW_PNG)
 
 

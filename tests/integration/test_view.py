@@ -541,6 +541,21 @@ def test_the_view_answers_only_to_its_own_address_and_given_names(tmp_path, capl
         wildcard.stop()
 
 
+def test_nac_ground_view_answers_the_names_given_with_allow_host_and_no_others(tmp_path):
+    """`nac-ground view --allow-host NAME` (a real process): the name given is answered, another is 421."""
+    run = write_damaged_run(tmp_path / "run")
+    proc, url = view_process(run, "--allow-host", "uav-lab.local", "--allow-host", "gcs.lab")
+    port = int(url.rsplit(":", 1)[1].strip("/"))
+    try:
+        for host in ("uav-lab.local", f"gcs.lab:{port}", f"127.0.0.1:{port}"):
+            assert raw_get(port, "/api/state", host)[0] == 200, host
+        for host in ("evil.example", f"uav-lab.local.evil:{port}", "lab.local"):
+            assert raw_get(port, "/api/state", host)[0] == 421, host
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=20)
+
+
 def test_a_real_browser_reaches_the_view_by_its_address_and_localhost(browser, tmp_path):
     run = write_damaged_run(tmp_path / "run")
     viewer = ViewThread(ViewServer(run, live=False), "127.0.0.1:0")
