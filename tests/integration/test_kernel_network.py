@@ -272,17 +272,22 @@ def test_without_the_privileges_kernel_exits_2_quickly_and_sleep_still_runs(tmp_
     assert "- network: sleep (" in (tmp_path / "slept" / "report.md").read_text()
 
 
+def start_kernel_run(scenario: Path, run: Path) -> tuple[subprocess.Popen, Console]:
+    """`nac-sitl experiment` of a shortened scenario on the kernel network at 4x, as a terminal's foreground job (a
+    test stops it with a signal), and its console, whose event is set once the MPI job computes."""
+    proc = subprocess.Popen([sys.executable, "-m", "sitl.cli", "experiment", str(scenario), "--network", "kernel",
+                             "--speedup", "4", "--out", str(run), "--base-port", str(allocate_base_port(3, slots=5))],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV,
+                            preexec_fn=as_at_a_terminal)
+    return proc, Console(proc, r"\| it \d+ ")  # the progress line once the MPI job computes
+
+
 @needs_kernel
 @pytest.mark.exclusive  # rates and times measured, the whole host's namespaces compared
 def test_ctrl_c_on_a_kernel_network_leaves_nothing_behind(tmp_path):
     scenario = shortened("paper-flight-static", tmp_path, 600.0, max_speedup=4.0)
     before = host_state()
-    proc = subprocess.Popen([sys.executable, "-m", "sitl.cli", "experiment", str(scenario), "--network", "kernel",
-                             "--speedup", "4", "--out", str(tmp_path / "run"), "--base-port",
-                             str(allocate_base_port(3, slots=5))],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV,
-                            preexec_fn=as_at_a_terminal)
-    console = Console(proc, r"\| it \d+ ")  # the progress line once the MPI job computes
+    proc, console = start_kernel_run(scenario, tmp_path / "run")
     try:
         assert console.seen.wait(90.0), console.text()
         ours = [n for n in host_state()["namespaces"] if n not in before["namespaces"]]
@@ -310,12 +315,7 @@ def test_sigterm_and_sigkill_on_a_kernel_network_leave_nothing_within_10_s(tmp_p
     loaded 2-core machine: stopping the agents and the MPI job's session takes a few seconds at most (SIGKILL after
     5 s), the watchdog one pass over /proc and one `ip netns del` per namespace (milliseconds each)."""
     scenario = shortened("paper-flight-static", tmp_path, 600.0, max_speedup=4.0)
-    proc = subprocess.Popen([sys.executable, "-m", "sitl.cli", "experiment", str(scenario), "--network", "kernel",
-                             "--speedup", "4", "--out", str(tmp_path / "run"), "--base-port",
-                             str(allocate_base_port(3, slots=5))],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV,
-                            preexec_fn=as_at_a_terminal)
-    console = Console(proc, r"\| it \d+ ")  # the progress line once the MPI job computes
+    proc, console = start_kernel_run(scenario, tmp_path / "run")
 
     def ours() -> list[str]:
         return [n for n in netns.namespaces() if n.startswith(f"{netns.PREFIX}{proc.pid}-")]
