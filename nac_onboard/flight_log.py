@@ -33,14 +33,14 @@ _STRICT = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
 _LENIENT = json.JSONEncoder(separators=(",", ":"))
 
 
-def _finite(value):
-    """JSON has no NaN or infinity: an unknown number is written as null."""
+def json_finite(value):
+    """JSON has no NaN or infinity: an unknown number is written as null (logs, the state feed)."""
     if isinstance(value, float):
         return value if math.isfinite(value) else None
     if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
+        return {k: json_finite(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_finite(v) for v in value]
+        return [json_finite(v) for v in value]
     return value
 
 
@@ -163,7 +163,7 @@ class JsonlLog(_AppendFile):
         try:
             line = _STRICT.encode(record)
         except ValueError:  # a NaN or infinity somewhere: the slower walk that writes them as null
-            line = _LENIENT.encode(_finite(record))
+            line = _LENIENT.encode(json_finite(record))
         self._write((line + "\n").encode())
         return record
 

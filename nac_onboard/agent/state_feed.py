@@ -9,7 +9,6 @@ The agent hands a typed AgentSnapshot (nac_onboard.agent.snapshot); this module 
 from __future__ import annotations
 
 import json
-import math
 import socket
 from dataclasses import asdict
 
@@ -17,6 +16,7 @@ from missions.geo import distance_m
 from nac_onboard.address import parse_host_port
 from nac_onboard.agent.snapshot import AgentSnapshot
 from nac_onboard.errors import OperationFailed
+from nac_onboard.flight_log import json_finite
 
 REQUEST = b'{"get":"state"}'  # the only request answered: anything else is dropped, unanswered
 MAX_ANSWER_BYTES = 16384  # an answer always fits one datagram; peers that do not fit are left out and counted
@@ -70,22 +70,12 @@ def encode_answer(state: dict) -> bytes:
         answer = {**state, "peers": peers}
         if left_out:
             answer["peers_left_out"] = left_out
-        data = json.dumps(_finite(answer), separators=(",", ":"), allow_nan=False).encode()
+        data = json.dumps(json_finite(answer), separators=(",", ":"), allow_nan=False).encode()
         if len(data) <= MAX_ANSWER_BYTES or not peers:
             return data
         oldest = max(peers, key=lambda pid: (bool(peers[pid].get("lost")), peers[pid].get("age_s") or 0.0))
         del peers[oldest]
         left_out += 1
-
-
-def _finite(value):
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite(v) for v in value]
-    return value
 
 
 def position_of(state: dict, vehicle: str) -> dict | None:
