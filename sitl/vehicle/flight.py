@@ -42,6 +42,10 @@ from sitl.vehicle.params import ParamTable
 from sitl.vehicle.physics import Motion, VehicleState
 from sitl.vehicle.pilot_input import PilotInput
 
+# ArduCopter's land detector: landed after this long descending no more than 0.2 m/s with low throttle, and the
+# landing modes disarm then (land_detector.cpp LAND_DETECTOR_TRIGGER_SEC; mode_land.cpp, mode_rtl.cpp land_run)
+LAND_DETECTOR_TRIGGER_S = 1.0
+
 __all__ = [  # with the vocabulary (defined in flight_state) its users import from here
     "FORCE_DISARM_MAGIC", "OK", "Autopilots", "Check", "CommandOutcome", "CopterMode", "Event", "MissionState",
     "Phase", "Result", "Severity",
@@ -118,7 +122,9 @@ class Autopilots(FlightState):
             if self.mode[i] == CopterMode.AUTO:
                 self.mission_run.item_reached(i)
             self.text(i, "Landed")
-            self.timer(i, self.params.get(i, "DISARM_DELAY"), Phase.DISARM_WAIT)
+            # LAND, RTL and a mission's NAV_LAND disarm once the land detector has seen the vehicle still for its
+            # trigger time (DISARM_DELAY is for a vehicle left armed on the ground in the other modes)
+            self.timer(i, LAND_DETECTOR_TRIGGER_S, Phase.DISARM_WAIT)
         elif phase == Phase.VELOCITY:
             self.text(i, "Guided: no velocity setpoint for 3 s, stopping", Severity.WARNING)
             self.hold(i)

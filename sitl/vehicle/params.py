@@ -58,8 +58,8 @@ PARAM_DEFS: tuple[ParamDef, ...] = (
     ParamDef("RTL_SPEED", 0, 0, 2000, f"RTL speed, 0 = WPNAV_SPEED (cm/s; {NOT_SIMULATED})", INT16),
     ParamDef("RTL_LOIT_TIME", 5000, 0, 60000, f"RTL loiter over home (ms; {NOT_SIMULATED})", INT32),
     ParamDef("PILOT_TKOFF_ALT", 0, 0, 1000, "default takeoff altitude when none is given (cm)"),
-    ParamDef("DISARM_DELAY", 10, 0, 127, "seconds armed on the ground (not taking off, or landed) before the "
-             "vehicle disarms itself; 0 = never", INT8),
+    ParamDef("DISARM_DELAY", 10, 0, 127, "seconds armed on the ground (not taking off, or landed in a mode "
+             "that does not disarm on landing) before the vehicle disarms itself; 0 = never", INT8),
     ParamDef("FENCE_ENABLE", 0, 0, 1, "geofence on (also DO_FENCE_ENABLE)", INT8),
     ParamDef("FENCE_TYPE", 7, 0, 15, "fence kinds: 1 altitude ceiling, 2 circle about home, 4 uploaded zones", INT8),
     ParamDef("FENCE_ACTION", 1, 0, 7, "breach action: 0 report only, 2 land, 4 brake, others RTL", INT8),
