@@ -82,9 +82,17 @@ class ReadyProcess:
         return self.proc.pid
 
     def start(self):
+        return self.launch().wait_ready()
+
+    def launch(self):
+        """Start the process without waiting for it: several start at once, then wait_ready on each."""
         self._stderr = tempfile.TemporaryFile()  # noqa: SIM115 (kept open for the child's whole life)
         self.proc = subprocess.Popen(self.command, stdout=subprocess.PIPE, stderr=self._stderr, env=self.env,
                                      preexec_fn=die_with_parent_preexec())
+        return self
+
+    def wait_ready(self):
+        """Until the ready line (ChildStartError, with its stderr, if it does not come within ready_timeout_s)."""
         fd = self.proc.stdout.fileno()  # raw reads: a buffered readline would hide lines from select()
         deadline = time.monotonic() + self.ready_timeout_s
         pending = b""
@@ -124,6 +132,11 @@ class ReadyProcess:
     def stop(self, timeout_s: float = 10.0) -> int:
         """The stop signal, then SIGKILL if it has not exited within timeout_s; returns the exit code."""
         return self._end(timeout_s)
+
+    def signal_stop(self) -> None:
+        """The stop signal without waiting: several stop at once, then stop() on each."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(self.stop_signal)
 
     def kill(self) -> int:
         self.proc.kill()

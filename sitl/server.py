@@ -168,6 +168,7 @@ class Sitl:
                       "radio_lost": 0}
         self._lock = threading.RLock()
         self._stop = threading.Event()
+        self._speedup = config.speedup  # set_speedup changes it while running
         self._thread: threading.Thread | None = None
         self._selector = selectors.DefaultSelector()
         self._sockets: list[socket.socket] = []
@@ -369,10 +370,12 @@ class Sitl:
     def run(self) -> None:
         """Run until stop() (blocks the calling thread)."""
         dt = self.config.dt_s
-        speedup = self.config.speedup
+        speedup = self._speedup
         wall0, sim0 = time.monotonic(), self.t_s
         flushed_s = wall0
         while not self._stop.is_set():
+            if self._speedup != speedup:  # a new pace from here on
+                speedup, wall0, sim0 = self._speedup, time.monotonic(), self.t_s
             with self._lock:
                 target = sim0 + (time.monotonic() - wall0) * speedup
                 steps = 0
@@ -400,6 +403,13 @@ class Sitl:
                         self.stats["io_errors"] += 1
                         log.exception("error reading %s", key.data[0])
                     self.flush()
+
+    def set_speedup(self, speedup: float) -> None:
+        """Run at `speedup` from now on: the experiment runner lands the vehicles this way once nothing is recorded.
+        SIM_SPEEDUP reports it."""
+        with self._lock:
+            self.world.params.values[:, self.world.params.index("SIM_SPEEDUP")] = speedup
+            self._speedup = speedup
 
     def start(self) -> Sitl:
         """Run in a background thread (in-process use, tests)."""

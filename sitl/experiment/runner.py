@@ -62,6 +62,7 @@ log = logging.getLogger(__name__)
 CLIENT_ERRORS = (OSError, LinkError, CommandError, MissionError)
 TAKEOFF_TIMEOUT_S = 60.0  # simulated
 COMPUTE_SETUP_TIMEOUT_S = 60.0  # wall: ranks started, data loaded, connections warmed up
+LANDING_SPEEDUP = 20.0  # the simulator alone ran 100 vehicles at 44x on this machine (docs/benchmarks.md, sitl_scale)
 CLOCK_PUBLISH_S = 0.2  # wall seconds between publications of the simulator's clock
 
 
@@ -267,11 +268,12 @@ class Experiment:
             path = kinds.AGENT_CONFIG.at(self.run_dir, vehicle.id)
             path.write_text(agent_config(s, i, self.run_dir, self.ports, addresses))
             agent = AgentProcess(path, env=env, prefix=self.air.exec_prefix(i) if self.air else None)
+            self.agents.append(agent.launch())  # all at once: each takes a second or so to import and bind
+        for vehicle, agent in zip(s.vehicles, self.agents, strict=True):
             try:
-                agent.start()
+                agent.wait_ready()
             except ChildStartError as err:
                 raise ExperimentError(Outcome.AGENT_FAILED, f"{vehicle.id}: {err}") from None
-            self.agents.append(agent)
         print(f"{s.name}: {len(s.vehicles)} vehicles, {self.speedup:g}x, {len(self.agents)} agents up, "
               f"{self.network} network; logs in {self.run_dir}", file=self.out, flush=True)
 
@@ -290,15 +292,14 @@ class Experiment:
             raise ExperimentError(Outcome.NETWORK_FAILED, str(err)) from None
 
     def _start_iperf3_servers(self) -> None:
-        for i, vehicle in enumerate(self.scenario.vehicles):
-            if vehicle.role != "worker":
-                continue
-            server = iperf3_server(self.ports.throughput(i), self.air.stations[i].netns)
+        workers = [(i, v) for i, v in enumerate(self.scenario.vehicles) if v.role == "worker"]
+        for i, _ in workers:
+            self.iperf3_servers.append(iperf3_server(self.ports.throughput(i), self.air.stations[i].netns).launch())
+        for (_, vehicle), server in zip(workers, self.iperf3_servers, strict=True):
             try:
-                server.start()
+                server.wait_ready()
             except ChildStartError as err:
                 raise ExperimentError(Outcome.NETWORK_FAILED, f"{vehicle.id}: {err}") from None
-            self.iperf3_servers.append(server)
 
     def _publish_clock(self) -> None:
         """The simulator's clock for every process of the run ($NAC_SIM_CLOCK), at its measured pace: with many
@@ -470,16 +471,18 @@ class Experiment:
         self._stop_mpi(grace_s=self.scenario.compute.timeout_s + 2.0 if land and self.scenario.compute else 0.0)
         for t in self.pilots:
             t.join(2.0)
-        if land and self.sim is not None and self.sim.alive:
-            self._land()
+        for agent in self.agents:  # their records end with the scenario: the landing below is not part of it
+            agent.signal_stop()
         for agent in self.agents:
             agent.stop(5.0)
         for server in self.iperf3_servers:
             server.stop(2.0)
-        for client in self.clients:
-            client.close()
         if self.shaper is not None:
             self.shaper.stop()
+        if land and self.sim is not None and self.sim.alive:
+            self._land()
+        for client in self.clients:
+            client.close()
         self._clock_stop.set()
         if self.sim is not None:
             self.sim.stop()
@@ -508,8 +511,11 @@ class Experiment:
         except ProcessLookupError:
             pass
 
-    def _land(self, timeout_s: float = 30.0) -> None:
-        """LAND every airborne vehicle and wait (simulated time) for the ground: auto-disarm ends it."""
+    def _land(self, timeout_s: float = 60.0) -> None:
+        """LAND every airborne vehicle and wait (simulated time) for the ground: the disarm on landing ends it. Only
+        the simulator runs by then, so it lands at LANDING_SPEEDUP (or the run's, if faster) as far as the host
+        keeps up: at 1x the descent from the research's 9.8 m took 21 s of the operator's time for nothing."""
+        self.sim.set_speedup(max(self.speedup, LANDING_SPEEDUP))
         for i, client in enumerate(self.clients):
             if self.sim.truth(i)["armed"]:
                 try:

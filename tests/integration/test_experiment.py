@@ -110,6 +110,8 @@ def test_a_short_scenario_runs_end_to_end_and_leaves_a_report(short_run):
     experiment = short_run[4]
     assert not any(agent.alive() for agent in experiment.agents) and experiment.mpi.poll() == 0
     assert not experiment.sim.alive, "every part was stopped"
+    truth = [experiment.sim.truth(i) for i in range(len(scenario.vehicles))]
+    assert all(not t["armed"] and t["pos_m"][2] < 0.1 for t in truth), f"landed and disarmed at the end: {truth}"
 
 
 def test_analysis_of_the_run_matches_the_simulators_truth(short_run):
@@ -199,16 +201,9 @@ kind = "kill_worker"
     assert not any(agent.alive() for agent in experiment.agents) and not experiment.sim.alive
 
 
-def test_ctrl_c_stops_everything_within_10_s_and_writes_a_partial_report(tmp_path):
-    console, run = stop_a_running_experiment(tmp_path, signal.SIGINT, exit_code=130)
-    assert "interrupted" in console.text()
-    report = (run / "report.md").read_text()
-    assert "ended: interrupted" in report and "iterations done" in report
-
-
 def test_sigterm_stops_everything_within_10_s_exits_143_and_writes_a_partial_report(tmp_path):
     """`kill`, `timeout` and systemd's stop send SIGTERM: it once went unnoticed and the run went on to "completed".
-    Now it is Ctrl-C with its own exit code."""
+    Now it is Ctrl-C with its own exit code (Ctrl-C itself: test_kernel_network.py, the same path)."""
     console, run = stop_a_running_experiment(tmp_path, signal.SIGTERM, exit_code=143)
     assert "terminated (SIGTERM)" in console.text()
     report = (run / "report.md").read_text()
