@@ -149,8 +149,8 @@ def throughput_command(args) -> int:
             server = ThroughputServer(args.bind, args.port)
         except OSError as err:
             raise OperationFailed(f"cannot listen on {args.bind}:{args.port}: {err.strerror}") from None
-        print(f"throughput server listening on {args.bind}:{server.port}", flush=True)
-        try:
+        try:  # the line says it is ready, and a SIGTERM may follow it at once
+            print(f"throughput server listening on {args.bind}:{server.port}", flush=True)
             server.serve_forever()
         except KeyboardInterrupt:
             pass

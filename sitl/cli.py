@@ -170,6 +170,10 @@ def run(config: SitlConfig, stop: threading.Event | None = None, out=None) -> No
     """Serve until `stop` is set (or SIGINT/SIGTERM when run from the command line)."""
     out = out or sys.stdout
     sim = Sitl(config)
+    if stop is None:  # before "ready": a SIGTERM right after it is the operator's stop, not run_cli's Terminated
+        stop = threading.Event()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
     for i, ends in enumerate(sim.endpoints):
         home = sim.homes[i]
         listed = ", ".join(f"{name} {where}" for name, where in ends.items())
@@ -188,11 +192,7 @@ def run(config: SitlConfig, stop: threading.Event | None = None, out=None) -> No
               f"{st['io_errors']} socket errors", file=out, flush=True)
 
 
-def _wait(sim: Sitl, stop: threading.Event | None) -> None:
-    if stop is None:
-        stop = threading.Event()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
+def _wait(sim: Sitl, stop: threading.Event) -> None:
     while not stop.wait(0.5):
         if not sim.alive:
             raise SitlError("the simulation loop stopped on an internal error (see the log above)")

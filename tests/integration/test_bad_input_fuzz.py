@@ -78,7 +78,17 @@ def arg_text(value) -> str:
 
 
 def bad_arg(low, high, **kw):
-    return bad_number(low, high, **kw).map(arg_text) | st.sampled_from(["", "fast", "1,2", "0x10", "1e999"])
+    """On a command line every value is text: a wrong type drawn as text ("1") can be a valid number there."""
+    drawn = bad_number(low, high, **kw).map(arg_text) | st.sampled_from(["", "fast", "1,2", "0x10", "1e999"])
+    return drawn.filter(lambda text: not _number_within(text, low, high, kw.get("low_open", False)))
+
+
+def _number_within(text: str, low: float, high: float, low_open: bool) -> bool:
+    try:
+        x = float(text)
+    except ValueError:
+        return False
+    return math.isfinite(x) and (x > low if low_open else x >= low) and x <= high
 
 # ------------------------------------------------------------------------------------------------------ TOML out
 
