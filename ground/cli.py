@@ -13,6 +13,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from missions.firmware import FIRMWARES
 from nac_onboard.errors import BadInput, run_cli
 from nac_onboard.inputs import id_arg, number_arg
 from nac_onboard.records import kinds
@@ -36,11 +37,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     mission = sub.add_parser("mission", help="upload, download, clear, validate, convert, start")
     msub = mission.add_subparsers(dest="action", required=True, metavar="ACTION")
-    msub.add_parser("upload", help="upload a .plan or QGC WPL file").add_argument("file")
+    upload = msub.add_parser("upload", help="upload a .plan or QGC WPL file")
+    upload.add_argument("file")
     msub.add_parser("download", help="save the vehicle's mission (.plan or .waypoints by extension)") \
         .add_argument("file")
     msub.add_parser("clear", help="delete the vehicle's mission")
-    msub.add_parser("validate", help="check a mission file offline").add_argument("file")
+    validate = msub.add_parser("validate", help="check a mission file offline")
+    validate.add_argument("file")
+    for checked in (upload, validate):
+        checked.add_argument("--firmware", choices=[*FIRMWARES, "any"], default="arducopter",
+                             help="also refuse, naming the item, what this firmware refuses at upload (default "
+                                  "arducopter, as NAC's SITL; any: only what MAVLink itself forbids)")
     convert = msub.add_parser("convert", help="convert between .plan and QGC WPL 110")
     convert.add_argument("source")
     convert.add_argument("target")
@@ -101,7 +108,8 @@ def _add_logs_parser(sub) -> None:
     lsub = logs.add_subparsers(dest="action", required=True, metavar="ACTION")
     analyze = lsub.add_parser("analyze", help="tables (CSV), figures (PNG) and report.md of one run")
     analyze.add_argument("run_dir", type=Path)
-    analyze.add_argument("--out", type=Path, help="where to write (default RUN_DIR/analysis)")
+    analyze.add_argument("--out", type=Path, help="where to write tables, figures and report.md (default: tables "
+                                                  "and figures in RUN_DIR/analysis, the report as RUN_DIR/report.md)")
     compare = lsub.add_parser("compare", help="two runs side by side (e.g. static vs moving)")
     compare.add_argument("run_a", type=Path)
     compare.add_argument("run_b", type=Path)
@@ -128,9 +136,12 @@ def run_logs(args: argparse.Namespace, out=None) -> int:
     from ground.logs import report  # pandas and matplotlib only for the commands that use them
 
     if args.action == "analyze":
-        tables = report.analyze_run(args.run_dir, args.out, args.master, args.bin_m, args.threshold_mbps)
-        where = args.out or args.run_dir / kinds.ANALYSIS_DIR
-        print(f"{where / kinds.REPORT.name}: {_brief(tables.summary)}", file=out)
+        # without --out, the report is the run's own (RUN/report.md, where the experiment runner writes it): a
+        # re-analysis replaces it instead of leaving a second one in analysis/
+        report_path = args.out / kinds.REPORT.name if args.out else args.run_dir / kinds.REPORT.name
+        tables = report.analyze_run(args.run_dir, args.out, args.master, args.bin_m, args.threshold_mbps,
+                                    report_path=report_path)
+        print(f"{report_path}: {_brief(tables.summary)}", file=out)
         for line in tables.missing:
             print(f"  missing: {line}", file=out)
     elif args.action == "compare":
@@ -192,13 +203,13 @@ def _run_vehicle_command(args: argparse.Namespace, out) -> int:
 
     key = (args.command, getattr(args, "action", None))
     if key == ("mission", "validate"):
-        ops.mission_validate(args.file, out)
+        ops.mission_validate(args.file, out, FIRMWARES.get(args.firmware))
         return 0
     if key == ("mission", "convert"):
         ops.mission_convert(args.source, args.target, out)
         return 0
     # Everything that can be refused offline is checked before any link opens: bad input sends nothing.
-    mission = ops.load_for_flight(args.file) if key == ("mission", "upload") else None
+    mission = ops.load_for_flight(args.file, FIRMWARES.get(args.firmware)) if key == ("mission", "upload") else None
     if args.command == "mode" and args.name.upper() not in COPTER_MODES:
         raise BadInput(f"unknown mode {args.name!r}; known: {', '.join(sorted(COPTER_MODES))}")
     signing_key = load_signing_key(args.signing_key_file) if args.signing_key_file else None

@@ -6,6 +6,7 @@ from pathlib import Path
 
 from missions.dialect import MODEL_CATALOGUE, CommandCatalogue
 from missions.errors import MissionFileError
+from missions.firmware import Firmware
 from missions.model import Mission
 from missions.plan import loads_plan, read_text, write_plan
 from missions.validate import validate
@@ -27,11 +28,13 @@ def loads_mission(text: str, source: str = "<mission>") -> Mission:
                                              f"(JSON object) or a {HEADER!r} waypoint file")
 
 
-def load_mission(path: str | Path, flight: bool = True, *, catalogue: CommandCatalogue = MODEL_CATALOGUE) -> Mission:
-    """Read and validate a mission file (for flight, or only as a file: validate's `flight` and `catalogue`, the
-    commands it may hold); MissionFileError names the file, the item or line, and the problem."""
+def load_mission(path: str | Path, flight: bool = True, *, catalogue: CommandCatalogue = MODEL_CATALOGUE,
+                 firmware: Firmware | None = None) -> Mission:
+    """Read and validate a mission file (for flight, or only as a file: validate's `flight`, `catalogue`, the
+    commands it may hold, and `firmware`, whose upload refusals it names); MissionFileError names the file, the item
+    or line, and the problem."""
     mission = loads_mission(read_text(path), str(path))
-    validate(mission, str(path), flight, catalogue=catalogue)
+    validate(mission, str(path), flight, catalogue=catalogue, firmware=firmware)
     return mission
 
 

@@ -7,6 +7,7 @@ import math
 
 from missions.dialect import MODEL_CATALOGUE, CommandCatalogue, DialectCommand
 from missions.errors import MissionFileError
+from missions.firmware import Firmware
 from missions.model import (
     FENCE_COMMANDS,
     RALLY_COMMANDS,
@@ -69,12 +70,13 @@ def _fmt(x: float) -> str:
 
 
 def validate(mission: Mission, source: str = "<mission>", flight: bool = True, *,
-             catalogue: CommandCatalogue = MODEL_CATALOGUE) -> None:
+             catalogue: CommandCatalogue = MODEL_CATALOGUE, firmware: Firmware | None = None) -> None:
     """Raise MissionFileError (`source: item ...: reason`) at the first problem; return None when fit to fly.
     With flight=False only what any file must hold is checked (numbering, values MAVLink can carry), as a
     converter needs: a home-only file, or frames and commands this SITL does not fly, still convert.
     `catalogue` is the commands a mission may hold (missions.dialect): NAC's commands pass the MAVLink dialect's,
-    nac_onboard.mavlink.dialect.mission_catalogue(); the default knows only the commands missions.model names."""
+    nac_onboard.mavlink.dialect.mission_catalogue(); the default knows only the commands missions.model names.
+    `firmware` (missions.firmware): also refuse, naming the item, what that firmware would refuse at upload."""
     def fail(mission_type: int, seq: int, reason: str) -> None:
         raise MissionFileError(source, mission.where(mission_type, seq), reason)
 
@@ -99,7 +101,8 @@ def validate(mission: Mission, source: str = "<mission>", flight: bool = True, *
             reason = _wire_problem(item)
             if flight and not reason:
                 reason = (_altitude_left_to_qgc(mission, item)
-                          or _item_problem(item, mission_type, len(mission.items), catalogue))
+                          or _item_problem(item, mission_type, len(mission.items), catalogue)
+                          or _refused_by(firmware, item, mission_type, catalogue))
             if reason:
                 fail(mission_type, k, reason)
     if flight:
@@ -127,6 +130,18 @@ def _check_home(mission: Mission, fail) -> None:
     lo, hi = AMSL_ALT_LIMITS_M
     if not lo <= h.alt_m <= hi:
         fail(MissionType.MISSION, 0, f"home altitude {_fmt(h.alt_m)} m AMSL is outside {lo:g}..{hi:g} m")
+
+
+def _refused_by(firmware: Firmware | None, item: MissionItem, mission_type: int,
+                catalogue: CommandCatalogue) -> str | None:
+    refusal = firmware.refusal(item, mission_type) if firmware is not None else None
+    if refusal is None:
+        return None
+    why = {"MAV_MISSION_UNSUPPORTED": "a command it does not take",
+           "MAV_MISSION_UNSUPPORTED_FRAME": f"frame {item.frame} is not one it takes"}.get(refusal,
+                                                                                          "a value out of range")
+    return (f"{catalogue.name(item.command)} ({item.command}) would be refused at upload by {firmware.name}: "
+            f"{refusal}, {why}")
 
 
 def _item_problem(item: MissionItem, mission_type: int, n_items: int, catalogue: CommandCatalogue) -> str | None:

@@ -10,9 +10,10 @@ import time
 
 from ground.operator.table import render
 from missions import convert_mission, load_mission, save_mission
+from missions.firmware import ARDUCOPTER, Firmware
 from missions.model import MavCmd, Mission, MissionType
-from nac_onboard.mavlink.client import LinkError, MavlinkClient
-from nac_onboard.mavlink.dialect import COPTER_MODES, M, mission_catalogue
+from nac_onboard.mavlink.client import CommandError, LinkError, MavlinkClient, words
+from nac_onboard.mavlink.dialect import COPTER_MODES, M, enum_name, mission_catalogue
 from nac_onboard.mavlink.mission_transfer import MissionError
 
 
@@ -48,9 +49,18 @@ def set_mode(client: MavlinkClient, name: str, out) -> None:
 
 
 def takeoff(client: MavlinkClient, alt_m: float, out) -> None:
-    # ArduCopter takes off only in GUIDED, as MAVSDK and QGC switch before the command.
+    # ArduCopter takes off only in GUIDED, as MAVSDK and QGC switch before the command; a refused takeoff puts the
+    # vehicle back in the mode it was in, so that a refusal changes nothing.
+    before = client.vehicles[client.sysid].mode
     client.command_ok(MavCmd.DO_SET_MODE, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, COPTER_MODES["GUIDED"])
-    client.command_ok(MavCmd.NAV_TAKEOFF, 0, 0, 0, float("nan"), 0, 0, alt_m)
+    try:
+        client.command_ok(MavCmd.NAV_TAKEOFF, 0, 0, 0, float("nan"), 0, 0, alt_m)
+    except CommandError:
+        if before in COPTER_MODES and before != "GUIDED":
+            back = client.command(MavCmd.DO_SET_MODE, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, COPTER_MODES[before])
+            if back == M.MAV_RESULT_ACCEPTED:
+                print(f"vehicle {client.sysid}: back in {before}", file=out)
+        raise
     print(f"vehicle {client.sysid}: taking off to {alt_m:g} m", file=out)
 
 
@@ -70,9 +80,13 @@ def mission_start(client: MavlinkClient, out) -> None:
 
 
 def _upload_list(client: MavlinkClient, items, mission_type: int, label: str) -> None:
+    sent_s = time.monotonic()
     result = client.upload(items, mission_type, progress=TransferProgress(label))
     if result != M.MAV_MISSION_ACCEPTED:
-        raise MissionError(f"vehicle {client.sysid} refused the {label}", result)
+        at = client.last_item_sent
+        item = f" at item {at} ({enum_name('MAV_CMD', items[at].command)})" if at is not None else ""
+        raise MissionError(f"vehicle {client.sysid} refused the {label}{item}"
+                           f"{words(client.said_since(client.sysid, sent_s))}", result)
 
 
 def mission_upload(client: MavlinkClient, mission: Mission, out) -> None:
@@ -106,16 +120,16 @@ def mission_clear(client: MavlinkClient, out) -> None:
     print(f"vehicle {client.sysid}: mission cleared", file=out)
 
 
-def load_for_flight(path: str) -> Mission:
-    """Read a mission file and check it flies, any command of the MAVLink dialect allowed; MissionFileError names
-    the file, the item and the problem."""
-    return load_mission(path, catalogue=mission_catalogue())
+def load_for_flight(path: str, firmware: Firmware | None = ARDUCOPTER) -> Mission:
+    """Read a mission file and check it flies: any command of the MAVLink dialect, and of those only what
+    `firmware` takes at upload (None: any); MissionFileError names the file, the item and the problem."""
+    return load_mission(path, catalogue=mission_catalogue(), firmware=firmware)
 
 
-def mission_validate(path: str, out) -> Mission:
-    mission = load_for_flight(path)
-    print(f"{path}: valid, {len(mission.items)} mission items, {len(mission.fence)} fence items, "
-          f"{len(mission.rally)} rally points", file=out)
+def mission_validate(path: str, out, firmware: Firmware | None = ARDUCOPTER) -> Mission:
+    mission = load_for_flight(path, firmware)
+    print(f"{path}: valid{f' for {firmware.name}' if firmware else ''}, {len(mission.items)} mission items, "
+          f"{len(mission.fence)} fence items, {len(mission.rally)} rally points", file=out)
     return mission
 
 
@@ -163,8 +177,17 @@ def status(client: MavlinkClient, listen_s: float, out) -> dict:
         if (len({v.link for v in vs}) >= len(client.links) and all(v.lat_deg == v.lat_deg for v in vs)
                 and time.monotonic() - last_new >= HEARTBEAT_QUIET_S):
             break
-    print(render(client.vehicles, time.monotonic()), file=out)
-    return client.vehicles
+    where = ", ".join(link.uri for link in client.links)
+    if not client.vehicles:
+        raise LinkError(f"no vehicle heard on {where} within {listen_s:g} s")
+    shown = client.vehicles
+    if client.sysid is not None:  # --sysid: that vehicle alone, or a failure naming the ones heard
+        if client.sysid not in client.vehicles:
+            heard = ", ".join(str(k) for k in sorted(client.vehicles))
+            raise LinkError(f"vehicle {client.sysid} not heard on {where} within {listen_s:g} s (heard: {heard})")
+        shown = {client.sysid: client.vehicles[client.sysid]}
+    print(render(shown, time.monotonic()), file=out)
+    return shown
 
 
 def monitor(client: MavlinkClient, refresh_s: float, duration_s: float | None, out) -> None:

@@ -1,9 +1,10 @@
 """The UCI Forest Fires data (Cortez & Morais 2007, CC BY 4.0): where to find it, how to fetch it, and the
 features the linear regression uses.
 
-Found by, in order: an explicit path (--data), $NAC_DATA_DIR/forestfires.csv, then the user cache
+Found by, in order: an explicit path (--data), $NAC_DATA_DIR/forestfires.csv, the user cache
 ($XDG_CACHE_HOME or ~/.cache)/nac/forestfires.csv, which `nac-onboard data fetch` fills from the UCI archive
-after checking the CSV's sha256.
+after checking the CSV's sha256, then, in a source checkout, `../shared/data` beside it (what `make` passes as
+$NAC_DATA_DIR, so a command run by hand finds what `make demo` found).
 
 Features (30 columns): an intercept; X, Y, FFMC, DMC, DC, ISI, temp, RH, wind and rain standardised (mean 0,
 population standard deviation 1, over all 517 rows); month and day one-hot (12 + 7 columns, jan..dec, mon..sun).
@@ -23,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nac_onboard.errors import BadInput
+from nac_onboard.errors import BadInput, OperationFailed
 
 CSV_NAME = "forestfires.csv"
 CSV_SHA256 = "0d6586a1fa52f55bef48578aef14eb97273f1e9330e1a53423df497a77065253"
@@ -42,6 +43,13 @@ class DataError(BadInput):
     """The data set is missing or malformed; the message says where it looked or which line is wrong."""
 
 
+class DownloadError(OperationFailed):
+    """The archive could not be fetched or was not the one expected: the network's fault, not the input's (exit 1)."""
+
+
+SOURCE_CHECKOUT_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"  # ../shared/data of a checkout
+
+
 def cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "nac"
 
@@ -52,7 +60,7 @@ def find_csv(explicit: str | None = None) -> Path:
         candidates.append(Path(explicit))
     elif os.environ.get("NAC_DATA_DIR"):
         candidates.append(Path(os.environ["NAC_DATA_DIR"]) / CSV_NAME)
-    candidates.append(cache_dir() / CSV_NAME)
+    candidates += [cache_dir() / CSV_NAME, SOURCE_CHECKOUT_DATA / CSV_NAME]
     for path in candidates[:1] if explicit else candidates:
         if path.is_file():
             return path
@@ -68,18 +76,18 @@ def fetch(url: str = UCI_ARCHIVE_URL, dest_dir: Path | None = None, timeout_s: f
         with urllib.request.urlopen(url, timeout=timeout_s) as response:
             archive = response.read()
     except OSError as err:
-        raise DataError(f"cannot download {url}: {err}") from None
+        raise DownloadError(f"cannot download {url}: {err}") from None
     try:
         with zipfile.ZipFile(io.BytesIO(archive)) as z:
             name = next((n for n in z.namelist() if n.rsplit("/", 1)[-1] == CSV_NAME), None)
             if name is None:
-                raise DataError(f"{url}: the archive has no {CSV_NAME}")
+                raise DownloadError(f"{url}: the archive has no {CSV_NAME}")
             data = z.read(name)
     except zipfile.BadZipFile:
-        raise DataError(f"{url}: not a zip archive") from None
+        raise DownloadError(f"{url}: not a zip archive") from None
     digest = hashlib.sha256(data).hexdigest()
     if digest != CSV_SHA256:
-        raise DataError(f"{url}: {CSV_NAME} has sha256 {digest}, expected {CSV_SHA256}; not stored")
+        raise DownloadError(f"{url}: {CSV_NAME} has sha256 {digest}, expected {CSV_SHA256}; not stored")
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = dest.with_suffix(".part")
     tmp.write_bytes(data)

@@ -32,6 +32,8 @@ LANDED_STATES = {M.MAV_LANDED_STATE_UNDEFINED: "unknown", M.MAV_LANDED_STATE_ON_
                  M.MAV_LANDED_STATE_IN_AIR: "in air", M.MAV_LANDED_STATE_TAKEOFF: "taking off",
                  M.MAV_LANDED_STATE_LANDING: "landing"}
 HEARTBEAT_PERIOD_S = 1.0
+TEXTS_KEPT = 20  # a vehicle's last STATUSTEXTs, for the reasons of a refusal
+WORDS_WAIT_S = 0.3  # after a refusal, how long a STATUSTEXT that follows its ACK is waited for
 UINT16_UNKNOWN = 65535  # SYS_STATUS.voltage_battery: "not sent by the autopilot"
 #: What TelemetryState and the client's own operations (commands, mission transfer) read.
 CLIENT_MESSAGES = frozenset({
@@ -49,11 +51,23 @@ class LinkClosed(LinkError):
 
 
 class CommandError(OperationFailed):
-    def __init__(self, command: int, result: int, sysid: int):
-        self.command, self.result = command, result
+    def __init__(self, command: int, result: int, sysid: int, said: list[str] | tuple = ()):
+        self.command, self.result, self.said = command, result, list(said)
         name = enum_name("MAV_RESULT", result)
         cmd = enum_name("MAV_CMD", command)
-        super().__init__(f"vehicle {sysid} refused {cmd}: {name}")
+        super().__init__(f"vehicle {sysid} refused {cmd}: {name}{words(said)}")
+
+
+def words(said) -> str:
+    """What a vehicle said about a refusal (its STATUSTEXTs), for the end of a sentence."""
+    return "; it said: " + " / ".join(f'"{text}"' for text in said) if said else ""
+
+
+def printable_text(text) -> str:
+    """A STATUSTEXT's text as a terminal may show it: anything from the network, so no control characters."""
+    if isinstance(text, bytes):
+        text = text.decode("utf-8", "replace")
+    return "".join(c if c.isprintable() else "?" for c in str(text).rstrip("\0")).strip()[:200]
 
 
 
@@ -275,6 +289,7 @@ class TelemetryState:
     mission_state: int = 0
     last_heartbeat_s: float = 0.0
     reached: list = field(default_factory=list)
+    texts: deque = field(default_factory=lambda: deque(maxlen=TEXTS_KEPT))  # (monotonic s, severity, text)
 
     @property
     def ground_speed_mps(self) -> float:
@@ -312,6 +327,11 @@ class TelemetryState:
             self.mission_state = getattr(msg, "mission_state", 0)
         elif kind == "MISSION_ITEM_REACHED":
             self.reached.append(msg.seq)
+        elif kind == "STATUSTEXT":
+            self.texts.append((now_s, int(msg.severity), printable_text(msg.text)))
+
+    def said_since(self, since_s: float) -> list[str]:
+        return [text for at_s, _, text in self.texts if at_s >= since_s and text]
 
 
 class RawFrame:
@@ -462,6 +482,7 @@ class MavlinkClient(MissionTransfer):
         self.sysid = sysid  # default target; None = the first vehicle heard
         self.vehicles: dict[int, TelemetryState] = {}
         self._inbox: deque = deque()  # received, not yet offered to recv()
+        self.command_sent_s = 0.0  # monotonic time of the last command sent: its refusal's words came after it
 
     @property
     def conn(self):
@@ -583,6 +604,7 @@ class MavlinkClient(MissionTransfer):
                 sysid: int | None = None) -> int:
         """Send COMMAND_LONG until its COMMAND_ACK arrives (confirmation counts retries); returns MAV_RESULT."""
         target = self.sysid if sysid is None else sysid
+        self.command_sent_s = time.monotonic()
         p = [float(v) for v in params] + [0.0] * (7 - len(params))
         for confirmation in range(retries):
             self._link_for(target).mav.command_long_send(target, 1, command, confirmation, *p)
@@ -597,7 +619,18 @@ class MavlinkClient(MissionTransfer):
         target = self.sysid if sysid is None else sysid
         result = self.command(command, *params, sysid=target, **kwargs)
         if result != M.MAV_RESULT_ACCEPTED:
-            raise CommandError(command, result, target)
+            raise CommandError(command, result, target, self.said_since(target, self.command_sent_s))
+
+    def said_since(self, sysid: int, since_s: float, wait_s: float = WORDS_WAIT_S) -> list[str]:
+        """The vehicle's STATUSTEXTs since since_s (monotonic): ArduPilot says why before or just after an ACK that
+        refuses, so a refusal with nothing said yet waits up to wait_s for it."""
+        deadline = time.monotonic() + wait_s
+        while True:
+            state = self.vehicles.get(sysid)
+            said = state.said_since(since_s) if state else []
+            if said or time.monotonic() >= deadline:
+                return said
+            self._inbox.extend(self.poll(min(0.05, max(deadline - time.monotonic(), 0.0))))
 
     def set_mode(self, name: str, sysid: int | None = None) -> int:
         if name not in COPTER_MODES:

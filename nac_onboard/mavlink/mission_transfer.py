@@ -22,6 +22,7 @@ class MissionError(OperationFailed):
 
 
 class MissionTransfer:
+    last_item_sent: int | None = None  # in the last upload: a refusing MISSION_ACK answers this item
     def upload(self, items: list[MissionItem], mission_type: int = 0, item_timeout_s: float = 1.5,
                retries: int = 10, progress=None, sysid: int | None = None) -> int:
         """Mission upload as the protocol asks of a GCS: answer each request once; when the vehicle goes quiet
@@ -32,6 +33,7 @@ class MissionTransfer:
         conn = self._link_for(target)
         conn.mav.mission_count_send(target, 1, len(items), mission_type)
         last_sent, quiet_s = None, 0.0
+        self.last_item_sent = None
         while True:
             # Mid-transfer the vehicle drives (it re-requests); before the first request and after the last item
             # only we can, so we re-send three times as often for the same total patience.
@@ -56,7 +58,7 @@ class MissionTransfer:
                 return msg.type
             if not 0 <= msg.seq < len(items):
                 continue
-            last_sent = msg.seq
+            last_sent = self.last_item_sent = msg.seq  # a refusal (the ACK) comes after the item it refuses
             self.send_item(items[msg.seq], mission_type, target)
             if progress is not None:
                 progress(msg.seq + 1, len(items))

@@ -14,6 +14,7 @@ import struct
 import time
 from collections.abc import Callable
 
+from missions.firmware import arducopter_refusal as validate_item
 from missions.model import MavCmd, MissionItem, MissionType
 from nac_onboard.mavlink.signing import SigningState
 from sitl.mavlink.codec import FrameEncoder, mavlink
@@ -22,7 +23,6 @@ from sitl.mavlink.mission_protocol import Ack, Complete, MissionReceiver, Reques
 from sitl.mavlink.telemetry import BUILDERS, NOT_DATA_STREAMS, Streams, TelemetrySource
 from sitl.vehicle import guided, pilot
 from sitl.vehicle.flight import CommandOutcome, Event, Result, Severity
-from sitl.vehicle.mission_items import validate_item
 from sitl.vehicle.params import PARAM_DEFS, ParamError
 from sitl.vehicle.world import World
 

@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 
+from missions import firmware
 from missions.model import MavCmd, MissionItem, MissionType
 from sitl.vehicle import fence as fence_
 from sitl.vehicle import mission_items as items_
@@ -97,10 +98,10 @@ class MissionRun:
                 s.emit(i, Event.MISSION_CURRENT, seq)
             s.mission_state[i] = MissionState.ACTIVE
             cmd = item.command
-            if cmd in (MavCmd.DO_JUMP, items_.DO_JUMP_TAG):
+            if cmd in (MavCmd.DO_JUMP, firmware.DO_JUMP_TAG):
                 seq = self._jump(i, seq, item)
                 continue
-            if cmd in items_.DO_ACTED or cmd in items_.DO_NO_EFFECT:
+            if cmd in firmware.DO_ACTED or cmd in firmware.DO_NO_EFFECT:
                 self._do(i, item)
                 s.emit(i, Event.ITEM_REACHED, seq)
                 seq += 1
@@ -118,7 +119,7 @@ class MissionRun:
         if item.command == MavCmd.DO_JUMP:
             target = int(item.p1)
         else:
-            target = next((k for k, it in enumerate(items) if it.command == items_.JUMP_TAG and it.p1 == item.p1), -1)
+            target = next((k for k, it in enumerate(items) if it.command == firmware.JUMP_TAG and it.p1 == item.p1), -1)
         left = s.jumps_left[i].setdefault(seq, int(item.p2))
         if left == 0 or not 1 <= target < len(items):
             return seq + 1
@@ -135,15 +136,15 @@ class MissionRun:
                 s.speed_xy_mps[i] = item.p2
         elif cmd == MavCmd.CONDITION_YAW:
             self.actions.condition_yaw(i, item.p1, item.p2, item.p3, item.p4 >= 0.5)
-        elif cmd == items_.DO_SET_ROI_NONE or (cmd == items_.DO_SET_ROI and item.lat_deg == item.lon_deg == 0.0):
+        elif cmd == firmware.DO_SET_ROI_NONE or (cmd == firmware.DO_SET_ROI and item.lat_deg == item.lon_deg == 0.0):
             self.actions.set_roi(i, None)
-        elif cmd in (items_.DO_SET_ROI, items_.DO_SET_ROI_LOCATION):
+        elif cmd in (firmware.DO_SET_ROI, firmware.DO_SET_ROI_LOCATION):
             self.actions.set_roi(i, s.item_goal_m(i, item))
-        elif cmd == items_.DO_SET_SERVO:
+        elif cmd == firmware.DO_SET_SERVO:
             self.actions.set_servo(i, int(item.p1), int(item.p2))
-        elif cmd == items_.DO_FENCE_ENABLE:
+        elif cmd == firmware.DO_FENCE_ENABLE:
             self.actions.enable_fence(i, item.p1)
-        elif cmd == items_.DO_SET_HOME:
+        elif cmd == firmware.DO_SET_HOME:
             self.actions.set_home(i, None if item.p1 >= 0.5 else s.item_goal_m(i, item))
 
     def _start_nav_item(self, i: int, item: MissionItem) -> None:
@@ -151,14 +152,14 @@ class MissionRun:
         cmd = item.command
         goal = s.item_goal_m(i, item)
         here = s.pos(i)
-        if cmd in items_.TAKEOFFS:
+        if cmd in firmware.TAKEOFFS:
             s.set_goal(i, [here[0], here[1], max(goal[2], here[2])], Motion.GOTO, Check.ALTITUDE,
                        phase=Phase.MISSION)
-        elif cmd in items_.LANDINGS:
+        elif cmd in firmware.LANDINGS:
             s.set_goal(i, [goal[0], goal[1], 0.0], Motion.LAND, Check.LANDED, phase=Phase.LAND)
         elif cmd == MavCmd.NAV_RETURN_TO_LAUNCH:
             self.begin_rtl(i)
-        elif cmd == items_.NAV_DELAY:
+        elif cmd == firmware.NAV_DELAY:
             s.set_goal(i, here, Motion.GOTO if s.flying(i) else Motion.IDLE, Check.NONE)
             if item.p1 < 0:
                 s.text(i, "NAV_DELAY until a time of day is not simulated: not waiting", Severity.WARNING)

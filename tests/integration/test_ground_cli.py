@@ -68,6 +68,17 @@ def test_commands_report_refusals_with_exit_1(start_sitl):
     ok(ground("--connect", link(sim, 0), "rtl"))
     ok(ground("--connect", link(sim, 0), "wait", "landed", "--timeout-s", "60"))
     assert sim.truth(0)["mode"] == "RTL" and sim.truth(0)["on_ground"]
+    in_rtl = ground("--connect", link(sim, 0), "arm")  # the vehicle's reason travels with its refusal
+    assert in_rtl.returncode == 1 and "MAV_RESULT_FAILED" in in_rtl.stderr, in_rtl.stderr
+    assert 'it said: "Arm: mode RTL does not allow arming"' in in_rtl.stderr and not sim.truth(0)["armed"]
+    ok(ground("--connect", link(sim, 0), "mode", "loiter"))
+    unarmed = ground("--connect", link(sim, 0), "takeoff", "5")
+    assert unarmed.returncode == 1 and '"Takeoff refused: arm first"' in unarmed.stderr, unarmed.stderr
+    assert "back in LOITER" in unarmed.stdout and sim.truth(0)["mode"] == "LOITER", "a refusal changes nothing"
+    alone = ground("--connect", link(sim, 0), "--sysid", "7", "status", "--listen-s", "1")
+    assert alone.returncode == 1 and "vehicle 7 not heard" in alone.stderr and "(heard: 1)" in alone.stderr
+    nobody = ground("--connect", "udpin:127.0.0.1:9", "status", "--listen-s", "0.5")
+    assert nobody.returncode == 1 and "no vehicle heard on udpin:127.0.0.1:9" in nobody.stderr
     bad_mode = ground("--connect", link(sim, 0), "mode", "WARP")
     assert bad_mode.returncode == 2 and "unknown mode 'WARP'" in bad_mode.stderr
     silent = ground("--connect", "udpin:127.0.0.1:9", "--wait-s", "0.5", "arm")

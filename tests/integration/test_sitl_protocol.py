@@ -54,6 +54,7 @@ def test_aborted_or_refused_upload_leaves_the_old_mission_intact(start_sitl, gcs
     bad = list(replacement)
     bad[5] = MissionItem(5, 5001, Frame.GLOBAL_RELATIVE_ALT_INT, lat_deg=1, lon_deg=1)  # a fence vertex
     assert gcs.upload(bad) == M.MAV_MISSION_UNSUPPORTED
+    assert gcs.last_item_sent == 5, "the refusal answers the item it refuses: the ground station names it"
     assert same_items(gcs.download(), before)
     assert not sim.world.autopilots.transfer_busy[0]
 
@@ -120,6 +121,22 @@ def test_commands_answer_with_the_right_result(start_sitl, gcs_for):
     assert gcs.recv("EXTENDED_SYS_STATE", 30.0, lambda m: m.landed_state == M.MAV_LANDED_STATE_ON_GROUND)
     assert gcs.recv("HEARTBEAT", 10.0, lambda m: not m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
 
+
+
+def test_arming_in_auto_is_refused_with_its_reason_unless_auto_options_allows_it(start_sitl, gcs_for):
+    """ArduCopter's AUTO allows arming only with AUTO_OPTIONS bit 0; a ground station arms in another mode, then
+    starts the mission."""
+    sim = start_sitl(speedup=10.0)
+    gcs = gcs_for(sim)
+    assert gcs.upload(long_mission(sim, 4)) == M.MAV_MISSION_ACCEPTED
+    assert gcs.set_mode("AUTO") == M.MAV_RESULT_ACCEPTED
+    sent_s = time.monotonic()
+    assert gcs.command(MavCmd.COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_FAILED
+    assert "Arm: mode AUTO needs AUTO_OPTIONS bit 0" in gcs.said_since(1, sent_s)
+    assert not sim.truth(0)["armed"]
+    gcs.conn.mav.param_set_send(1, 1, b"AUTO_OPTIONS", 1, M.MAV_PARAM_TYPE_INT32)
+    assert gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "AUTO_OPTIONS").param_value == 1
+    assert gcs.command(MavCmd.COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED and sim.truth(0)["armed"]
 
 
 def test_commands_a_ground_station_uses_change_the_vehicle(start_sitl, gcs_for):

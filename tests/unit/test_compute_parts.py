@@ -17,7 +17,7 @@ from nac_onboard.compute.launch import core_binding, cpu_per_host, mpiexec_comma
 from nac_onboard.compute.messages import KIND_WORK
 from nac_onboard.compute.options import ComputeOptions
 from nac_onboard.compute.positions import ScriptedDistances
-from nac_onboard.errors import BadInput
+from nac_onboard.errors import BadInput, exit_code_of
 from nac_onboard.radio.channel import PRESETS, ChannelError, ChannelModel
 from nac_onboard.radio.files import load_channel, save_channel
 from tests.conftest import SHARED_DATA
@@ -118,6 +118,9 @@ def test_data_is_found_in_order_and_missing_data_is_explained(tmp_path, monkeypa
     assert forestfires.find_csv() == CSV
     assert forestfires.find_csv(str(CSV)) == CSV
     monkeypatch.setenv("NAC_DATA_DIR", str(tmp_path / "nowhere"))
+    if SHARED_DATA.resolve() == forestfires.SOURCE_CHECKOUT_DATA.resolve():  # last: a checkout's ../shared/data
+        assert forestfires.find_csv().resolve() == CSV.resolve()
+    monkeypatch.setattr(forestfires, "SOURCE_CHECKOUT_DATA", tmp_path / "not-a-checkout")
     with pytest.raises(forestfires.DataError, match="nac-onboard data fetch"):
         forestfires.find_csv()
     with pytest.raises(forestfires.DataError, match="missing.csv"):
@@ -148,9 +151,12 @@ def test_fetch_takes_the_csv_out_of_the_archive_and_checks_its_hash(tmp_path):
         (tmp_path / name).write_bytes(buf.getvalue())
     stored = forestfires.fetch((tmp_path / "good.zip").as_uri(), dest_dir=tmp_path / "cache")
     assert stored.read_bytes() == data
-    with pytest.raises(forestfires.DataError, match="expected 0d6586a1"):
+    with pytest.raises(forestfires.DownloadError, match="expected 0d6586a1"):
         forestfires.fetch((tmp_path / "tampered.zip").as_uri(), dest_dir=tmp_path / "other")
     assert not (tmp_path / "other" / "forestfires.csv").exists()
+    with pytest.raises(forestfires.DownloadError, match="cannot download") as refused:  # offline: exit 1, not 2
+        forestfires.fetch((tmp_path / "absent.zip").as_uri(), dest_dir=tmp_path / "other")
+    assert exit_code_of(refused.value) == 1
 
 
 def test_scripted_distances_are_piecewise_constant():

@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pytest
 
+from missions import firmware
 from missions.model import Frame, MavCmd, MissionItem
 from sitl.vehicle import mission_items as items_
 from sitl.vehicle.flight import Event, MissionState, Phase
@@ -43,7 +44,7 @@ def test_loiter_turns_go_round_the_circle_the_asked_number_of_times_at_circle_ra
 
 def test_a_nav_delay_waits_in_place_and_loiter_unlimited_stays_until_told():
     mission = [MissionItem(0, 16), MissionItem(1, MavCmd.NAV_TAKEOFF, alt_m=5),
-               MissionItem(2, items_.NAV_DELAY, frame=Frame.MISSION, p1=6.0), wp(3, 20, 0, 5),
+               MissionItem(2, firmware.NAV_DELAY, frame=Frame.MISSION, p1=6.0), wp(3, 20, 0, 5),
                wp(4, 0, 20, 5, MavCmd.NAV_LOITER_UNLIM)]
     fleet, state, trace = fly(mission, 120.0, until=lambda f, s: f.t_s > 100)
     at_delay = [t for t, _, _, seq in trace if seq == 2]
@@ -56,10 +57,10 @@ def test_do_items_point_the_nose_set_servos_and_camera_items_pass_over():
     mission = [MissionItem(0, 16), MissionItem(1, MavCmd.NAV_TAKEOFF, alt_m=5),
                MissionItem(2, MavCmd.CONDITION_YAW, frame=Frame.MISSION, p1=180.0, p2=0, p3=1, p4=0),
                MissionItem(3, 203, frame=Frame.MISSION),  # DO_DIGICAM_CONTROL: no camera, no effect
-               MissionItem(4, items_.DO_SET_SERVO, frame=Frame.MISSION, p1=9, p2=1700),
+               MissionItem(4, firmware.DO_SET_SERVO, frame=Frame.MISSION, p1=9, p2=1700),
                wp(5, 0, 0, 5, MavCmd.NAV_LOITER_TIME, p1=5.0),
-               wp(6, 30, 0, 5, items_.DO_SET_ROI),  # look east while flying north
-               wp(7, 0, 40, 5, items_.NAV_SPLINE_WAYPOINT)]
+               wp(6, 30, 0, 5, firmware.DO_SET_ROI),  # look east while flying north
+               wp(7, 0, 40, 5, firmware.NAV_SPLINE_WAYPOINT)]
     fleet, state, trace = fly(mission, 120.0)
     assert fleet.mission_state[0] == MissionState.COMPLETE and fleet.servo_pwm[0] == {9: 1700}
     loiter_yaws = [yaw for _, _, yaw, seq in trace if seq == 5]
@@ -72,16 +73,16 @@ def test_do_items_point_the_nose_set_servos_and_camera_items_pass_over():
 
 
 @pytest.mark.parametrize("command, accepted", [
-    (items_.NAV_SPLINE_WAYPOINT, True), (MavCmd.NAV_LOITER_TURNS, True), (items_.NAV_DELAY, True),
-    (MavCmd.NAV_LOITER_UNLIM, True), (items_.DO_SET_ROI, True), (MavCmd.CONDITION_YAW, True),
-    (items_.DO_SET_SERVO, True), (208, True), (2000, True), (items_.NAV_VTOL_TAKEOFF, True),
+    (firmware.NAV_SPLINE_WAYPOINT, True), (MavCmd.NAV_LOITER_TURNS, True), (firmware.NAV_DELAY, True),
+    (MavCmd.NAV_LOITER_UNLIM, True), (firmware.DO_SET_ROI, True), (MavCmd.CONDITION_YAW, True),
+    (firmware.DO_SET_SERVO, True), (208, True), (2000, True), (firmware.NAV_VTOL_TAKEOFF, True),
     (42702, False),  # NAV_SCRIPT_TIME: needs Lua scripting
     (31, False),  # NAV_LOITER_TO_ALT: a plane's
     (9999, False),
 ])
 def test_an_upload_refuses_only_what_the_copter_does_not_take(command, accepted):
     item = MissionItem(1, command, Frame.GLOBAL_RELATIVE_ALT_INT, lat_deg=47.4, lon_deg=8.5, alt_m=10)
-    assert (items_.validate_item(item, 0) is None) == accepted
+    assert (firmware.arducopter_refusal(item, 0) is None) == accepted
 
 
 @pytest.mark.parametrize("law, leg_s", [(0, (9.5, 13.0)), (1, (20.0, 23.0))])

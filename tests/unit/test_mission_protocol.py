@@ -1,6 +1,6 @@
+from missions.firmware import arducopter_refusal as validate_item
 from missions.model import MavCmd, MissionItem
 from sitl.mavlink.mission_protocol import Ack, Complete, MissionReceiver, MissionResult, Request
-from sitl.vehicle.mission_items import validate_item
 
 GCS = (255, 190, 1)
 OTHER = (254, 1, 2)
