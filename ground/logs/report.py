@@ -102,7 +102,7 @@ def analyze_run(run_dir: str | Path, out: str | Path | None = None, master: str 
     tables = analyze(run, master, bin_m, threshold_mbps)
     write_tables(tables, out)
     pictures = {name: figures.draw(name, [tables], out / f"{name}.png") for name in figures.FIGURES}
-    report = [f"# NAC run {tables.name}", "", f"Analysed from `{run.path}`; tables as CSV next to this file.", "",
+    report = [f"# {tables.name}: a NAC run", "", f"Analysed from `{run.path}`; tables as CSV next to this file.", "",
               *_notes([tables], run.experiment), "## Summary", "", summary_table([tables.summary], [tables.name]), ""]
     for name, path in pictures.items():
         report += [f"![{name.replace('_', ' ')}]({_relative(path, report_path.parent)})", ""]

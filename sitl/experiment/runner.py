@@ -536,7 +536,8 @@ class Experiment:
             tables = analyze_run(self.run_dir, self.run_dir / kinds.ANALYSIS_DIR,
                                  report_path=kinds.REPORT.at(self.run_dir))
         except RunDirError as err:
-            print(f"analysis: {err}", file=self.out)
+            if self.sim is not None:  # a run stopped before its simulator started has nothing to analyse: its
+                print(f"analysis: {err}", file=self.out)  # failure alone says why
             return None, {}
         return kinds.REPORT.at(self.run_dir), tables.summary
 

@@ -24,6 +24,8 @@ from sitl.vehicle.flight_state import (
 from sitl.vehicle.mission_run import MissionRun
 from sitl.vehicle.physics import Motion
 
+AUTO_ALLOW_ARMING = 1  # ArduCopter's AUTO_OPTIONS bit 0 (mode_auto.cpp allows_arming)
+
 
 class Modes:
     """Arming and flight modes of N autopilots over their shared flight state."""
@@ -53,6 +55,8 @@ class Modes:
                 return CommandOutcome(Result.FAILED, failure)
             if s.mode[i] in (CopterMode.RTL, CopterMode.LAND):
                 return CommandOutcome(Result.FAILED, f"Arm: mode {CopterMode(s.mode[i]).name} does not allow arming")
+            if s.mode[i] == CopterMode.AUTO and not int(s.params.get(i, "AUTO_OPTIONS")) & AUTO_ALLOW_ARMING:
+                return CommandOutcome(Result.FAILED, "Arm: mode AUTO needs AUTO_OPTIONS bit 0")  # 50 chars at most
         s.armed[i] = True
         s.failsafe[i] = False
         s.set_goal(i, s.pos(i), Motion.IDLE, Check.NONE)

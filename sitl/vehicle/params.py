@@ -34,6 +34,8 @@ PARAM_DEFS: tuple[ParamDef, ...] = (
     ParamDef("FRAME_CLASS", 1, 0, 15, f"1 = quad ({NOT_SIMULATED}: a point mass flies)", INT8),
     ParamDef("FRAME_TYPE", 1, 0, 18, f"1 = X ({NOT_SIMULATED})", INT8),
     ParamDef("ARMING_CHECK", 1, 0, 2**31 - 1, "pre-arm checks: 0 none, 1 all (GPS fix and battery here)", INT32),
+    ParamDef("AUTO_OPTIONS", 0, 0, 2**31 - 1, f"AUTO's options: bit 0 (1) allows arming in AUTO (other bits "
+             f"{NOT_SIMULATED})", INT32),
     ParamDef("NAC_NAV_LAW", 0, 0, 1, "how goals are flown: 0 ArduCopter's WPNav (trapezoid legs, WPNAV_ACCEL, LAND's "
              "two speeds), 1 the research's proportional law v = k (goal - x) (its scenarios set it)", INT8),
     ParamDef("NAC_KP_XY", 0.15, 0.0, 10.0, "horizontal position gain k_x = k_y (1/s)"),

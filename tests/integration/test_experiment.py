@@ -18,6 +18,7 @@ import pytest
 from ground import cli as ground_cli
 from missions import save_mission
 from missions.geo import enu_to_lla, lla_to_ecef
+from nac_onboard.compute import forestfires
 from nac_onboard.flight_log import read_jsonl
 from nac_onboard.radio.channel import PRESETS
 from nac_onboard.radio.files import load_channel, save_channel
@@ -292,6 +293,7 @@ def test_a_taken_port_or_missing_data_fails_the_run_with_a_sentence(tmp_path, mo
 
     monkeypatch.setenv("NAC_DATA_DIR", str(tmp_path / "empty"))
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setattr(forestfires, "SOURCE_CHECKOUT_DATA", tmp_path / "not-a-checkout")
     t0 = time.monotonic()
     result = Experiment(scenario, tmp_path / "run2", 4.0, base, out=io.StringIO()).run()
     assert result.outcome is Outcome.BAD_INPUT and result.outcome.exit_code == 2

@@ -91,6 +91,16 @@ def test_damaged_and_missing_input_is_named_not_raised(tmp_path, caplog):
     assert len(t.distances) == 4, "the intact records are all used"
 
 
+def test_a_reanalysis_replaces_the_runs_own_report_and_leaves_no_second_one(tmp_path, capsys):
+    run = tmp_path / "flight-3"
+    shutil.copytree(GOLDEN, run)
+    (run / "report.md").write_text("the experiment runner's report\n")
+    assert cli.main(["logs", "analyze", str(run)]) == 0
+    assert (run / "report.md").read_text().startswith("# flight-3: a NAC run\n")
+    assert not (run / "analysis" / "report.md").exists() and (run / "analysis" / "distances.csv").is_file()
+    assert capsys.readouterr().out.startswith(f"{run / 'report.md'}: ")
+
+
 def test_an_empty_or_missing_directory_is_exit_2_with_a_sentence(tmp_path, capsys):
     assert cli.main(["logs", "analyze", str(tmp_path)]) == 2
     assert "no NAC logs here" in capsys.readouterr().err
