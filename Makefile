@@ -18,7 +18,6 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 
 $(STAMP): pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q --no-compile -e '.[mpich,test]'
 	$(BIN)/python -m pip install -q --no-deps $$($(BIN)/python -c "import sys; toml = __import__('tomllib' if \
 	    sys.version_info >= (3, 11) else 'tomli'); print(' '.join(toml.load(open('pyproject.toml', 'rb'))['tool']['nac']['test-no-deps']))")
@@ -34,7 +33,7 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -m "not exclusive" -n 3 --dist worksteal --durations=20
-	$(BIN)/python -m pytest -m exclusive --durations=20
+	$(BIN)/python -m pytest -m exclusive --durations=20 tests/integration  # where every exclusive test is
 
 # The lint rules are ruff's, set in pyproject.toml (pycodestyle, pyflakes, isort, bugbear, naming...). The code
 # keeps its own line wrapping: `ruff format` would rewrite some 4,500 lines for no change in behaviour.

@@ -55,11 +55,17 @@ def host_state() -> dict:
             "nft": sorted(out(["nft", "list", "tables"]).splitlines())}
 
 
-def shortened(name: str, folder: Path, duration_s: float, channel: str = "", max_speedup: float = 1.0) -> Path:
+def shortened(name: str, folder: Path, duration_s: float, channel: str = "", max_speedup: float = 1.0,
+              probe_period_s: float | None = None) -> Path:
     """A shipped scenario with a shorter duration, its missions read from where they are shipped; `channel`:
-    lines added to its [channel] table; max_speedup: for tests of mechanics, not of results."""
+    lines added to its [channel] table; max_speedup: for tests of mechanics, not of results; probe_period_s: its
+    probes' period instead of the scenario's (more probes in a short run)."""
     text = (SCENARIOS / f"{name}.toml").read_text()
     text = re.sub(r"^duration_s = .*$", f"duration_s = {duration_s}", text, count=1, flags=re.M)
+    if probe_period_s is not None:
+        text = re.sub(r"^(\[throughput\]\n)period_s = .*$", rf"\g<1>period_s = {probe_period_s}", text, count=1,
+                      flags=re.M)
+        assert f"period_s = {probe_period_s}" in text, "the scenario's [throughput] table starts with period_s"
     text = re.sub(r"^max_speedup = .*$", f"max_speedup = {max_speedup}", text, count=1, flags=re.M)
     text = re.sub(r"^(preset = .*)$", lambda m: m.group(1) + "\n" + channel, text, count=1, flags=re.M)
     text = text.replace('mission = "', f'mission = "{SCENARIOS}/')
@@ -209,13 +215,14 @@ def test_the_moving_flight_on_a_kernel_network(tmp_path):
 @pytest.mark.slow
 @pytest.mark.exclusive  # rates and times measured, the whole host's namespaces compared
 def test_results_in_simulated_time_do_not_depend_on_the_speedup(tmp_path):
-    """paper-flight-static shortened, at 1x and at 4x on a kernel network, its radio's median link (no shadowing
-    or fading: both runs see the same rates) and a per-transfer software cost of 2 Mbit so the transfers, not
-    this machine's CPU, set the pace: iterations per simulated minute and throughput per distance bin agree
-    within 10 %, and the probes measured the rates the shaper applied. Without that cost the wifi-flight
-    iterations last a few milliseconds, CPU-bound here, and the scenario allows only 1x."""
+    """paper-flight-static shortened to 15 s (probes every second: some 30 a run), at 1x and at 4x on a kernel
+    network, its radio's median link (no shadowing or fading: both runs see the same rates) and a per-transfer
+    software cost of 2 Mbit so the transfers, not this machine's CPU, set the pace: iterations per simulated
+    minute and throughput per distance bin agree within 10 %, and the probes measured the rates the shaper
+    applied. Without that cost the wifi-flight iterations last a few milliseconds, CPU-bound here, and the
+    scenario allows only 1x."""
     median_link = 'shadowing_sigma_db = 0.0\nrician_k_db = "none"\noverhead_bits = 2e6'
-    scenario = load_scenario(str(shortened("paper-flight-static", tmp_path, 30.0, median_link)))
+    scenario = load_scenario(str(shortened("paper-flight-static", tmp_path, 15.0, median_link, probe_period_s=1.0)))
     assert scenario.channel.overhead_bits == 2e6 and not scenario.channel.fading
     summaries = {}
     for speedup in (1.0, 4.0):

@@ -96,7 +96,7 @@ def test_rate_limited_link_agrees_with_iperf3_within_10_percent(netns):
                    ["ip", "-n", a, "link", "set", va, "up"], ["ip", "-n", b, "link", "set", vb, "up"],
                    ["ip", "netns", "exec", a, "tc", "qdisc", "add", "dev", va, "root", "tbf", "rate", "10mbit",
                     "burst", "32kbit", "latency", "50ms"]])
-    result = compare("10.77.0.2", runs=3, duration_s=2, netns_client=a, netns_server=b)
+    result = compare("10.77.0.2", runs=3, duration_s=1, netns_client=a, netns_server=b)
     assert all(8e6 < bps < 10.5e6 for bps in result.iperf3_bps), "iperf3 sees the 10 Mbit/s shaping"
     assert abs(result.ratio - 1) < 0.10, result.describe(1e6, "Mbit/s")
 
