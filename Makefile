@@ -19,7 +19,7 @@ $(BIN)/python:
 
 $(STAMP): pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install -q --no-compile -e '.[mpich,test]'
-	$(BIN)/python -m pip install -q --no-deps $$($(BIN)/python -c "import sys; toml = __import__('tomllib' if \
+	$(BIN)/python -m pip install -q --no-compile --no-deps $$($(BIN)/python -c "import sys; toml = __import__('tomllib' if \
 	    sys.version_info >= (3, 11) else 'tomli'); print(' '.join(toml.load(open('pyproject.toml', 'rb'))['tool']['nac']['test-no-deps']))")
 	touch $(STAMP)
 

@@ -97,7 +97,8 @@ def _add_view_parser(sub) -> None:
     view.add_argument("--feed", metavar="HOST:PORT", help="with --live: the master agent's state feed (ids, roles, "
                                                           "positions of every peer)")
     view.add_argument("--screenshot", type=Path, metavar="FILE",
-                      help="save a PNG of the page at the end of the run (headless Chromium) and exit")
+                      help="save a PNG of the page at the end of the run (headless Chromium) and exit; with --live, "
+                           "once the first vehicle is drawn (at most 10 s)")
     view.add_argument("--allow-host", action="append", dest="allowed_hosts", metavar="NAME", default=[],
                       help="a name browsers may use for this server beside its address (and localhost on a "
                            "loopback bind); any other Host header is refused (421), against DNS rebinding")
@@ -187,7 +188,7 @@ def run(args: argparse.Namespace, out=None) -> int:
             from ground.view.serve import watch
 
             return watch(args.view_connect, args.feed, args.run_dir, args.address, out,
-                         allowed_hosts=tuple(args.allowed_hosts))
+                         allowed_hosts=tuple(args.allowed_hosts), screenshot_path=args.screenshot)
         if args.run_dir is None:
             raise BadInput("view: give a RUN_DIR, or --live with --connect URI and/or --feed HOST:PORT")
         return replay(args.run_dir, args.address, args.screenshot, out, live=args.follow,

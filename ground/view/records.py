@@ -277,18 +277,21 @@ class RunFollower:
         if source == "throughput" and kind == kinds.THROUGHPUT.name:
             end = r.get("end") or {}
             bps = ((end.get("sum_received") or {}).get("bits_per_second")) if isinstance(end, dict) else None
-            ok = _finite(bps) and not r.get("error")
+            speedup = r.get("speedup", 1.0)
+            ok = _finite(bps) and _finite(speedup) and speedup > 0 and not r.get("error")
             self._seen_kinds.add("probe")
+            # bits per simulated second, as the report gives them: a sped-up run's probe counts wall seconds
             return {"k": "probe", "t": t_s, "a": _short(r.get("client")), "b": _short(r.get("server")),
-                    "bps": float(bps) if ok else 0.0, "ok": bool(ok), "d": _num(r.get("distance_m"))}
+                    "bps": float(bps) / float(speedup) if ok else 0.0, "ok": bool(ok), "d": _num(r.get("distance_m"))}
         if source == "compute" and kind == kinds.ITERATION.name:
             workers = r.get("workers")
             present = workers.get("present") if isinstance(workers, dict) else None
             present = present if isinstance(present, list) else []
             self._seen_kinds.add("it")
             iteration = r.get("iteration")
+            sim_s = _num(r.get("duration_sim_s"))  # simulated, as the report's; absent on a vehicle: wall time
             return {"k": "it", "t": t_s, "i": iteration if type(iteration) is int else None,
-                    "dur": _num(r.get("duration_s")),
+                    "dur": sim_s if sim_s is not None else _num(r.get("duration_s")), "ts": _num(r.get("start_sim_s")),
                     "cost": _num(r.get("cost")), "n": sum(1 for p in present if p), "of": len(present)}
         if source == "network" and kind == kinds.LINK_RATES.name:
             columns = [r.get(key) for key in ("a", "b", "rate_bps", "distance_m")]

@@ -8,6 +8,7 @@ import shutil
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 from ground.view.server import ViewServer
@@ -50,6 +51,9 @@ class ViewThread:
 
 def chromium() -> str | None:
     return shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+
+
+LIVE_SCREENSHOT_LISTEN_S = 10.0  # --live --screenshot: how long to wait for a first vehicle before the picture
 
 
 def screenshot(url: str, path: Path, width: int = 1400, height: int = 860, timeout_s: float = 60.0) -> Path:
@@ -113,9 +117,11 @@ def _serve(viewer: ViewThread, announce: str, out, then=None) -> int:
 
 
 def watch(uris: list[str], feed: str | None, run_dir: Path | None, address: str, out=None,
-          allowed_hosts: tuple[str, ...] = ()) -> int:
+          allowed_hosts: tuple[str, ...] = (), screenshot_path: Path | None = None,
+          listen_s: float = LIVE_SCREENSHOT_LISTEN_S) -> int:
     """Vehicles live over MAVLink (and the master agent's state feed), with a run directory's files when one is
-    given; until Ctrl-C."""
+    given; until Ctrl-C. With screenshot_path: listen until something is drawn (at most listen_s), save the page as
+    a PNG and stop; when nothing was heard, say so beside the picture of the empty map."""
     from ground.view.mavlink_source import MavlinkSource
 
     out = out or sys.stdout
@@ -126,11 +132,22 @@ def watch(uris: list[str], feed: str | None, run_dir: Path | None, address: str,
     if run_dir is not None and not Path(run_dir).is_dir():
         raise BadInput(f"{run_dir}: no such run directory")
     source = MavlinkSource(uris, feed)
-    viewer = ViewThread(ViewServer(run_dir, live=True, title="live", sources=[source], allowed_hosts=allowed_hosts),
-                        address)
+    server = ViewServer(run_dir, live=True, title="live", sources=[source], allowed_hosts=allowed_hosts)
+    viewer = ViewThread(server, address)
     try:
         url = viewer.start()
     except BaseException:
         source.close()
         raise
-    return _serve(viewer, f"view: {url} (live: {', '.join(uris + ([f'feed {feed}'] if feed else []))})", out)
+    watched = ", ".join(uris + ([f"feed {feed}"] if feed else []))
+    then = None
+    if screenshot_path is not None:
+        def then():
+            deadline = time.monotonic() + listen_s
+            while server.follower.record_count == 0 and time.monotonic() < deadline:
+                time.sleep(0.2)
+            if server.follower.record_count == 0:
+                print(f"view: nothing heard on {watched} within {listen_s:g} s: the picture shows an empty map",
+                      file=out, flush=True)
+            print(f"view: {screenshot(url, Path(screenshot_path))}", file=out, flush=True)
+    return _serve(viewer, f"view: {url} (live: {watched})", out, then)

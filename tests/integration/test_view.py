@@ -170,6 +170,36 @@ def test_a_damaged_run_replays_what_is_there_and_lists_what_is_not(browser, tmp_
         replay.stop()
 
 
+def test_the_job_panel_counts_per_simulated_minute_and_draws_a_cost_only_for_a_task_with_one(browser, tmp_path):
+    """A 5x run's iterations, 0.3 simulated seconds apart (200 per simulated minute, 1,000 per wall minute): the
+    panel says 200, as the report does. matmul's iterations carry no cost: no empty cost chart (issue 33)."""
+    import json
+
+    from tests.unit.test_view_records import telemetry
+
+    for task, cost in (("linreg", 1.5), ("matmul", None)):
+        run = tmp_path / task
+        write_damaged_run(run)
+        (run / "compute").mkdir()
+        (run / "compute" / "compute.jsonl").write_text("".join(json.dumps(
+            {"t_s": 1000.0 + 0.06 * k, "kind": "iteration", "iteration": k, "duration_s": 0.06, "cost": cost,
+             "start_sim_s": 40.0 + 0.3 * k, "duration_sim_s": 0.3, "workers": {"present": [True]}}) + "\n"
+            for k in range(41)))
+        (run / "master" / "agent.jsonl").write_text(telemetry(1000.0, 0.0, 3.0) + telemetry(1010.0, 0.0, 3.0))
+        replay = ViewThread(ViewServer(run, live=False), "127.0.0.1:0")
+        browser.get(replay.start())
+        try:
+            wait_for(browser, "return document.body.dataset.ready")
+            browser.execute_script("const s = document.getElementById('cursor'); s.value = 5;"
+                                   "s.dispatchEvent(new Event('input'));")
+            job = browser.execute_script("return document.getElementById('job').textContent")
+            assert "41 iterations, 200 per minute" in job, job
+            hidden = browser.execute_script("return document.getElementById('cost-chart').hidden")
+            assert hidden is (cost is None), (task, hidden)
+        finally:
+            replay.stop()
+
+
 def test_a_reconnecting_browser_resumes_after_the_last_record_it_had(tmp_path):
     """The stream as EventSource reconnects: Last-Event-ID names the last frame held; nothing before it is
     sent again, nothing after it is skipped. The run is written in three parts, read as they come (a frame per

@@ -11,6 +11,7 @@ import urllib.request
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from ground.view.records import positions
 from missions.geo import Home, enu_to_lla, lla_to_enu
@@ -73,3 +74,21 @@ def test_live_without_a_source_is_refused_with_a_sentence():
     assert done.returncode == 2 and "--connect URI or a --feed" in done.stderr
     done = subprocess.run([NAC_GROUND, "view"], capture_output=True, text=True, timeout=30)
     assert done.returncode == 2 and "give a RUN_DIR" in done.stderr
+
+
+def test_a_live_screenshot_ends_with_the_vehicles_drawn_or_says_nothing_was_heard(start_sitl, tmp_path):
+    """`view --live --screenshot` once served for ever; it now listens until a vehicle is drawn (10 s at most)."""
+    from ground.view.serve import chromium
+    from tests.conftest import free_port
+
+    if not chromium():
+        pytest.skip("no Chromium (.ci/run installs it)")
+    sim = start_sitl(vehicles=1, speedup=5.0)
+    links = ((f"udpin:127.0.0.1:{sim.config.gcs_base_port}", True), (f"udpin:127.0.0.1:{free_port()}", False))
+    for uri, heard in links:
+        shot = tmp_path / f"live-{heard}.png"
+        done = subprocess.run([NAC_GROUND, "view", "--live", "--connect", uri, "--address", "127.0.0.1:0",
+                               "--screenshot", str(shot)], capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, done.stderr
+        assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"view: {shot}" in done.stdout
+        assert ("nothing heard on" in done.stdout) is not heard, done.stdout

@@ -51,6 +51,22 @@ def test_a_live_run_is_read_as_it_is_written_and_damage_is_named(tmp_path):
                                   "link model capacities (network.jsonl, SITL)"]
 
 
+def test_a_sped_up_runs_rates_and_durations_are_per_simulated_second_as_in_the_report(tmp_path):
+    """At 5x a probe's iperf3 figures count wall seconds: the page shows them per simulated second, as the
+    report, the progress line and the records' own `speedup` say (issue 33: labels 5x the report's)."""
+    (tmp_path / "master").mkdir()
+    (tmp_path / "compute").mkdir()
+    (tmp_path / "master" / "throughput.jsonl").write_text(json.dumps(
+        {"t_s": 2.0, "kind": "throughput", "client": "master", "server": "w1", "speedup": 5.0,
+         "end": {"sum_received": {"bits_per_second": 1.5e8}}}) + "\n")
+    (tmp_path / "compute" / "compute.jsonl").write_text(json.dumps(
+        {"t_s": 2.5, "kind": "iteration", "iteration": 0, "duration_s": 0.06, "start_sim_s": 40.0,
+         "duration_sim_s": 0.3, "workers": {"present": [True]}}) + "\n")
+    frames = {f["k"]: f for f in RunFollower(tmp_path).poll()}
+    assert frames["probe"]["bps"] == pytest.approx(3e7) and frames["probe"]["ok"]
+    assert frames["it"]["dur"] == 0.3 and frames["it"]["ts"] == 40.0
+
+
 def test_probes_iterations_faults_and_missions_become_frames(tmp_path):
     (tmp_path / "master").mkdir()
     (tmp_path / "compute").mkdir()
@@ -72,7 +88,7 @@ def test_probes_iterations_faults_and_missions_become_frames(tmp_path):
     follower = RunFollower(tmp_path)
     frames = {f["k"]: f for f in follower.poll()}
     assert frames["probe"]["bps"] == 0.0 and not frames["probe"]["ok"], "the failed probe is the last"
-    assert frames["it"] == {"k": "it", "t": 2.5, "i": 0, "dur": 0.4, "cost": 3.5, "n": 1, "of": 2,
+    assert frames["it"] == {"k": "it", "t": 2.5, "i": 0, "dur": 0.4, "ts": None, "cost": 3.5, "n": 1, "of": 2,
                             "s": frames["it"]["s"]}
     assert frames["ev"]["text"] == "fault: link_down on for w1" and frames["ev"]["fault"]
     assert follower.vehicles["w1"] == {"role": "worker"}

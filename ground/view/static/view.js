@@ -174,18 +174,31 @@ function drawPanels(t, here) {
   $("fleet").tBodies[0].innerHTML = rows.join("");
   const done = view.its.filter((it) => it.t <= t);
   const last = done[done.length - 1];
-  const perMin = done.filter((it) => it.t > t - RATE_WINDOW_S).length * (60 / RATE_WINDOW_S);
+  const perMin = perSimulatedMinute(done.filter((it) => it.t > t - RATE_WINDOW_S));
   $("job").innerHTML = last
     ? `<span id="iterations" data-count="${done.length}">${done.length}</span> iterations, ${perMin.toFixed(0)} per minute; ` +
       `workers present ${last.n}/${last.of}; training cost ${last.cost == null ? "-" : last.cost.toPrecision(4)}`
     : `<span id="iterations" data-count="0">0</span> iterations yet`;
-  chart($("cost-chart"), [{ color: "#1d2430", points: done.filter((it) => it.cost != null).map((it) => [it.t, it.cost]) }], t, "cost");
+  // a training cost only where the task has one (linreg): matmul's iterations carry none, and get no empty chart
+  const costs = done.filter((it) => it.cost != null).map((it) => [it.t, it.cost]);
+  $("cost-chart").hidden = !view.its.some((it) => it.cost != null);
+  chart($("cost-chart"), [{ color: "#1d2430", points: costs }], t, "training cost");
   const series = [...view.probes.values()].map((list) => ({
     color: colorOf(list[0].b), label: list[0].b,
     points: list.filter((p) => p.t <= t).map((p) => [p.t, p.bps / 1e6]),
   }));
   chart($("tp-chart"), series, t, "Mbit/s");
   $("tp-legend").innerHTML = series.map((s) => `<span style="color:${s.color}">&#9632; ${esc(s.label)}</span>`).join("");
+}
+// Iterations per minute of the run's own clock: a sped-up run's iterations carry their simulated start (ts), so
+// the count over a wall-clock window is divided by the simulated time it spans; a vehicle's carry none (wall time).
+function perSimulatedMinute(recent) {
+  const sim = recent.filter((it) => it.ts != null);
+  if (sim.length >= 2 && sim.length === recent.length) {
+    const span = sim[sim.length - 1].ts - sim[0].ts;
+    return span > 0 ? (sim.length - 1) * 60 / span : 0;
+  }
+  return recent.length * (60 / RATE_WINDOW_S);
 }
 function chart(canvas, series, t, unit) {
   const ctx = canvas.getContext("2d"), w = canvas.width, h = canvas.height;
