@@ -43,6 +43,7 @@ class CopterMode(IntEnum):
     GUIDED = 4
     LOITER = 5
     RTL = 6
+    CIRCLE = 7
     LAND = 9
     POSHOLD = 16
     BRAKE = 17
@@ -104,6 +105,11 @@ class Check(IntEnum):
 
 
 PILOT_MODES = frozenset({CopterMode.LOITER, CopterMode.POSHOLD, CopterMode.ALT_HOLD})
+#: ArduCopter's other modes: refused by name, as ArduCopter refuses a mode its build or hardware lacks (a point mass
+#: has no attitude to fly by hand, nothing to follow or throw; docs/sitl.md)
+NOT_FLOWN_MODES = {1: "ACRO", 11: "DRIFT", 13: "SPORT", 14: "FLIP", 15: "AUTOTUNE", 18: "THROW", 19: "AVOID_ADSB",
+                   20: "GUIDED_NOGPS", 21: "SMART_RTL", 22: "FLOWHOLD", 23: "FOLLOW", 24: "ZIGZAG", 25: "SYSTEMID",
+                   26: "AUTOROTATE", 27: "AUTO_RTL", 28: "TURTLE"}
 HOLD_MODES = frozenset({CopterMode.STABILIZE, CopterMode.ALT_HOLD, CopterMode.LOITER, CopterMode.POSHOLD,
                         CopterMode.BRAKE, CopterMode.GUIDED})
 HOME_FROM_ORIGIN_MAX_M = 50_000.0  # ArduPilot refuses a home farther than this from the EKF origin
@@ -149,7 +155,7 @@ class FlightState:
         self.yaw_target_rad = np.full(n, math.nan)  # commanded heading (NaN: face the direction of travel)
         self.yaw_rate_rps = np.full(n, math.nan)
         self.roi_m = np.full((n, 3), math.nan)  # region of interest the nose points at (DO_SET_ROI*), ENU
-        self.circling: dict[int, list] = {}  # NAV_LOITER_TURNS: [centre, radius, turns left (rad), last bearing]
+        self.circling: dict[int, list] = {}  # NAV_LOITER_TURNS, CIRCLE: [centre, radius, left (rad), last bearing]
         self.rtl_target_m = np.zeros((n, 3))  # where RTL goes: home or the nearest rally point
         self.home_m = np.zeros((n, 3))  # home about the frame's origin (DO_SET_HOME moves home, not the origin)
         self.home_locked = np.zeros(n, dtype=bool)  # set by DO_SET_HOME: arming no longer moves home

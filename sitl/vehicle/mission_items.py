@@ -10,7 +10,7 @@ import numpy as np
 from missions.firmware import NAV_SPLINE_WAYPOINT
 from missions.model import MavCmd, MissionItem
 
-CIRCLE_RATE_DPS = 20.0  # ArduCopter's CIRCLE_RATE default: loiter turns go round at this rate
+CIRCLE_RATE_DPS = 20.0  # ArduCopter's CIRCLE_RATE default
 CIRCLE_RADIUS_MIN_M = 1.0
 
 
@@ -29,15 +29,15 @@ def turns(item: MissionItem) -> tuple[float, float]:
 
 
 def circle_velocity_mps(pos_m: np.ndarray, center_m: np.ndarray, radius_m: float, k_radial: float,
-                        k_z: float) -> np.ndarray:
-    """Velocity that goes round the circle (clockwise seen from above for a positive radius) at CIRCLE_RATE,
-    pulled onto it radially and to the centre's altitude."""
+                        k_z: float, rate_dps: float = CIRCLE_RATE_DPS) -> np.ndarray:
+    """Velocity that goes round the circle (clockwise seen from above for a positive radius) at rate_dps
+    (CIRCLE_RATE), pulled onto it radially and to the centre's altitude."""
     offset = pos_m[:2] - center_m[:2]
     distance = float(np.hypot(*offset))
     outward = offset / distance if distance > 1e-6 else np.array([0.0, 1.0])
     clockwise = np.array([outward[1], -outward[0]])  # east, north: clockwise tangent when north is up
     direction = 1.0 if radius_m > 0 else -1.0
-    speed = math.radians(CIRCLE_RATE_DPS) * abs(radius_m)
+    speed = math.radians(abs(rate_dps)) * abs(radius_m)
     horizontal = direction * speed * clockwise + k_radial * (abs(radius_m) - distance) * outward
     return np.array([horizontal[0], horizontal[1], k_z * (center_m[2] - pos_m[2])])
 

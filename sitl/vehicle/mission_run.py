@@ -205,7 +205,8 @@ class MissionRun:
                 self.item_reached(i)
                 continue
             s.velocity_mps[i] = items_.circle_velocity_mps(state.pos_m[i], center, radius_m,
-                                                           max(float(k_xy[i]), 0.5), float(k_z[i]))
+                                                           max(float(k_xy[i]), 0.5), float(k_z[i]),
+                                                           s.params.get(i, "CIRCLE_RATE"))
 
     def _mission_complete(self, i: int) -> None:
         s = self.s

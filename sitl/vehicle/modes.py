@@ -9,8 +9,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
+from sitl.vehicle import mission_items as items_
 from sitl.vehicle.flight_state import (
     HOLD_MODES,
+    NOT_FLOWN_MODES,
     OK,
     Check,
     CommandOutcome,
@@ -85,7 +89,8 @@ class Modes:
         try:
             mode = CopterMode(mode)
         except ValueError:
-            return CommandOutcome(Result.DENIED, f"Mode change failed: unsupported mode {mode}")
+            name = NOT_FLOWN_MODES.get(mode, f"mode {mode}")
+            return CommandOutcome(Result.DENIED, f"Mode change failed: {name} not in this SITL")
         previous = s.mode[i]
         s.mode[i] = mode
         s.yaw_target_rad[i] = s.yaw_rate_rps[i] = math.nan
@@ -107,6 +112,8 @@ class Modes:
                 self.mission_run.begin_rtl(i)
             else:
                 s.hold(i)
+        elif mode == CopterMode.CIRCLE:
+            self._circle(i)
         elif mode == CopterMode.LAND:
             if s.flying(i):
                 here = s.pos(i)
@@ -116,6 +123,21 @@ class Modes:
         if previous != mode:
             s.emit(i, Event.MODE, int(mode))
         return OK
+
+    def _circle(self, i: int) -> None:
+        """ArduCopter's CIRCLE: round a centre CIRCLE_RADIUS ahead of the vehicle's heading, at CIRCLE_RATE
+        (clockwise when positive), at the altitude it had, until another mode; on the ground it waits."""
+        s = self.s
+        if not s.flying(i):
+            s.hold(i)
+            return
+        radius_m = s.params.get(i, "CIRCLE_RADIUS") / 100.0
+        here, yaw = s.pos(i), float(s.state.yaw_rad[i])
+        center = here + radius_m * np.array([math.sin(yaw), math.cos(yaw), 0.0])
+        s.set_goal(i, here, Motion.VELOCITY, Check.NONE)
+        if radius_m > 0:
+            signed_m = math.copysign(radius_m, s.params.get(i, "CIRCLE_RATE") or 1.0)
+            s.circling[i] = [center, signed_m, math.inf, items_.angle_about(here, center)]
 
     def takeoff(self, i: int, alt_m: float) -> CommandOutcome:
         """NAV_TAKEOFF: climb to alt_m above home in GUIDED (0 or NaN: PILOT_TKOFF_ALT)."""

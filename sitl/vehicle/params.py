@@ -34,6 +34,10 @@ PARAM_DEFS: tuple[ParamDef, ...] = (
     ParamDef("FRAME_CLASS", 1, 0, 15, f"1 = quad ({NOT_SIMULATED}: a point mass flies)", INT8),
     ParamDef("FRAME_TYPE", 1, 0, 18, f"1 = X ({NOT_SIMULATED})", INT8),
     ParamDef("ARMING_CHECK", 1, 0, 2**31 - 1, "pre-arm checks: 0 none, 1 all (GPS fix and battery here)", INT32),
+    ParamDef("CIRCLE_RADIUS", 1000, 0, 200000, "CIRCLE mode's radius (cm); the centre is this far ahead of the "
+             "vehicle when the mode starts"),
+    ParamDef("CIRCLE_RATE", 20, -90, 90, "CIRCLE mode's and NAV_LOITER_TURNS' turn rate (deg/s, positive "
+             "clockwise)"),
     ParamDef("AUTO_OPTIONS", 0, 0, 2**31 - 1, f"AUTO's options: bit 0 (1) allows arming in AUTO (other bits "
              f"{NOT_SIMULATED})", INT32),
     ParamDef("NAC_NAV_LAW", 0, 0, 1, "how goals are flown: 0 ArduCopter's WPNav (trapezoid legs, WPNAV_ACCEL, LAND's "

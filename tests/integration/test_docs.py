@@ -218,3 +218,12 @@ def test_documented_command_has_help(path):
                    for n in range(len(path), 0, -1)):
             unknown.append(f"{option} (in {', '.join(sorted(where))})")
     assert not unknown, f"{' '.join(path)} has no option " + "; ".join(unknown)
+
+
+def test_the_documented_parameter_count_is_the_simulators():
+    """README and docs/sitl.md said 48 parameters when there were 52 (issue 33)."""
+    from sitl.vehicle.params import PARAM_DEFS
+
+    count = len(PARAM_DEFS)
+    assert f"its {count} parameters" in (ROOT / "README.md").read_text()
+    assert f"Parameters ({count}, `PARAM_DEFS`" in (ROOT / "docs" / "sitl.md").read_text()

@@ -234,3 +234,34 @@ def test_a_wpl_mission_with_roi_spline_yaw_servo_turns_and_delay_flies_in_auto_t
     assert 3.8 <= delay_t_s[-1] - delay_t_s[0] <= 4.2, "NAV_DELAY held for its 4 s"
     assert sim.world.autopilots.servo_pwm[0] == {9: 1600}
     assert np.hypot(*sim.truth(0)["pos_m"][:2]) < 1.0, "RTL landed at home"
+
+
+def test_mode_circle_goes_round_circle_radius_ahead_at_circle_rate(start_sitl, mavproxy):
+    """ArduCopter's CIRCLE from MAVProxy: the centre CIRCLE_RADIUS ahead of the nose, the vehicle on the circle at
+    CIRCLE_RATE (issue 33: it was "unsupported mode"). Judged on the simulator's own steps over a whole turn."""
+    sim = start_sitl(speedup=10.0)
+    proxy = mavproxy(sim)
+    proxy.expect(r"Received \d+ parameters", 10.0)
+    proxy.send("param set CIRCLE_RADIUS 2000")
+    until(lambda: sim.world.params.get(0, "CIRCLE_RADIUS") == 2000, 10.0, "the vehicle took the radius")
+    take_off(proxy, 10)
+    start, yaw = sim.truth(0)["pos_m"].copy(), float(sim.world.state.yaw_rad[0])
+    steps = []  # (t_s, east/north m)
+    sim.world.step_observers.append(lambda t_s, state: steps.append((t_s, state.pos_m[0, :2].copy())))
+    proxy.send("mode circle")
+    until(lambda: sim.truth(0)["mode"] == "CIRCLE", 10.0, "in CIRCLE")
+    t0 = sim.t_s
+    until(lambda: sim.t_s > t0 + 5.0 + 360 / 20, 60.0, "a whole turn at 20 deg/s after settling")
+    centre = start[:2] + 20.0 * np.array([np.sin(yaw), np.cos(yaw)])
+    on_circle = [np.hypot(*(p - centre)) for t, p in list(steps) if t > t0 + 5.0]
+    assert len(on_circle) > 100 and all(19.0 <= r <= 21.0 for r in on_circle), \
+        f"radius {min(on_circle):.2f}-{max(on_circle):.2f} m about the centre 20 m ahead"
+    turning = [(t, p) for t, p in list(steps) if t > t0 + 5.0]
+    bearings = np.unwrap([np.arctan2(*(p - centre)) for _, p in turning])
+    rate_dps = np.degrees(bearings[-1] - bearings[0]) / (turning[-1][0] - turning[0][0])
+    # as ArduCopter's circle controller: CIRCLE_RATE, capped so that the speed stays within WPNAV_SPEED
+    expected_dps = min(20.0, np.degrees(sim.world.params.get(0, "WPNAV_SPEED") / 100.0 / 20.0))
+    assert rate_dps == pytest.approx(expected_dps, rel=0.05), f"{rate_dps:.1f} deg/s clockwise"
+    proxy.send("mode acro")
+    proxy.expect(r"ACRO not in this SITL")
+    assert sim.truth(0)["mode"] == "CIRCLE", "a mode it does not fly is refused, the vehicle goes on"
