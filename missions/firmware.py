@@ -46,13 +46,18 @@ FENCE_COMMANDS = frozenset({
     MavCmd.NAV_FENCE_RETURN_POINT, MavCmd.NAV_FENCE_POLYGON_VERTEX_INCLUSION,
     MavCmd.NAV_FENCE_POLYGON_VERTEX_EXCLUSION, MavCmd.NAV_FENCE_CIRCLE_INCLUSION, MavCmd.NAV_FENCE_CIRCLE_EXCLUSION,
 })
+POLYGON_VERTICES = frozenset({MavCmd.NAV_FENCE_POLYGON_VERTEX_INCLUSION, MavCmd.NAV_FENCE_POLYGON_VERTEX_EXCLUSION})
 RALLY_COMMANDS = frozenset({MavCmd.NAV_RALLY_POINT})
 
 
 def arducopter_refusal(item: MissionItem, mission_type: int) -> str | None:
     """The MAV_MISSION_RESULT name for an item the copter refuses at upload, None when it takes it."""
     if mission_type == MissionType.FENCE:
-        return None if item.command in FENCE_COMMANDS else "MAV_MISSION_UNSUPPORTED"
+        if item.command not in FENCE_COMMANDS:
+            return "MAV_MISSION_UNSUPPORTED"
+        if item.command in POLYGON_VERTICES and not (math.isfinite(item.p1) and item.p1 >= 3 and item.p1 % 1 == 0):
+            return "MAV_MISSION_INVALID_PARAM1"  # a polygon's vertex count: 3 or more (AC_PolyFence_loader)
+        return None
     if mission_type == MissionType.RALLY:
         return None if item.command in RALLY_COMMANDS else "MAV_MISSION_UNSUPPORTED"
     if item.seq == 0:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from missions import firmware
-from missions.model import Frame, MavCmd, MissionItem
+from missions.model import Frame, MavCmd, MissionItem, MissionType
 from sitl.vehicle import mission_items as items_
 from sitl.vehicle.flight import Event, MissionState, Phase
 from tests.unit.test_flight import make, run, wp
@@ -83,6 +83,15 @@ def test_do_items_point_the_nose_set_servos_and_camera_items_pass_over():
 def test_an_upload_refuses_only_what_the_copter_does_not_take(command, accepted):
     item = MissionItem(1, command, Frame.GLOBAL_RELATIVE_ALT_INT, lat_deg=47.4, lon_deg=8.5, alt_m=10)
     assert (firmware.arducopter_refusal(item, 0) is None) == accepted
+
+
+@pytest.mark.parametrize("vertex_count, refusal", [(0, "MAV_MISSION_INVALID_PARAM1"), (2, "MAV_MISSION_INVALID_PARAM1"),
+                                                   (3.5, "MAV_MISSION_INVALID_PARAM1"), (3, None), (12, None)])
+def test_a_fence_polygon_vertex_needs_a_vertex_count_of_three_or_more(vertex_count, refusal):
+    """NAC's validator refused a file holding such a polygon while the SITL took it over MAVLink (issue 33)."""
+    vertex = MissionItem(0, MavCmd.NAV_FENCE_POLYGON_VERTEX_INCLUSION, Frame.GLOBAL_INT, p1=vertex_count,
+                         lat_deg=47.4, lon_deg=8.5, mission_type=MissionType.FENCE)
+    assert firmware.arducopter_refusal(vertex, MissionType.FENCE) == refusal
 
 
 @pytest.mark.parametrize("law, leg_s", [(0, (9.5, 13.0)), (1, (20.0, 23.0))])
