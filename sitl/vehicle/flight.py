@@ -20,6 +20,7 @@ import numpy as np
 from missions.geo import Home
 from missions.model import MissionItem, MissionType
 from sitl.vehicle import mission_items as items_
+from sitl.vehicle import smart_rtl
 from sitl.vehicle.actions import Actions
 from sitl.vehicle.flight_state import (
     FORCE_DISARM_MAGIC,
@@ -73,6 +74,8 @@ class Autopilots(FlightState):
         if not check.any() and not self.armed.any():
             return
         self._steer(state, dt_s)
+        if self.armed.any():
+            smart_rtl.record(self, state)
         pos = state.pos_m
         done = (check == Check.REACH) & (np.linalg.norm(pos - self.goal_m, axis=1) <= self.radius_m)
         done |= (check == Check.ALTITUDE) & (pos[:, 2] >= self.goal_m[:, 2] - self.alt_tolerance_m())
@@ -109,6 +112,8 @@ class Autopilots(FlightState):
         elif phase == Phase.MISSION_HOLD:  # reached a waypoint with a hold time / NAV_LOITER_TIME
             item = self.missions[i][MissionType.MISSION][self.current_seq[i]]
             self.timer(i, items_.holds_s(item), Phase.MISSION)
+        elif phase == Phase.SMART_RTL:
+            smart_rtl.next_point(self, i)
         elif phase == Phase.TURNS_ENTER:
             self.mission_run.start_circle(i)
         elif phase == Phase.RTL_CLIMB:

@@ -47,6 +47,7 @@ class CopterMode(IntEnum):
     LAND = 9
     POSHOLD = 16
     BRAKE = 17
+    SMART_RTL = 21
 
 
 class MissionState(IntEnum):
@@ -94,6 +95,7 @@ class Phase(Enum):
     TURNS_ENTER = "turns_enter"  # NAV_LOITER_TURNS: flying to the circle
     TURNS = "turns"  # ... going round it (velocity control, no timeout)
     LOITER_UNLIM = "loiter_unlim"  # NAV_LOITER_UNLIM: at its place until the mode or the item changes
+    SMART_RTL = "smart_rtl"  # flying its trail back, breadcrumb by breadcrumb (sitl.vehicle.smart_rtl)
 
 
 class Check(IntEnum):
@@ -108,7 +110,7 @@ PILOT_MODES = frozenset({CopterMode.LOITER, CopterMode.POSHOLD, CopterMode.ALT_H
 #: ArduCopter's other modes: refused by name, as ArduCopter refuses a mode its build or hardware lacks (a point mass
 #: has no attitude to fly by hand, nothing to follow or throw; docs/sitl.md)
 NOT_FLOWN_MODES = {1: "ACRO", 11: "DRIFT", 13: "SPORT", 14: "FLIP", 15: "AUTOTUNE", 18: "THROW", 19: "AVOID_ADSB",
-                   20: "GUIDED_NOGPS", 21: "SMART_RTL", 22: "FLOWHOLD", 23: "FOLLOW", 24: "ZIGZAG", 25: "SYSTEMID",
+                   20: "GUIDED_NOGPS", 22: "FLOWHOLD", 23: "FOLLOW", 24: "ZIGZAG", 25: "SYSTEMID",
                    26: "AUTOROTATE", 27: "AUTO_RTL", 28: "TURTLE"}
 HOLD_MODES = frozenset({CopterMode.STABILIZE, CopterMode.ALT_HOLD, CopterMode.LOITER, CopterMode.POSHOLD,
                         CopterMode.BRAKE, CopterMode.GUIDED})
@@ -157,6 +159,9 @@ class FlightState:
         self.roi_m = np.full((n, 3), math.nan)  # region of interest the nose points at (DO_SET_ROI*), ENU
         self.circling: dict[int, list] = {}  # NAV_LOITER_TURNS, CIRCLE: [centre, radius, left (rad), last bearing]
         self.rtl_target_m = np.zeros((n, 3))  # where RTL goes: home or the nearest rally point
+        self.trail_m: list[list[np.ndarray]] = [[] for _ in range(n)]  # SMART_RTL's breadcrumbs since arming
+        self.trail_last_m = np.full((n, 3), math.nan)
+        self.srtl_route: dict[int, list[np.ndarray]] = {}  # SMART_RTL: the breadcrumbs still to fly back to
         self.home_m = np.zeros((n, 3))  # home about the frame's origin (DO_SET_HOME moves home, not the origin)
         self.home_locked = np.zeros(n, dtype=bool)  # set by DO_SET_HOME: arming no longer moves home
         self.fences: list[fence_.Fence | None] = [None] * n  # built from the fence list when first needed

@@ -12,6 +12,7 @@ import math
 import numpy as np
 
 from sitl.vehicle import mission_items as items_
+from sitl.vehicle import smart_rtl
 from sitl.vehicle.flight_state import (
     HOLD_MODES,
     NOT_FLOWN_MODES,
@@ -62,6 +63,7 @@ class Modes:
             if s.mode[i] == CopterMode.AUTO and not int(s.params.get(i, "AUTO_OPTIONS")) & AUTO_ALLOW_ARMING:
                 return CommandOutcome(Result.FAILED, "Arm: mode AUTO needs AUTO_OPTIONS bit 0")  # 50 chars at most
         s.armed[i] = True
+        smart_rtl.start_trail(s, i)
         s.failsafe[i] = False
         s.set_goal(i, s.pos(i), Motion.IDLE, Check.NONE)
         s.text(i, "Arming motors")
@@ -93,6 +95,7 @@ class Modes:
             return CommandOutcome(Result.DENIED, f"Mode change failed: {name} not in this SITL")
         previous = s.mode[i]
         s.mode[i] = mode
+        s.srtl_route.pop(i, None)
         s.yaw_target_rad[i] = s.yaw_rate_rps[i] = math.nan
         s.roi_m[i] = math.nan
         s.paused[i] = None
@@ -114,15 +117,22 @@ class Modes:
                 s.hold(i)
         elif mode == CopterMode.CIRCLE:
             self._circle(i)
+        elif mode == CopterMode.SMART_RTL:
+            smart_rtl.begin(s, i, self._fall_back_to_rtl)
         elif mode == CopterMode.LAND:
             if s.flying(i):
                 here = s.pos(i)
                 s.set_goal(i, [here[0], here[1], 0.0], Motion.LAND, Check.LANDED, phase=Phase.LAND)
             else:
                 s.hold(i)
-        if previous != mode:
-            s.emit(i, Event.MODE, int(mode))
+        if previous != s.mode[i]:
+            s.emit(i, Event.MODE, int(s.mode[i]))
         return OK
+
+    def _fall_back_to_rtl(self, i: int) -> None:
+        """SMART_RTL without a trail becomes RTL, as ArduCopter's does (the mode reported is RTL)."""
+        self.s.mode[i] = CopterMode.RTL
+        self.mission_run.begin_rtl(i)
 
     def _circle(self, i: int) -> None:
         """ArduCopter's CIRCLE: round a centre CIRCLE_RADIUS ahead of the vehicle's heading, at CIRCLE_RATE

@@ -38,6 +38,9 @@ PARAM_DEFS: tuple[ParamDef, ...] = (
              "vehicle when the mode starts"),
     ParamDef("CIRCLE_RATE", 20, -90, 90, "CIRCLE mode's and NAV_LOITER_TURNS' turn rate (deg/s, positive "
              "clockwise)"),
+    ParamDef("SRTL_ACCURACY", 2, 0, 10, "SMART_RTL: a breadcrumb every this many metres; the way back keeps "
+             "within it of the way out (m)"),
+    ParamDef("SRTL_POINTS", 300, 0, 500, "SMART_RTL: breadcrumbs kept (beyond: every other one goes)", INT16),
     ParamDef("AUTO_OPTIONS", 0, 0, 2**31 - 1, f"AUTO's options: bit 0 (1) allows arming in AUTO (other bits "
              f"{NOT_SIMULATED})", INT32),
     ParamDef("NAC_NAV_LAW", 0, 0, 1, "how goals are flown: 0 ArduCopter's WPNav (trapezoid legs, WPNAV_ACCEL, LAND's "

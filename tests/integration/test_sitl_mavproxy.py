@@ -265,3 +265,26 @@ def test_mode_circle_goes_round_circle_radius_ahead_at_circle_rate(start_sitl, m
     proxy.send("mode acro")
     proxy.expect(r"ACRO not in this SITL")
     assert sim.truth(0)["mode"] == "CIRCLE", "a mode it does not fly is refused, the vehicle goes on"
+
+
+def test_mode_smart_rtl_flies_the_way_back_it_came_and_lands_where_it_armed(start_sitl, mavproxy):
+    """MAVProxy flies the copter 30 m north, then 30 m east (GUIDED); SMART_RTL returns by the corner, not
+    straight home as RTL would, and lands and disarms where it armed (issue 33: it was "unsupported mode")."""
+    sim = start_sitl(speedup=10.0)
+    proxy = mavproxy(sim)
+    home = sim.homes[0]
+    take_off(proxy, 10)
+    for east, north in ((0.0, 30.0), (30.0, 30.0)):
+        there = offset_home(home, east, north)
+        proxy.send(f"guided {there.lat_deg:.7f} {there.lon_deg:.7f} 10")
+        until(lambda e=east, n=north: np.hypot(*(sim.truth(0)["pos_m"][:2] - [e, n])) < 1.0, 60.0,
+              f"at {east:g} m east, {north:g} m north")
+    steps = []
+    sim.world.step_observers.append(lambda t_s, state: steps.append(state.pos_m[0].copy()))
+    proxy.send("mode smart_rtl")
+    until(lambda: not sim.truth(0)["armed"], 120.0, "landed and disarmed")
+    way_back = np.array(steps)
+    corner_m = np.min(np.hypot(way_back[:, 0] - 0.0, way_back[:, 1] - 30.0))
+    assert corner_m < 3.0, f"came back by the corner: {corner_m:.1f} m from it at best"
+    assert np.hypot(*sim.truth(0)["pos_m"][:2]) < 2.0 and sim.truth(0)["on_ground"], "landed where it armed"
+    assert sim.truth(0)["mode"] == "SMART_RTL"
