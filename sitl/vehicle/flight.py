@@ -74,7 +74,7 @@ class Autopilots(FlightState):
         if not check.any() and not self.armed.any():
             return
         self._steer(state, dt_s)
-        if self.armed.any():
+        if self.armed.any() and int(t_s / smart_rtl.RECORD_PERIOD_S) != int((t_s - dt_s) / smart_rtl.RECORD_PERIOD_S):
             smart_rtl.record(self, state)
         pos = state.pos_m
         done = (check == Check.REACH) & (np.linalg.norm(pos - self.goal_m, axis=1) <= self.radius_m)

@@ -16,6 +16,7 @@ from sitl.vehicle.flight_state import Check, CopterMode, FlightState, Phase, Sev
 from sitl.vehicle.physics import Motion, VehicleState
 
 MIN_ALT_M = 2.0  # the way back stays this high until the landing: the first breadcrumb is on the ground
+RECORD_PERIOD_S = 0.1  # simulated: at 20 m/s a 2 m breadcrumb spacing is one look per 0.1 s (not every step)
 
 
 def start_trail(s: FlightState, i: int) -> None:
