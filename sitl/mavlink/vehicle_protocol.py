@@ -128,6 +128,11 @@ class VehicleProtocol:
         self.silent_until_t_s = back_t_s
         self.world.boot_t_s[self.i] = back_t_s
         self.streams.reset(self.i, back_t_s)
+        sysid = int(self.world.params.get(self.i, "SYSID_THISMAV"))  # a new SYSID_THISMAV takes effect now
+        if sysid != self.sysid:
+            log.info("vehicle %d comes back as sysid %d", self.sysid, sysid)
+            self.sysid = sysid
+            self.encoder = FrameEncoder(sysid, 1, signing=self.encoder.signing)
         log.info("vehicle %d restarting (back at t = %.1f s)", self.sysid, back_t_s)
 
     def set_interval(self, msgid: int, interval_us: float) -> CommandOutcome:

@@ -30,7 +30,8 @@ class ParamDef:
 
 
 PARAM_DEFS: tuple[ParamDef, ...] = (
-    ParamDef("SYSID_THISMAV", 1, 1, 255, "MAVLink system id (read-only here: set by vehicle index)", INT16),
+    ParamDef("SYSID_THISMAV", 1, 1, 255, "MAVLink system id (vehicle index + 1 at start; a new value is used from "
+             "the next reboot, as ArduPilot's)", INT16),
     ParamDef("FRAME_CLASS", 1, 0, 15, f"1 = quad ({NOT_SIMULATED}: a point mass flies)", INT8),
     ParamDef("FRAME_TYPE", 1, 0, 18, f"1 = X ({NOT_SIMULATED})", INT8),
     ParamDef("ARMING_CHECK", 1, 0, 2**31 - 1, "pre-arm checks: 0 none, 1 all (GPS fix and battery here)", INT32),
@@ -97,7 +98,7 @@ PARAM_DEFS: tuple[ParamDef, ...] = (
 )
 PARAMS_BY_NAME = {p.name: p for p in PARAM_DEFS}
 PARAM_INDEX = {p.name: k for k, p in enumerate(PARAM_DEFS)}
-READ_ONLY = frozenset({"SYSID_THISMAV", "SIM_SPEEDUP"})
+READ_ONLY = frozenset({"SIM_SPEEDUP"})
 
 
 class ParamError(BadInput):

@@ -309,10 +309,24 @@ def test_param_set_echoes_and_out_of_range_is_kept_as_sent_and_flown_within_rang
     assert gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "DISARM_DELAY").param_value == 127
     gcs.conn.mav.param_request_read_send(1, 1, b"WPNAV_SPEED", -1)
     assert gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "WPNAV_SPEED").param_value == -100
-    gcs.conn.mav.param_set_send(1, 1, b"SYSID_THISMAV", 9, M.MAV_PARAM_TYPE_INT16)
-    assert gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "SYSID_THISMAV").param_value == 1
+    gcs.conn.mav.param_set_send(1, 1, b"SIM_SPEEDUP", 9, M.MAV_PARAM_TYPE_REAL32)  # read-only: the echo is 2
+    assert gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "SIM_SPEEDUP").param_value == 2
     gcs.conn.mav.param_request_read_send(1, 1, b"NAC_KP_Z", -1)
     assert gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "NAC_KP_Z").param_value == 1.0
+
+
+def test_a_new_sysid_thismav_is_kept_and_used_from_the_next_reboot(start_sitl, gcs_for):
+    """As on ArduCopter (SYSID_THISMAV: reboot required): the value is written at once, the vehicle speaks as the new
+    system after PREFLIGHT_REBOOT_SHUTDOWN, and commands to it then need the new id (issue 33: it was read-only)."""
+    sim = start_sitl(speedup=4.0)
+    gcs = gcs_for(sim)
+    gcs.conn.mav.param_set_send(1, 1, b"SYSID_THISMAV", 7, M.MAV_PARAM_TYPE_INT16)
+    assert gcs.recv("PARAM_VALUE", 3.0, lambda m: m.param_id == "SYSID_THISMAV").param_value == 7
+    assert gcs.recv("HEARTBEAT", 3.0, lambda m: m.type != M.MAV_TYPE_GCS) is not None, "still vehicle 1"
+    assert gcs.command(M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1) == M.MAV_RESULT_ACCEPTED
+    assert gcs.recv("HEARTBEAT", 10.0, lambda m: m.type != M.MAV_TYPE_GCS, sysid=7) is not None, "back as 7"
+    assert gcs.command(MavCmd.COMPONENT_ARM_DISARM, 1, sysid=7) == M.MAV_RESULT_ACCEPTED
+    assert sim.truth(0)["armed"]
 
 
 def test_message_interval_sets_the_stream_rate_in_simulated_time(start_sitl, gcs_for):

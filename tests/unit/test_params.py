@@ -28,7 +28,7 @@ def test_integer_parameters_are_rounded_into_their_storage_type():
 
 
 @pytest.mark.parametrize(("name", "value", "reason"), [
-    ("SYSID_THISMAV", 4.0, "Param write denied (SYSID_THISMAV)"),
+    ("SIM_SPEEDUP", 4.0, "Param write denied (SIM_SPEEDUP)"),
     ("NO_SUCH", 1.0, "unknown parameter 'NO_SUCH'"),
     ("NAC_KP_XY", math.nan, "NAC_KP_XY=nan is not a number"),
 ])
