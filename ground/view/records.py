@@ -124,6 +124,7 @@ class RunFollower:
     origin: Home | None = None  # the map's (0, 0): the first position heard, at ground level
     mission_lla: dict[str, list] = field(default_factory=dict)  # vehicle -> [[lat, lon], ...] (experiment.json)
     record_count: int = 0  # records drawn so far (a "pos" frame holds many)
+    speedup: float | None = None  # an experiment's (experiment.json): the timeline runs on the wall clock
     span: tuple[float, float] | None = None  # the t_s of the records kept, first to last
     _tails: dict[Path, _Tail] = field(default_factory=dict)
     _seen_kinds: set = field(default_factory=set)
@@ -301,6 +302,8 @@ class RunFollower:
             return {"k": "cap", "t": t_s, "a": [_short(v) for v in columns[0]], "b": [_short(v) for v in columns[1]],
                     "bps": [_num(v) for v in columns[2]], "d": [_num(v) for v in columns[3]]}
         if source == "experiment" and kind == kinds.EXPERIMENT.name:
+            speedup = r.get("speedup")
+            self.speedup = float(speedup) if _finite(speedup) and 0 < speedup <= 1000 else None
             for vehicle in r.get("vehicles") or []:
                 if isinstance(vehicle, dict) and isinstance(vehicle.get("id"), str):
                     self.vehicles.setdefault(_short(vehicle["id"]), {})["role"] = _short(vehicle.get("role", "?"))

@@ -176,7 +176,7 @@ class ViewServer:
                                                   "alt_m": f.origin.alt_m}
         return web.json_response({"title": self.title, "live": self.live, "vehicles": f.vehicles, "origin": origin,
                                   "missions": f.missions_m(), "problems": f.problems, "missing": f.missing(),
-                                  "records": f.record_count})
+                                  "records": f.record_count, "speedup": f.speedup})
 
     async def _records(self, request: web.Request) -> web.Response:
         body, _, more = _page(self.follower.records, _after(request))

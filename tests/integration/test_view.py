@@ -172,7 +172,8 @@ def test_a_damaged_run_replays_what_is_there_and_lists_what_is_not(browser, tmp_
 
 def test_the_job_panel_counts_per_simulated_minute_and_draws_a_cost_only_for_a_task_with_one(browser, tmp_path):
     """A 5x run's iterations, 0.3 simulated seconds apart (200 per simulated minute, 1,000 per wall minute): the
-    panel says 200, as the report does. matmul's iterations carry no cost: no empty cost chart (issue 33)."""
+    panel says 200, as the report does; the timeline says its clock is the wall's. matmul's iterations carry no
+    cost: no empty cost chart (issue 33)."""
     import json
 
     from tests.unit.test_view_records import telemetry
@@ -186,6 +187,7 @@ def test_the_job_panel_counts_per_simulated_minute_and_draws_a_cost_only_for_a_t
              "start_sim_s": 40.0 + 0.3 * k, "duration_sim_s": 0.3, "workers": {"present": [True]}}) + "\n"
             for k in range(41)))
         (run / "master" / "agent.jsonl").write_text(telemetry(1000.0, 0.0, 3.0) + telemetry(1010.0, 0.0, 3.0))
+        (run / "experiment.json").write_text(json.dumps({"t_s": 999.0, "kind": "experiment", "speedup": 5.0}) + "\n")
         replay = ViewThread(ViewServer(run, live=False), "127.0.0.1:0")
         browser.get(replay.start())
         try:
@@ -196,6 +198,8 @@ def test_the_job_panel_counts_per_simulated_minute_and_draws_a_cost_only_for_a_t
             assert "41 iterations, 200 per minute" in job, job
             hidden = browser.execute_script("return document.getElementById('cost-chart').hidden")
             assert hidden is (cost is None), (task, hidden)
+            label = browser.execute_script("return document.getElementById('cursor-label').textContent")
+            assert "wall clock (run at 5x: about 25 s simulated)" in label, label
         finally:
             replay.stop()
 

@@ -225,7 +225,10 @@ function drawTimeline() {
   const slider = $("cursor"), span = Math.max(view.t1 - view.t0, 0);
   slider.max = span.toFixed(1);
   slider.value = (view.cursor - view.t0).toFixed(1);
-  $("cursor-label").textContent = `${(view.cursor - view.t0).toFixed(1)} s of ${span.toFixed(1)} s`;
+  // the timeline is the wall clock the records were written on; a sped-up run says so, and its simulated seconds
+  const speedup = view.info && view.info.speedup;
+  $("cursor-label").textContent = `${(view.cursor - view.t0).toFixed(1)} s of ${span.toFixed(1)} s` +
+    (speedup && speedup !== 1 ? ` wall clock (run at ${speedup}x: about ${((view.cursor - view.t0) * speedup).toFixed(0)} s simulated)` : "");
   const ms = view.cursor * 1000;  // a Date holds +-8.64e15 ms: a t_s past that is not a time of day
   $("clock").textContent = Math.abs(ms) <= 8.64e15 ? new Date(ms).toISOString().replace("T", " ").slice(0, 21) + " UTC" : "";
   const ticks = $("ticks");
