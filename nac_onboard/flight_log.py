@@ -169,7 +169,13 @@ class JsonlLog(_AppendFile):
 
 
 class TlogWriter(_AppendFile):
-    """MAVLink frames with their time, the `.tlog` layout."""
+    """MAVLink frames with their time, the `.tlog` layout. `now_s` gives the stamps (unix seconds; default the wall
+    clock): a sped-up SITL run's agent stamps on the run's clock, so that MAVExplorer and mavflightmodes.py read
+    its flight's durations in simulated seconds."""
+
+    def __init__(self, path: str | Path, now_s=time.time):
+        super().__init__(path)
+        self.now_s = now_s
 
     def write(self, frame: bytes, t_s: float | None = None) -> None:
         self.write_many([frame], t_s)
@@ -177,7 +183,7 @@ class TlogWriter(_AppendFile):
     def write_many(self, frames: list[bytes], t_s: float | None = None) -> None:
         """Frames that arrived together, in one write."""
         if frames:
-            stamp = TLOG_STAMP.pack(int((time.time() if t_s is None else t_s) * 1e6))
+            stamp = TLOG_STAMP.pack(int((self.now_s() if t_s is None else t_s) * 1e6))
             self._write(b"".join(stamp + bytes(frame) for frame in frames))
 
 

@@ -135,6 +135,7 @@ def _read_vehicle(run: RunLog, vehicle_dir: Path) -> None:
         return
     role = "?"
     telemetry = 0
+    tlog_simulated = False
     if agent_log.exists():
         read = read_jsonl(agent_log)
         _warn(run, read.problems)
@@ -149,8 +150,13 @@ def _read_vehicle(run: RunLog, vehicle_dir: Path) -> None:
                                       "mission_seq": r.get("mission_seq")})
             elif kind == kinds.AGENT_STARTED.name:
                 role = r.get("role", role)
+                tlog_simulated = r.get("tlog_clock") == "simulated"
     run.vehicles[vehicle] = role
     if telemetry == 0:
+        if tlog_simulated:  # its stamps run at the simulator's pace, the other records' at the wall clock's
+            _warn(run, [f"{vehicle}/{kinds.TLOG.name}: on the simulated clock of a sped-up run, not used for "
+                        "positions (they would not line up with the probes and iterations)"])
+            flight_logs = [p for p in flight_logs if p.name != kinds.TLOG.name]
         for flight_log in flight_logs:  # the autopilot's own record when the agent logged no positions
             try:
                 rows, problems = reader_for(flight_log)(flight_log, vehicle)

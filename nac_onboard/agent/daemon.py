@@ -91,7 +91,10 @@ class Agent:
         self.signing_key = load_signing_key(a.signing_key_file) if a.signing_key_file else None
         self.log = JsonlLog(run_dir / kinds.AGENT_LOG.name)
         self.throughput_log = JsonlLog(run_dir / kinds.THROUGHPUT_LOG.name)
-        self.tlog = TlogWriter(run_dir / kinds.TLOG.name) if config.log.tlog else None
+        self.run_clock = from_env()
+        # a sped-up run's .tlog: stamped unix time at simulated 0 plus simulated seconds (None: the wall clock)
+        self.tlog_anchor_s = time.time() - self.run_clock.now_s() if self.run_clock.simulated else None
+        self.tlog = TlogWriter(run_dir / kinds.TLOG.name, self._tlog_now) if config.log.tlog else None
         self.autopilot = AutopilotLink(a, config.vehicle.sysid or 1, config.vehicle.sysid or None, self.signing_key,
                                        self.log, lambda text: self.notifier.status(f"{text}; logging to {run_dir}"),
                                        self._log_sent if self.tlog is not None else None)
@@ -122,7 +125,9 @@ class Agent:
         c = self.config
         self.log.write(kinds.AGENT_STARTED, vehicle=c.vehicle.id, role=c.vehicle.role, config=c.source,
                        autopilot=c.autopilot.uri, run_dir=str(self.run_dir), pid=os.getpid(),
-                       host=socket.gethostname(), mpi_build=mpi_build())
+                       host=socket.gethostname(), mpi_build=mpi_build(),
+                       tlog_clock="simulated" if self.tlog_anchor_s is not None else "wall",
+                       **({"tlog_anchor_s": self.tlog_anchor_s} if self.tlog_anchor_s is not None else {}))
         self.autopilot.open(time.monotonic())
         allow = tuple(parse_host_port(text, "routing.allow") for text in c.routing.allow)
         for uri, read_only in [*((u, False) for u in c.routing.endpoints), *((u, True) for u in c.routing.watch)]:
@@ -150,7 +155,7 @@ class Agent:
             except OSError as err:
                 raise OSError(f"throughput.port: cannot listen on {t.bind}:{t.port}: {err.strerror}") from None
         if t.probe:
-            clock = from_env()
+            clock = self.run_clock
             emulation = SleepEmulation(c.emulated_channel, clock) if c.emulated_channel else None
             self.scheduler = ProbeScheduler(t, c.vehicle.id, self._probe_targets, self.snapshot,
                                             self.throughput_log, self.stop_event, emulation, clock).start()
@@ -187,6 +192,9 @@ class Agent:
             if f is not None:
                 f.close()
         self.notifier.close()
+
+    def _tlog_now(self) -> float:
+        return time.time() if self.tlog_anchor_s is None else self.tlog_anchor_s + self.run_clock.now_s()
 
     def _log_sent(self, frame: bytes) -> None:
         self.counters["frames_out"] += 1

@@ -90,6 +90,9 @@ AGENT_STARTED = Kind("agent_started", AGENT_LOG, "the agent started", (
     req("run_dir", "string", "", "where it logs"), req("pid", "integer", "", "process id"),
     opt("host", "string", "", "the companion's hostname (runs from several companions are merged on the ground)"),
     req("mpi_build", "any", "", "the MPI build found on this companion"),
+    opt("tlog_clock", "string", "", "the .tlog's stamps: wall, or simulated (a sped-up SITL run: unix time at "
+                                    "simulated 0 plus simulated seconds, so tools read durations in simulated time)"),
+    opt("tlog_anchor_s", "number", "s", "simulated .tlog: the unix time its simulated 0 stands for"),
 ))
 AGENT_READY = Kind("agent_ready", AGENT_LOG, "sockets open, probes scheduled", (
     req("peers_listen", "string", "", "HOST:PORT of peer state"), req("state_feed", "string", "", "HOST:PORT"),

@@ -4,6 +4,7 @@ its run directory is also what the log analysis and calibration are checked on (
 import dataclasses
 import io
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -87,7 +88,7 @@ def short_run(tmp_path_factory):
         patch.setenv("NAC_DATA_DIR", str(SHARED_DATA))
         experiment = Experiment(scenario, folder / "run", 4.0, allocate_base_port(3, slots=5), out=console)
         trace: list = []
-        experiment.step_observers.append(lambda t, state: trace.append((time.time(), state.pos_m.copy())))
+        experiment.step_observers.append(lambda t, state: trace.append((time.time(), state.pos_m.copy(), t)))
         result = experiment.run()
     return result, scenario, trace, log_path.read_text(), experiment
 
@@ -115,6 +116,26 @@ def test_a_short_scenario_runs_end_to_end_and_leaves_a_report(short_run):
     assert all(not t["armed"] and t["pos_m"][2] < 0.1 for t in truth), f"landed and disarmed at the end: {truth}"
 
 
+def test_mavflightmodes_reads_the_sped_up_runs_tlog_in_simulated_seconds(short_run):
+    """pymavlink's own tool on the master agent's .tlog of the 4x run: its time in AUTO is the simulated flight's
+    (the scenario's 30 s and the climb before them), not a quarter of it (issue 33); within 5 %."""
+    result, scenario, trace, _, experiment = short_run
+    tool = Path(sys.executable).parent / "mavflightmodes.py"
+    done = subprocess.run([str(tool), str(result.run_dir / "master" / "mavlink.tlog")], capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    hours, minutes, seconds = re.search(r"^AUTO\s+(\d+):(\d\d):(\d\d)", done.stdout, re.M).groups()
+    auto_s = 3600 * int(hours) + 60 * int(minutes) + int(seconds)
+    agent = read_jsonl(result.run_dir / "master" / "agent.jsonl")
+    assert agent.of_kind("agent_started")[0]["tlog_clock"] == "simulated"
+    # AUTO from the mission's start until the agent stopped (the landing after it is not logged), in simulated
+    # seconds: the agent's last wall time on the simulator's steps
+    wall_s, sim_s = [w for w, _, _ in trace], [t for *_, t in trace]
+    stopped_sim_s = np.interp(agent.of_kind("agent_stopped")[0]["t_s"], wall_s, sim_s)
+    flown_s = stopped_sim_s - experiment.mission_start_sim_s
+    assert auto_s == pytest.approx(flown_s, rel=0.05, abs=1.0), (done.stdout, flown_s)
+
+
 def test_analysis_of_the_run_matches_the_simulators_truth(short_run):
     result, scenario, trace, _, _ = short_run
     analysis = result.run_dir / "analysis"
@@ -131,8 +152,8 @@ def test_analysis_of_the_run_matches_the_simulators_truth(short_run):
 
     # the truth: every vehicle's ECEF position after each simulator step, by wall-clock time
     homes = [v.home for v in scenario.vehicles]
-    times = np.array([t for t, _ in trace])
-    ecef = np.array([[lla_to_ecef(*enu_to_lla(pos[i], homes[i])) for i in range(3)] for _, pos in trace[::5]])
+    times = np.array([t for t, _, _ in trace])
+    ecef = np.array([[lla_to_ecef(*enu_to_lla(pos[i], homes[i])) for i in range(3)] for _, pos, _ in trace[::5]])
     times = times[::5]
     distances = pd.read_csv(analysis / "distances.csv")
     assert set(distances["worker"]) == {"w1", "w2"} and len(distances) > 100
