@@ -55,6 +55,12 @@ def wait_for(browser, script: str, timeout_s: float = 20.0):
     raise AssertionError(f"the page never answered {script!r} within {timeout_s} s")
 
 
+def scrub(browser, offset_s: float) -> None:
+    """Move the timeline's slider to offset_s as a user's drag does (its input event)."""
+    browser.execute_script("const s = document.getElementById('cursor'); s.value = arguments[0];"
+                           "s.dispatchEvent(new Event('input'));", offset_s)
+
+
 def out_and_back_scenario(folder: Path) -> Path:
     """write_scenario's fleet, but w1 flies 120 m out (the channel's median range is 47 m) and back at 12 m/s."""
     path = write_scenario(folder, duration_s=45.0)
@@ -126,8 +132,7 @@ def test_the_live_page_follows_the_simulator_and_the_replay_scrubs_through_the_r
         t0, t1 = browser.execute_script("return [window.nacView.t0, window.nacView.t1]")
         for fraction in (0.3, 0.55, 0.8):
             offset_s = round((t1 - t0) * fraction, 1)
-            browser.execute_script("const s = document.getElementById('cursor'); s.value = arguments[0];"
-                                   "s.dispatchEvent(new Event('input'));", offset_s)
+            scrub(browser, offset_s)
             drawn = {v["id"]: v for v in browser.execute_script(VEHICLES_JS)}
             assert set(drawn) == set(ids)
             for vid in ids:
@@ -158,8 +163,7 @@ def test_a_damaged_run_replays_what_is_there_and_lists_what_is_not(browser, tmp_
     browser.get(replay.start())
     try:
         wait_for(browser, "return document.body.dataset.ready")
-        browser.execute_script("const s = document.getElementById('cursor'); s.value = 10;"
-                               "s.dispatchEvent(new Event('input'));")
+        scrub(browser, 10.0)
         drawn = {v["id"]: v for v in browser.execute_script(VEHICLES_JS)}
         assert drawn["w1"]["e"] == pytest.approx(20.0, abs=0.01) and drawn["master"]["e"] == pytest.approx(0.0)
         notes = browser.execute_script("return document.getElementById('notes-list').textContent")
@@ -192,8 +196,7 @@ def test_the_job_panel_counts_per_simulated_minute_and_draws_a_cost_only_for_a_t
         browser.get(replay.start())
         try:
             wait_for(browser, "return document.body.dataset.ready")
-            browser.execute_script("const s = document.getElementById('cursor'); s.value = 5;"
-                                   "s.dispatchEvent(new Event('input'));")
+            scrub(browser, 5.0)
             job = browser.execute_script("return document.getElementById('job').textContent")
             assert "41 iterations, 200 per minute" in job, job
             hidden = browser.execute_script("return document.getElementById('cost-chart').hidden")
