@@ -92,6 +92,7 @@ function layoutMap() {
   const box = [b.e0 - pad, -(b.n1 + pad), b.e1 - b.e0 + 2 * pad, b.n1 - b.n0 + 2 * pad];
   const key = box.map((v) => v.toFixed(1)).join(" ");
   view.textM = Math.max(box[2], box[3]) / 45;
+  view.box = box;
   if (key === view.mapKey) return;
   view.mapKey = key;
   $("map").setAttribute("viewBox", key);
@@ -106,6 +107,7 @@ function layoutMap() {
     el("line", { x1: g[0], x2: g[0] + g[2], y1: -n, y2: -n, class: "gridline" + (Math.abs(n) < 1e-9 ? " major" : ""), "vector-effect": "non-scaling-stroke" }, grid);
   const x = box[0] + step * 0.3, y = box[1] + box[3] - step * 0.3;
   el("line", { x1: x, x2: x + step, y1: y, y2: y, class: "scale", "stroke-width": 3, "vector-effect": "non-scaling-stroke" }, grid);
+  view.scaleBox = [x, y - view.textM * 1.2, step, view.textM * 1.4];  // labels keep off the scale bar
   const label = el("text", { x: x, y: y - view.textM * 0.4, class: "scale-label", "font-size": view.textM * 0.8 }, grid);
   label.textContent = step + " m";
   const missions = $("missions");
@@ -139,27 +141,89 @@ function drawMap(t) {
     const trail = list.filter((q) => q.t <= t && q.t >= t - TRAIL_S);
     el("polyline", { points: trail.map((q) => q.e + "," + -q.n).join(" "), class: "trail", stroke: colorOf(vid), "vector-effect": "non-scaling-stroke" }, trails);
   }
+  const seen = visibleBox(), taken = view.scaleBox ? [view.scaleBox] : [];  // boxes [x, y, w, h], map units, y down
   const master = [...view.roles.keys()].find((v) => roleOf(v) === "master");
-  if (master !== undefined && here.has(master)) {
+  const segments = master !== undefined && here.has(master)  // the links' lines, which labels keep off
+    ? [...here].filter(([vid]) => vid !== master).map(([, p]) => [here.get(master), p]) : [];
+  for (const [vid, p] of here) {
+    const g = el("g", { class: "vehicle" + (p.armed === false ? " disarmed" : ""), id: "vehicle-" + vid, "data-id": vid, "data-e": p.e, "data-n": p.n, "data-t": p.t, "data-tb": p.tb,
+                        transform: `translate(${p.e},${-p.n})` }, vehicles);
+    const s = view.textM * 0.9, size = view.textM;
+    el("polygon", { points: `0,${-s} ${s * 0.6},${s * 0.7} 0,${s * 0.35} ${-s * 0.6},${s * 0.7}`, class: "body", fill: colorOf(vid), transform: `rotate(${p.hdg || 0})`, "vector-effect": "non-scaling-stroke" }, g);
+    const text = `${vid} (${roleOf(vid)}) ${p.mode || ""}`, w = textWidth(text, size);
+    // right of the vehicle, left, above or below: where it overlaps the least of the labels placed, crosses the
+    // fewest links and stays on the visible map (the first that does best)
+    const spots = [[s * 1.1, -size * 0.5], [-s * 1.1 - w, -size * 0.5], [-w / 2, -s * 1.2 - size], [-w / 2, s * 1.1]];
+    let best = spots[0], bestCost = Infinity;
+    for (const [dx, dy] of spots) {
+      const box = [p.e + dx, -p.n + dy, w, size];
+      const cost = taken.reduce((sum, b) => sum + overlap(box, b), 0) + w * size - overlap(box, seen) +
+                   segments.reduce((sum, [a, b]) => sum + crossing(box, a, b) * size * size, 0);
+      if (cost < bestCost - 1e-9) { best = [dx, dy]; bestCost = cost; }
+    }
+    const label = el("text", { x: best[0], y: best[1] + size * 0.8, "font-size": size }, g);
+    label.textContent = text;
+    taken.push([p.e + best[0], -p.n + best[1], w, size]);
+  }
+  if (segments.length) {
     for (const [vid, p] of here) {
       if (vid === master) continue;
       const probe = probeAt(master, vid, t), cap = capacityAt(master, vid, t);
       const out = (probe && !probe.ok) || cap === 0;
       const m = here.get(master);
       el("line", { x1: m.e, y1: -m.n, x2: p.e, y2: -p.n, class: "link" + (out ? " out" : ""), "data-worker": vid, "data-state": out ? "out" : "up", "stroke-width": 2, "vector-effect": "non-scaling-stroke" }, links);
-      const label = el("text", { x: (m.e + p.e) / 2, y: -(m.n + p.n) / 2, class: "link-label", "font-size": view.textM * 0.8 }, links);
-      label.textContent = (out ? "out of range" : probe ? mbit(probe.bps) + " Mbit/s" : "no probe yet") + (cap != null ? " (model " + mbit(cap) + ")" : "");
+      const text = (out ? "out of range" : probe ? mbit(probe.bps) + " Mbit/s" : "no probe yet") + (cap != null ? " (model " + mbit(cap) + ")" : "");
+      const size = view.textM * 0.8, spot = linkLabelSpot(m, p, textWidth(text, size), size, taken, seen, segments);
+      const label = el("text", { x: spot[0] + spot[2] / 2, y: spot[1] + size * 0.8, "text-anchor": "middle", class: "link-label", "font-size": size }, links);
+      label.textContent = text;
+      taken.push(spot);
     }
   }
-  for (const [vid, p] of here) {
-    const g = el("g", { class: "vehicle" + (p.armed === false ? " disarmed" : ""), id: "vehicle-" + vid, "data-id": vid, "data-e": p.e, "data-n": p.n, "data-t": p.t, "data-tb": p.tb,
-                        transform: `translate(${p.e},${-p.n})` }, vehicles);
-    const s = view.textM * 0.9;
-    el("polygon", { points: `0,${-s} ${s * 0.6},${s * 0.7} 0,${s * 0.35} ${-s * 0.6},${s * 0.7}`, class: "body", fill: colorOf(vid), transform: `rotate(${p.hdg || 0})`, "vector-effect": "non-scaling-stroke" }, g);
-    const label = el("text", { x: s * 1.1, y: s * 0.4, "font-size": view.textM }, g);
-    label.textContent = `${vid} (${roleOf(vid)}) ${p.mode || ""}`;
-  }
   return here;
+}
+// A label's width in map units: sans-serif averages about 0.55 em a character.
+const textWidth = (text, size) => text.length * size * 0.55;
+// The map's visible extent in map units (the page is often wider or taller than the data's box), [x, y, w, h].
+function visibleBox() {
+  const svg = $("map"), r = svg.getBoundingClientRect(), ctm = svg.getScreenCTM();
+  if (!ctm || !r.width || !r.height) return view.box || [-1e9, -1e9, 2e9, 2e9];
+  const inverse = ctm.inverse(), corner = (x, y) => new DOMPoint(x, y).matrixTransform(inverse);
+  const a = corner(r.left, r.top), b = corner(r.right, r.bottom);
+  return [a.x, a.y, b.x - a.x, b.y - a.y];
+}
+// Where a link's label goes: beside the link (never across it), at the place along it, and on the side, where it
+// overlaps the least of the labels already placed and stays on the visible map.
+function linkLabelSpot(m, p, w, size, taken, seen, segments) {
+  const x1 = m.e, y1 = -m.n, x2 = p.e, y2 = -p.n, length = Math.hypot(x2 - x1, y2 - y1) || 1;
+  const nx = -(y2 - y1) / length, ny = (x2 - x1) / length;  // a unit normal, in map units (y down)
+  let best = null, bestCost = Infinity;
+  for (const along of [0.5, 0.35, 0.65, 0.2, 0.8]) {
+    for (const side of [1, -1]) {
+      // the box's centre off the line by half its own extent across the line, plus a margin
+      const reach = Math.abs(nx) * w / 2 + Math.abs(ny) * size / 2 + size * 0.3;
+      const cx = x1 + (x2 - x1) * along + side * nx * reach, cy = y1 + (y2 - y1) * along + side * ny * reach;
+      const box = [cx - w / 2, cy - size / 2, w, size];
+      let cost = taken.reduce((sum, b) => sum + overlap(box, b), 0);
+      cost += w * size - overlap(box, seen);  // what would be off the visible map
+      cost += segments.reduce((sum, [a, b]) => sum + crossing(box, a, b) * size * size, 0);
+      if (cost < bestCost - 1e-9) { best = box; bestCost = cost; }
+    }
+  }
+  return best;
+}
+// How many of 9 points along the link from vehicle a to vehicle b fall inside box (a label struck through).
+function crossing(box, a, b) {
+  let inside = 0;
+  for (let k = 1; k <= 9; k++) {
+    const x = a.e + (b.e - a.e) * k / 10, y = -(a.n + (b.n - a.n) * k / 10);
+    if (x > box[0] && x < box[0] + box[2] && y > box[1] && y < box[1] + box[3]) inside += 1;
+  }
+  return inside;
+}
+function overlap(a, b) {
+  const w = Math.min(a[0] + a[2], b[0] + b[2]) - Math.max(a[0], b[0]);
+  const h = Math.min(a[1] + a[3], b[1] + b[3]) - Math.max(a[1], b[1]);
+  return w > 0 && h > 0 ? w * h : 0;
 }
 
 // ---- panels and charts ------------------------------------------------------------------------------------
