@@ -118,7 +118,9 @@ class Modes:
         elif mode == CopterMode.CIRCLE:
             self._circle(i)
         elif mode == CopterMode.SMART_RTL:
-            smart_rtl.begin(s, i, self._fall_back_to_rtl)
+            if not smart_rtl.begin(s, i):  # no trail: RTL, and the mode reported is RTL, as ArduCopter's fallback
+                s.mode[i] = CopterMode.RTL
+                self.mission_run.begin_rtl(i)
         elif mode == CopterMode.LAND:
             if s.flying(i):
                 here = s.pos(i)
@@ -128,11 +130,6 @@ class Modes:
         if previous != s.mode[i]:
             s.emit(i, Event.MODE, int(s.mode[i]))
         return OK
-
-    def _fall_back_to_rtl(self, i: int) -> None:
-        """SMART_RTL without a trail becomes RTL, as ArduCopter's does (the mode reported is RTL)."""
-        self.s.mode[i] = CopterMode.RTL
-        self.mission_run.begin_rtl(i)
 
     def _circle(self, i: int) -> None:
         """ArduCopter's CIRCLE: round a centre CIRCLE_RADIUS ahead of the vehicle's heading, at CIRCLE_RATE

@@ -37,20 +37,21 @@ def record(s: FlightState, state: VehicleState) -> None:
             del trail[1:-1:2]
 
 
-def begin(s: FlightState, i: int, rtl) -> None:
-    """SMART_RTL entered: fly the simplified trail backwards; no trail: `rtl(i)`, as ArduCopter's fallback."""
+def begin(s: FlightState, i: int) -> bool:
+    """SMART_RTL entered: fly the simplified trail backwards (on the ground: hold). False when there is no trail:
+    the caller falls back to RTL, as ArduCopter does."""
     if not s.flying(i):
         s.hold(i)
-        return
+        return True
     trail = s.trail_m[i]
     if len(trail) < 1:
         s.text(i, "SmartRTL unavailable, using RTL", Severity.WARNING)
-        rtl(i)
-        return
+        return False
     way_back = simplify(np.array([*trail, s.pos(i)]), max(s.params.get(i, "SRTL_ACCURACY"), 0.1))[::-1][1:]
     way_back[:, 2] = np.maximum(way_back[:, 2], MIN_ALT_M)
     s.srtl_route[i] = list(way_back)
     next_point(s, i)
+    return True
 
 
 def next_point(s: FlightState, i: int) -> None:

@@ -156,9 +156,7 @@ function drawMap(t) {
     const spots = [[s * 1.1, -size * 0.5], [-s * 1.1 - w, -size * 0.5], [-w / 2, -s * 1.2 - size], [-w / 2, s * 1.1]];
     let best = spots[0], bestCost = Infinity;
     for (const [dx, dy] of spots) {
-      const box = [p.e + dx, -p.n + dy, w, size];
-      const cost = taken.reduce((sum, b) => sum + overlap(box, b), 0) + w * size - overlap(box, seen) +
-                   segments.reduce((sum, [a, b]) => sum + crossing(box, a, b) * size * size, 0);
+      const cost = labelCost([p.e + dx, -p.n + dy, w, size], taken, seen, segments);
       if (cost < bestCost - 1e-9) { best = [dx, dy]; bestCost = cost; }
     }
     const label = el("text", { x: best[0], y: best[1] + size * 0.8, "font-size": size }, g);
@@ -202,14 +200,18 @@ function linkLabelSpot(m, p, w, size, taken, seen, segments) {
       // the box's centre off the line by half its own extent across the line, plus a margin
       const reach = Math.abs(nx) * w / 2 + Math.abs(ny) * size / 2 + size * 0.3;
       const cx = x1 + (x2 - x1) * along + side * nx * reach, cy = y1 + (y2 - y1) * along + side * ny * reach;
-      const box = [cx - w / 2, cy - size / 2, w, size];
-      let cost = taken.reduce((sum, b) => sum + overlap(box, b), 0);
-      cost += w * size - overlap(box, seen);  // what would be off the visible map
-      cost += segments.reduce((sum, [a, b]) => sum + crossing(box, a, b) * size * size, 0);
+      const box = [cx - w / 2, cy - size / 2, w, size], cost = labelCost(box, taken, seen, segments);
       if (cost < bestCost - 1e-9) { best = box; bestCost = cost; }
     }
   }
   return best;
+}
+// What a label's box costs where it is: the area it shares with the labels placed, the area off the visible map, and
+// a box's worth for each point of a link inside it (struck through).
+function labelCost(box, taken, seen, segments) {
+  const area = box[2] * box[3], height = box[3];
+  return taken.reduce((sum, b) => sum + overlap(box, b), 0) + area - overlap(box, seen) +
+         segments.reduce((sum, [a, b]) => sum + crossing(box, a, b) * height * height, 0);
 }
 // How many of 9 points along the link from vehicle a to vehicle b fall inside box (a label struck through).
 function crossing(box, a, b) {
