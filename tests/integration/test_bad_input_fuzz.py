@@ -80,15 +80,23 @@ def arg_text(value) -> str:
 def bad_arg(low, high, **kw):
     """On a command line every value is text: a wrong type drawn as text ("1") can be a valid number there."""
     drawn = bad_number(low, high, **kw).map(arg_text) | st.sampled_from(["", "fast", "1,2", "0x10", "1e999"])
-    return drawn.filter(lambda text: not _number_within(text, low, high, kw.get("low_open", False)))
+    return drawn.filter(lambda text: not _valid_arg(text, low, high, **kw))
 
 
-def _number_within(text: str, low: float, high: float, low_open: bool) -> bool:
+def bad_list_arg(low, high, **kw):
+    """A comma-separated list of numbers: "1,2" is a valid one, so a drawn value must hold an item out of range."""
+    return bad_arg(low, high, **kw).filter(
+        lambda text: not all(_valid_arg(part, low, high, **kw) for part in text.split(",")))
+
+
+def _valid_arg(text: str, low, high, *, integer: bool = False, low_open: bool = False) -> bool:
+    """What the command line takes (nac_onboard.inputs.parse_number: int(text, 10) or float(text), in range)."""
     try:
-        x = float(text)
+        x = int(text, 10) if integer else float(text)
     except ValueError:
         return False
-    return math.isfinite(x) and (x > low if low_open else x >= low) and x <= high
+    return (math.isfinite(x) and (low is None or (x > low if low_open else x >= low))
+            and (high is None or x <= high))
 
 # ------------------------------------------------------------------------------------------------------ TOML out
 
@@ -304,7 +312,7 @@ CLI_CASES = [  # (main, argv before the value, option, invalid values, fragment)
     (sitl_cli.main, ["experiment", "paper-sim-static"], "--base-port", bad_arg(1024, 65535, integer=True),
      "--base-port"),
     (sitl_cli.main, ["radio", "paper-sim"], "--draws", bad_arg(10, 100_000, integer=True), "--draws"),
-    (sitl_cli.main, ["radio", "paper-sim"], "--distances-m", bad_arg(0, 1e6, low_open=True), "--distances-m"),
+    (sitl_cli.main, ["radio", "paper-sim"], "--distances-m", bad_list_arg(0, 1e6, low_open=True), "--distances-m"),
     (compute_options.parse_args, ["--task", "linreg"], "--iterations", bad_arg(1, 1e7, integer=True),
      "--iterations"),
     (compute_options.parse_args, ["--task", "linreg"], "--duration-s", bad_arg(0, 7 * 86400, low_open=True),
