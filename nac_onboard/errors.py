@@ -12,7 +12,9 @@ partial report written) run for it too; the exit code is then 143 (128 + SIGTERM
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import signal
 import sys
 import threading
@@ -22,6 +24,7 @@ from collections.abc import Callable
 log = logging.getLogger(__name__)
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 130, 128 + signal.SIGTERM
+EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE  # what a shell reports for a writer whose reader closed the pipe
 
 
 class NacError(Exception):
@@ -88,6 +91,10 @@ def run_cli(prog: str, command: Callable[[], int]) -> int:
         return command()
     except KeyboardInterrupt as err:
         return interrupted_code(err)
+    except BrokenPipeError:  # the reader went away (`| head`): end quietly, as a tool killed by SIGPIPE does
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+        return EXIT_BROKEN_PIPE
     except Exception as err:
         code = exit_code_of(err)
         if code is not None:

@@ -20,6 +20,7 @@ import pandas as pd
 
 from ground.logs.runlog import RunLog
 from missions.geo import Home, ecef_to_enu, lla_to_ecef
+from nac_onboard.compute.iteration import iterations_per_min
 
 MAX_GAP_S = 2.0  # no interpolation across a longer silence: that is a lost link, not a straight flight
 DEFAULT_BIN_M = 2.0
@@ -255,11 +256,12 @@ def summarize(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, probes: pd.
     summary: dict = {"run": run.name, "vehicles": len(run.vehicles), "master": None}
     if not its.empty:
         start = its["start_sim_s"] if its["start_sim_s"].notna().all() else its["t_s"]  # simulated, if given
-        span_s = float(start.iloc[-1] + its["duration_s"].iloc[-1] - start.iloc[0])
+        first_s, last_end_s = float(start.iloc[0]), float(start.iloc[-1] + its["duration_s"].iloc[-1])
         summary.update(iterations=len(its), complete_iterations=int(its["complete"].sum()),
                        mean_iteration_s=float(its["duration_s"].mean()),
                        p95_iteration_s=float(its["duration_s"].quantile(0.95)),
-                       compute_span_s=span_s, iterations_per_min=60.0 * len(its) / span_s if span_s > 0 else None)
+                       compute_span_s=last_end_s - first_s,
+                       iterations_per_min=iterations_per_min(len(its), first_s, last_end_s))
         cost = its["cost"].dropna()
         if not cost.empty:
             summary.update(first_cost=float(cost.iloc[0]), final_cost=float(cost.iloc[-1]))

@@ -150,12 +150,20 @@ def fit_channel(distance_m, throughput_bps, base: ChannelModel, samples_per_prob
         "exponent": float(n), "exponent_ci": (float(n - Z95 * se[1]), float(n + Z95 * se[1])),
         "ref_loss_db": float(ref_loss), "ref_loss_ci_db": (float(ref_loss - Z95 * se[0]),
                                                             float(ref_loss + Z95 * se[0])),
-        "sigma_db": sigma, "sigma_ci_db": (sigma * math.exp(-Z95 * se[2]), sigma * math.exp(Z95 * se[2])),
+        "sigma_db": sigma, "sigma_ci_db": _scale_interval(sigma, Z95 * se[2]),
         "probes": int(len(y)), "measured": int(measured.sum()), "censored_low": int((censor < 0).sum()),
         "censored_high": int((censor > 0).sum()), "rms_residual_db": float(np.sqrt(np.mean(residual_db ** 2))),
         "distance_min_m": float(d.min()), "distance_max_m": float(d.max()), "converged": bool(result.success),
         "note": "an MCS offset is folded into PL(d0): throughput and positions alone cannot separate them",
     }
+
+
+def _scale_interval(value: float, log_half_width: float) -> tuple[float, float]:
+    """value / e^w .. value * e^w. Probes that barely constrain sigma (all at a few places, little spread: a short
+    run) give a w so wide that e^w overflows: the interval is then everything, 0 to infinity, not a crash."""
+    if not math.isfinite(log_half_width) or log_half_width > 700:
+        return 0.0, math.inf
+    return value * math.exp(-log_half_width), value * math.exp(log_half_width)
 
 
 def fitted_model(base: ChannelModel, fit: dict, name: str, source: str) -> ChannelModel:

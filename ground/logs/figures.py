@@ -94,10 +94,16 @@ def draw(name: str, runs: list[RunTables], path: Path) -> Path:
         ax.grid(alpha=0.3)
         if len(runs) > 1:
             ax.set_title(f"{run.name}: {ax.get_title()}")
-    fig.tight_layout()
+    _margins(fig)
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
+
+
+def _margins(fig) -> None:
+    """Fixed margins that hold the titles, tick labels and axis labels these figures draw: tight_layout measured
+    every text first and cost a third of each report's time (0.13 of 0.35 s a figure)."""
+    fig.subplots_adjust(left=0.1 if len(fig.axes) == 1 else 0.06, right=0.97, bottom=0.11, top=0.92, wspace=0.18)
 
 
 def draw_calibration(probes, model, path: Path) -> Path:
@@ -117,7 +123,7 @@ def draw_calibration(probes, model, path: Path) -> Path:
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3)
     ax.legend()
-    fig.tight_layout()
+    _margins(fig)
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path

@@ -1,6 +1,13 @@
-"""What happened on each worker's link in one iteration of the MPI job."""
+"""What happened on each worker's link in one iteration of the MPI job, and the job's pace."""
 
 from __future__ import annotations
+
+
+def iterations_per_min(count: int, first_start_s: float, last_end_s: float) -> float | None:
+    """The job's pace as the report, the progress line and the view give it (the view's page repeats it in
+    view.js): iterations over the simulated span from the first one's start to the last one's end."""
+    span_s = last_end_s - first_start_s
+    return 60.0 * count / span_s if count > 0 and span_s > 0 else None
 
 
 class IterationLinks:

@@ -9,6 +9,7 @@ import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from nac_onboard.compute.iteration import iterations_per_min
 from nac_onboard.mavlink.client import LinkError, VehicleClient
 from nac_onboard.mavlink.dialect import COPTER_MODES, M
 from nac_onboard.records import Kind, kinds
@@ -66,7 +67,21 @@ def last_record(path: Path, kind: Kind) -> dict | None:
             tail = f.read()
     except OSError:
         return None
-    for line in reversed(tail.split(b"\n")[1 if size > TAIL_BYTES else 0:]):
+    return _first_of(reversed(tail.split(b"\n")[1 if size > TAIL_BYTES else 0:]), kind)
+
+
+def first_record(path: Path, kind: Kind) -> dict | None:
+    """The first record of this kind in a JSON Lines log, if it is in the log's head."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(TAIL_BYTES)
+    except OSError:
+        return None
+    return _first_of(head.split(b"\n"), kind)
+
+
+def _first_of(lines, kind: Kind) -> dict | None:
+    for line in lines:
         try:
             record = json.loads(line)
         except ValueError:  # the line being written, or damage: the reader's problem list has it
@@ -76,6 +91,15 @@ def last_record(path: Path, kind: Kind) -> dict | None:
     return None
 
 
+def pace_per_min(first: dict | None, last: dict) -> float | None:
+    """Iterations per simulated minute from the job's first and latest iteration records (the report's formula)."""
+    try:
+        return iterations_per_min(last["iteration"] + 1, float(first["start_sim_s"]),
+                                  float(last["start_sim_s"]) + float(last["duration_sim_s"]))
+    except (KeyError, TypeError, ValueError):  # a job on the wall clock, or records without these fields
+        return None
+
+
 def render_progress(t_s: float, states: list[VehicleProgress], run_dir: Path, master: str) -> str:
     cells = [f"{s.vehicle} {s.mode:<6}{'A' if s.armed else '-'} {s.rel_alt_m:4.1f} m {s.speed_mps:3.1f} m/s "
              f"item {s.item}/{s.total}" for s in states]
@@ -83,7 +107,9 @@ def render_progress(t_s: float, states: list[VehicleProgress], run_dir: Path, ma
     iteration = last_record(kinds.COMPUTE_LOG.at(run_dir), kinds.ITERATION)
     if iteration:
         present = iteration.get("workers", {}).get("present", [])
-        line += f" | it {iteration['iteration'] + 1} ({sum(present)}/{len(present)} workers)"
+        pace = pace_per_min(first_record(kinds.COMPUTE_LOG.at(run_dir), kinds.ITERATION), iteration)
+        line += f" | it {iteration['iteration'] + 1}" + (f", {pace:.1f}/min" if pace is not None else "")
+        line += f" ({sum(present)}/{len(present)} workers)"
         if iteration.get("cost") is not None:
             line += f" cost {iteration['cost']:.4f}"
     probe = last_record(kinds.THROUGHPUT_LOG.at(run_dir, master), kinds.THROUGHPUT)

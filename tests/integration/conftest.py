@@ -1,5 +1,8 @@
+import shutil
+
 import pytest
 
+from ground.view.serve import CHROMIUM_FLAGS, chromium
 from sitl.server import Sitl, SitlConfig
 from tests.integration.gcs import Gcs
 
@@ -61,3 +64,24 @@ def start_agent(tmp_path):
     for agent in started:
         agent.stop()
         assert not agent.alive()
+
+
+CHROMEDRIVER = shutil.which("chromedriver")
+needs_browser = pytest.mark.skipif(not (chromium() and CHROMEDRIVER),
+                                   reason="Chromium and chromedriver are not installed (.ci/run installs them)")
+
+
+@pytest.fixture
+def browser(tmp_path):
+    """Debian's headless Chromium through its chromedriver, quit when the test ends."""
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = chromium()
+    for flag in [*CHROMIUM_FLAGS, "--window-size=1400,860", f"--user-data-dir={tmp_path / 'profile'}"]:
+        options.add_argument(flag)
+    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
+    driver.set_page_load_timeout(30)
+    yield driver
+    driver.quit()

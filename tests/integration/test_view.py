@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from ground.view.records import RunFollower, positions
-from ground.view.serve import CHROMIUM_FLAGS, ViewThread, chromium, screenshot
+from ground.view.serve import ViewThread, screenshot
 from ground.view.server import ViewServer
 from missions import save_mission
 from missions.geo import Home, enu_to_lla, lla_to_enu
@@ -21,28 +21,12 @@ from sitl.experiment.runner import Experiment, Outcome, save_screenshot
 from sitl.experiment.scenario import load_scenario
 from sitl.scenarios.generate import at, hover, route
 from tests.conftest import allocate_base_port
+from tests.integration.conftest import needs_browser
 from tests.integration.test_experiment import write_scenario
 
-CHROMEDRIVER = shutil.which("chromedriver")
-pytestmark = pytest.mark.skipif(not (chromium() and CHROMEDRIVER),
-                                reason="Chromium and chromedriver are not installed (.ci/run installs them)")
+pytestmark = needs_browser
 VEHICLES_JS = """return [...document.querySelectorAll('#vehicles .vehicle')].map(g => ({
     id: g.dataset.id, e: +g.dataset.e, n: +g.dataset.n, t: +g.dataset.t, tb: +g.dataset.tb}));"""
-
-
-@pytest.fixture
-def browser(tmp_path):
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-
-    options = webdriver.ChromeOptions()
-    options.binary_location = chromium()
-    for flag in [*CHROMIUM_FLAGS, "--window-size=1400,860", f"--user-data-dir={tmp_path / 'profile'}"]:
-        options.add_argument(flag)
-    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
-    driver.set_page_load_timeout(30)
-    yield driver
-    driver.quit()
 
 
 def wait_for(browser, script: str, timeout_s: float = 20.0):
@@ -445,7 +429,6 @@ def state_of(url: str) -> dict:
     return json.loads(urllib.request.urlopen(url + "api/state", timeout=10).read())
 
 
-@pytest.mark.exclusive  # judges the server's peak memory against a bound (not a time: load does not move it)
 def test_a_200_mb_record_is_skipped_named_and_never_held_by_the_server(tmp_path):
     """One valid 200 MB record (a statustext), followed live and replayed: skipped and named, the records after
     it drawn, nothing of it served, and the server's peak resident memory (VmHWM) grows by less than 64 MB

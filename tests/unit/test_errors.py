@@ -62,3 +62,17 @@ def test_sigterm_is_ctrl_c_with_exit_143_and_the_callers_handler_comes_back():
     assert run_cli("nac-x", command) == 143
     assert cleaned == [Terminated]
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_a_reader_that_closes_the_pipe_ends_the_command_quietly():
+    """`nac-sitl radio ... | head -1`: the table stops where head stopped reading, with the exit status a shell
+    gives a writer killed by SIGPIPE (141) and no traceback."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    cli = Path(sys.executable).parent / "nac-sitl"
+    done = subprocess.run(["bash", "-c", f"set -o pipefail; {cli} radio wifi-flight --draws 2000 | head -1; "
+                                         "echo \"status ${PIPESTATUS[0]}\""], capture_output=True, text=True,
+                          timeout=60)
+    assert done.stdout.splitlines()[-1] == "status 141" and done.stderr == "", (done.stdout, done.stderr)

@@ -240,7 +240,7 @@ function drawPanels(t, here) {
   $("fleet").tBodies[0].innerHTML = rows.join("");
   const done = view.its.filter((it) => it.t <= t);
   const last = done[done.length - 1];
-  const perMin = perSimulatedMinute(done.filter((it) => it.t > t - RATE_WINDOW_S));
+  const perMin = perSimulatedMinute(done);
   $("job").innerHTML = last
     ? `<span id="iterations" data-count="${done.length}">${done.length}</span> iterations, ${perMin.toFixed(0)} per minute; ` +
       `workers present ${last.n}/${last.of}; training cost ${last.cost == null ? "-" : last.cost.toPrecision(4)}`
@@ -258,13 +258,19 @@ function drawPanels(t, here) {
 }
 // Iterations per minute of the run's own clock: a sped-up run's iterations carry their simulated start (ts), so
 // the count over a wall-clock window is divided by the simulated time it spans; a vehicle's carry none (wall time).
-function perSimulatedMinute(recent) {
-  const sim = recent.filter((it) => it.ts != null);
-  if (sim.length >= 2 && sim.length === recent.length) {
-    const span = sim[sim.length - 1].ts - sim[0].ts;
-    return span > 0 ? (sim.length - 1) * 60 / span : 0;
+// The pace over the last RATE_WINDOW_S simulated seconds, as the report and the progress line count it over the
+// whole job (nac_onboard.compute.iteration.iterations_per_min): iterations over the span from the first one's
+// start to the last one's end. Records without simulated times (a real vehicle's): a count over wall seconds.
+function perSimulatedMinute(done) {
+  if (!done.length) return 0;
+  if (done.every((it) => it.ts != null && it.dur != null)) {
+    const last = done[done.length - 1], end = last.ts + last.dur;
+    const recent = done.filter((it) => it.ts >= end - RATE_WINDOW_S);
+    const span = end - recent[0].ts;
+    return span > 0 ? recent.length * 60 / span : 0;
   }
-  return recent.length * (60 / RATE_WINDOW_S);
+  const t = done[done.length - 1].t;
+  return done.filter((it) => it.t > t - RATE_WINDOW_S).length * (60 / RATE_WINDOW_S);
 }
 function chart(canvas, series, t, unit) {
   const ctx = canvas.getContext("2d"), w = canvas.width, h = canvas.height;
