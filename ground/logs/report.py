@@ -87,8 +87,13 @@ def _notes(tables: list[RunTables], experiment: dict | None) -> list[str]:
 def _network_line(network: dict | None) -> str:
     if not network:
         return "sleep (transfers slept bits / capacity; written before the network was recorded)"
-    sharing = "; the master's airtime shared" if network.get("mode") == "kernel" and network.get("sharing") else ""
-    return f"{network.get('mode')} ({network.get('why', '')}{sharing})"
+    kernel = network.get("mode") == "kernel"
+    if kernel and network.get("air") == "medium":
+        air = ("; the air frame by frame (802.11 medium: one FIFO queue per station, channel access, retries; "
+               "probes share the queues)")
+    else:
+        air = "; the master's airtime shared" if kernel and network.get("sharing") else ""
+    return f"{network.get('mode')} ({network.get('why', '')}{air})"
 
 
 def analyze_run(run_dir: str | Path, out: str | Path | None = None, master: str | None = None,

@@ -152,6 +152,8 @@ class Sample:
     goodput_bps: np.ndarray  # what a transfer gets: the pair's rate
     loss: np.ndarray  # packets lost to IP after the MAC's retries (1 when out of range)
     in_range: np.ndarray
+    fallback_bps: np.ndarray | None = None  # the retry chain's last rate (MCS 0), for a frame-level medium
+    fallback_per: np.ndarray | None = None  # its frame error rate
 
 
 class Radio:
@@ -205,6 +207,7 @@ def link_rates(m, snr_db, snr_estimate_db=None) -> Sample:
         per = np.zeros_like(phy)
         mcs = np.full(phy.shape, -1)
         loss = np.zeros_like(phy)
+        fallback_bps, fallback_per = phy, per
     else:
         rates = np.array(HT_RATES_MBPS[(m.channel_width_mhz, m.short_guard_interval)]) * 1e6
         thresholds = HT_SNR_THRESHOLDS_DB + m.mcs_offset_db
@@ -213,11 +216,13 @@ def link_rates(m, snr_db, snr_estimate_db=None) -> Sample:
         phy = rates[mcs]
         per = frame_error_rate(snr_db, thresholds[mcs], m.per_slope_db)
         first = (m.retry_limit + 1) // 2
-        loss = per ** first * frame_error_rate(snr_db, thresholds[0], m.per_slope_db) ** (m.retry_limit + 1 - first)
+        fallback_bps = np.full(phy.shape, rates[0])
+        fallback_per = frame_error_rate(snr_db, thresholds[0], m.per_slope_db)
+        loss = per ** first * fallback_per ** (m.retry_limit + 1 - first)
     goodput = phy * m.mac_efficiency * (1.0 - per) * airtime
     in_range = goodput >= max(m.min_rate_bps, 1.0)
     return Sample(snr_db, mcs, phy, per, np.where(in_range, goodput, 0.0), np.where(in_range, loss, 1.0),
-                  in_range)
+                  in_range, fallback_bps, fallback_per)
 
 
 class AirRadio:

@@ -278,6 +278,19 @@ SHAPER_LATE = Kind("shaper_late", NETWORK_LOG, "the shaper fell behind its perio
     req("note", "string", "", "what it means")))
 SHAPER_FAILED = Kind("shaper_failed", NETWORK_LOG, "tc or nft failed: links keep their last rates",
                      (req("error", "string", "", "why"),))
+AIR_MEDIUM = Kind("air_medium", NETWORK_LOG, "the frame-level air's counters (delay line), once a wall second", (
+    req("t_sim_s", "number", "s", "simulated time"), req("offered", "integer", "", "packets queued so far"),
+    req("delivered", "integer", "", "packets delivered so far"),
+    req("queue_drops", "integer", "", "packets dropped at a full transmit queue"),
+    req("retry_drops", "integer", "", "packets lost after every MAC retry"),
+    req("exchanges", "integer", "", "channel accesses"), req("collisions", "integer", "", "of them, collisions"),
+    req("busy_s", "number", "s", "air time used (simulated)"),
+    req("backlog", "list", "", "each station's queue now, in packets"),
+    opt("queue_p50_s", "number", "s", "median wait from queue to air since the last record (simulated)"),
+    opt("air_p50_s", "number", "s", "median time on the air, tries included, since the last record"),
+    req("late", "integer", "", "deliveries written over 1 ms (simulated) after their time: the host fell behind"),
+    req("max_late_s", "number", "s", "the latest of them"),
+))
 
 # ---- the experiment: experiment.json ---------------------------------------------------------------------------
 EXPERIMENT = Kind("experiment", EXPERIMENT_LOG, "the experiment's settings, at its start", (

@@ -53,6 +53,7 @@ from sitl.experiment.progress import VehicleProgress, follow, render_progress
 from sitl.experiment.scenario import Scenario
 from sitl.experiment.watchdog import TOKEN_ENV, Watchdog
 from sitl.network.air import AirNetwork
+from sitl.network.medium_air import MediumAir
 from sitl.network.netns import NetworkError, remove_leftovers
 from sitl.network.replay import parse_links
 from sitl.network.shaper import Shaper
@@ -142,7 +143,7 @@ class Experiment:
         self._write_record(kinds.EXPERIMENT, scenario=self.scenario.name, path=str(self.scenario.path),
                            speedup=self.speedup, speedup_note=self._speedup_note(), duration_s=self.scenario.duration_s,
                            network={"mode": self.network, "why": self.network_why,
-                                    "sharing": self.scenario.network.sharing,
+                                    "sharing": self.scenario.network.sharing, "air": self.scenario.network.air,
                                     "period_s": self.scenario.network.period_s},
                            radio={"name": self.radio.name, "describe": self.radio.describe(),
                                   "sources": self.radio.sources},
@@ -207,6 +208,9 @@ class Experiment:
                 self.replay.check_vehicles([v.id for v in self.scenario.vehicles])
             except ReplayError as err:
                 raise ExperimentError(Outcome.BAD_INPUT, str(err)) from None
+        if self.replay is not None and self.scenario.network.air == "medium" and self.network == "kernel":
+            raise ExperimentError(Outcome.BAD_INPUT, "--links replay gives measured throughput, not the PHY rates "
+                                                     "and frame errors the medium needs: use [network] air = \"htb\"")
         if self.iperf3_probes and self.network != "kernel":
             raise ExperimentError(Outcome.BAD_INPUT, "[throughput] tool = \"iperf3\" needs the kernel network: on "
                                                      "loopback iperf3 cannot be paced to the channel model")
@@ -250,6 +254,8 @@ class Experiment:
         self._clock_thread.start()
         if self.air is not None:
             self.network_log = JsonlLog(kinds.NETWORK_LOG.at(self.run_dir))
+            if isinstance(self.air, MediumAir):
+                self.air.record_to(self.network_log)
             self.shaper = Shaper(self.air, self.sim.air_positions, self.radio, self.pace.value,
                                  s.network.period_s, self.network_log, self.replay)
             try:
@@ -284,7 +290,11 @@ class Experiment:
         ids = [v.id for v in s.vehicles]
         probe_ports = [self.ports.throughput(i) if v.role == "worker" else None for i, v in enumerate(s.vehicles)]
         try:
-            air = AirNetwork(ids, ids.index(s.master.id), s.network.sharing, probe_ports, self.speedup)
+            if s.network.air == "medium":
+                air = MediumAir(ids, ids.index(s.master.id), s.network.sharing, probe_ports, self.speedup,
+                                s.network.queue_packets, self.clock_path)
+            else:
+                air = AirNetwork(ids, ids.index(s.master.id), s.network.sharing, probe_ports, self.speedup)
             if self.watchdog is not None:  # before they exist: a SIGKILL while they are being made leaves none
                 self.watchdog.watch_namespaces(air.prefix)
             self.air = air.create()

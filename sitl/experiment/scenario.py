@@ -32,6 +32,7 @@ from nac_onboard.inputs import check_id, check_number
 from nac_onboard.mavlink.dialect import mission_catalogue
 from nac_onboard.radio.channel import ChannelError, ChannelModel
 from nac_onboard.radio.files import load_channel
+from nac_onboard.radio.medium import DEFAULT_QUEUE_PACKETS
 from nac_onboard.tomlfile import get_value, ranged, read_toml, to_dataclass
 from sitl.experiment.faults import Fault, FaultKind
 from sitl.vehicle.params import PARAMS_BY_NAME
@@ -77,10 +78,17 @@ class ProbePlan:
     tool: str = "nac"  # or "iperf3": the real iperf3 between the namespaces (kernel network only)
 
 
+AIRS = ("htb", "medium")
+
+
 @dataclass(frozen=True)
 class NetworkPlan:
     period_s: float = 0.1  # simulated seconds between shaper updates
     sharing: bool = True  # the master is the access point: what passes through it shares one airtime budget
+    # the kernel network's air: "htb" (a bridge, a rate class per pair, nftables drops) or "medium" (a delay line
+    # carrying every frame through the 802.11 medium: queues, channel access, retries; sitl/network/medium_air.py)
+    air: str = "htb"
+    queue_packets: int = ranged(DEFAULT_QUEUE_PACKETS, 1, 100_000)  # each station's transmit queue ("medium")
 
 
 @dataclass(frozen=True)
@@ -273,6 +281,8 @@ def _probes(table: dict, where: str) -> ProbePlan:
 
 def _network(table: dict, where: str) -> NetworkPlan:
     plan = to_dataclass(NetworkPlan, table, where, ScenarioError, table="network")
+    if plan.air not in AIRS:
+        raise ScenarioError(f"{where}: air must be one of {', '.join(AIRS)}, got {plan.air!r}")
     if not 0.01 <= plan.period_s <= 10.0:
         raise ScenarioError(f"{where}: period_s must be within 0.01..10 simulated seconds, got {plan.period_s}")
     return plan

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from nac_onboard.child_process import die_with_parent_preexec
 from sitl.network import netns
-from sitl.network.shaping import Layout
+from sitl.network.shaping import AirState, Layout
 
 log = logging.getLogger(__name__)
 MAX_STATIONS = 250
@@ -96,6 +96,7 @@ class AirNetwork:
         self.ap_tc: CommandStream | None = None
         self.nft: CommandStream | None = None
         self.created: list[str] = []
+        self._last_nft = ""
 
     @property
     def namespaces(self) -> list[str]:
@@ -182,6 +183,17 @@ class AirNetwork:
             log.warning("this kernel cannot set %s: TCP's timers stay on the wall clock",
                         ", ".join(item.split("=")[0] for item in settings if item not in present))
         return present
+
+    def apply(self, state: AirState, pace: float) -> None:
+        """Every pair's rate and loss as the shaper computed them: HTB classes changed in place and, when it
+        differs from the last, the nftables loss chain refilled."""
+        self.air_tc.send("\n".join(self.layout.air_update(state, pace)))
+        if self.ap_tc is not None:
+            self.ap_tc.send("\n".join(self.layout.ap_update(state, pace)))
+        nft = self.layout.nft_update(NFT_TABLE, state)
+        if nft != self._last_nft:
+            self.nft.send(nft)
+            self._last_nft = nft
 
     def exec_prefix(self, index: int) -> list[str]:
         """The command prefix that runs a program on station `index`."""

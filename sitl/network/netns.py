@@ -134,11 +134,16 @@ def delete_namespace(name: str) -> None:
 
 
 def socket_in_netns(name: str, family: int, kind: int) -> socket.socket:
-    """A socket that belongs to network namespace `name` (it keeps it for life), made by a short-lived thread that
-    enters the namespace: the rest of this process stays where it is."""
+    """A socket that belongs to network namespace `name` (it keeps it for life)."""
+    return in_netns(name, lambda: socket.socket(family, kind))
+
+
+def in_netns(name: str, make):
+    """make() called by a short-lived thread that enters network namespace `name`, the rest of this process
+    staying where it is: what it opens (a socket, a TUN device) belongs to that namespace for life."""
     result: dict = {}
 
-    def make() -> None:
+    def enter_and_make() -> None:
         libc = ctypes.CDLL(None, use_errno=True)
         try:
             fd = os.open(os.path.join(NETNS_DIR, name), os.O_RDONLY)
@@ -150,13 +155,15 @@ def socket_in_netns(name: str, family: int, kind: int) -> socket.socket:
                 result["error"] = NetworkError(f"cannot enter network namespace {name}: "
                                                f"{os.strerror(ctypes.get_errno())}")
                 return
-            result["socket"] = socket.socket(family, kind)
+            result["made"] = make()
+        except OSError as err:
+            result["error"] = NetworkError(f"network namespace {name}: {err}")
         finally:
             os.close(fd)
 
-    thread = threading.Thread(target=make, name=f"netns-{name}")
+    thread = threading.Thread(target=enter_and_make, name=f"netns-{name}")
     thread.start()
     thread.join()
     if "error" in result:
         raise result["error"]
-    return result["socket"]
+    return result["made"]

@@ -16,7 +16,7 @@ from nac_onboard.flight_log import JsonlLog
 from nac_onboard.radio.air_link import AirRadio
 from nac_onboard.radio.channel import ChannelModel
 from nac_onboard.records import kinds
-from sitl.network.air import NFT_TABLE, AirNetwork
+from sitl.network.air import AirNetwork
 from sitl.network.netns import NetworkError
 from sitl.network.shaping import AirState, air_state, with_replay
 
@@ -43,7 +43,6 @@ class Shaper:
         self.error: str | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="link-shaper", daemon=True)
-        self._last_nft = ""
         self._last_late_log = -1e9
 
     def start(self) -> Shaper:
@@ -83,13 +82,7 @@ class Shaper:
         if self.replay is not None:
             state = with_replay(state, self.ids, self.replay.rate_bps, t_sim_s)
         pace = self.pace()
-        self.air.air_tc.send("\n".join(layout.air_update(state, pace)))
-        if self.air.ap_tc is not None:
-            self.air.ap_tc.send("\n".join(layout.ap_update(state, pace)))
-        nft = layout.nft_update(NFT_TABLE, state)
-        if nft != self._last_nft:
-            self.air.nft.send(nft)
-            self._last_nft = nft
+        self.air.apply(state, pace)
         self.apply_s.append(time.monotonic() - t0)
         self.updates += 1
         self.last = state

@@ -45,6 +45,7 @@ class AirState:
     floor_bps: float = OUT_OF_RANGE_BPS  # the lowest rate a class is given (out of range: loss does the work)
     snr_db: np.ndarray | None = None  # (N, N)
     mcs: np.ndarray | None = None  # (N, N), -1 with the Shannon rate model
+    frames: dict | None = None  # what a frame-level medium needs: phy_bps, per, fallback_bps, fallback_per (N, N)
 
     def class_bps(self, i: int, j: int) -> float:
         return max(float(self.rate_bps[i, j]), self.floor_bps)
@@ -64,8 +65,11 @@ def air_state(radio: AirRadio, t_s: float, ecef_m: np.ndarray, ap: int | None, s
     budget = None
     if sharing and ap is not None and n > 1:
         budget = float(max(np.delete(rate[ap], ap).max(), floor))
+    frames = {"phy_bps": radio.matrix(np.where(sample.in_range, sample.phy_bps, 0.0)),
+              "per": radio.matrix(sample.per, 1.0), "fallback_bps": radio.matrix(sample.fallback_bps),
+              "fallback_per": radio.matrix(sample.fallback_per, 1.0)}
     return AirState(radio.matrix(distance), rate, loss, budget, floor, radio.matrix(sample.snr_db),
-                    radio.matrix(sample.mcs, -1))
+                    radio.matrix(sample.mcs, -1), frames)
 
 
 def with_replay(state: AirState, ids: list[str], rate_of, t_s: float) -> AirState:

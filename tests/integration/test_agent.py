@@ -209,11 +209,13 @@ def test_master_probes_each_worker_on_its_period_and_logs_failures_too(start_sit
 
 
 def test_routing_lets_a_second_tool_share_the_autopilot_link(start_sitl, start_agent, tmp_path):
+    """A tool on a routing endpoint arms the vehicle through the agent, and the agent's .tlog holds what it
+    relayed: the tool's command and the autopilot's answer (issue 33: "all MAVLink traffic")."""
     sim = start_sitl(speedup=5.0)
     tool_port = free_port()
     tool = mavutil.mavlink_connection(f"udpin:127.0.0.1:{tool_port}", source_system=250)
     try:
-        start_agent(one_agent(sim, tmp_path, routing={"endpoints": [f"udpout:127.0.0.1:{tool_port}"]}))
+        agent = start_agent(one_agent(sim, tmp_path, routing={"endpoints": [f"udpout:127.0.0.1:{tool_port}"]}))
         hb = tool.recv_match(type="HEARTBEAT", blocking=True, timeout=5.0,
                              condition="HEARTBEAT.get_srcComponent() == 1")
         assert hb is not None and hb.get_srcSystem() == 1, "autopilot traffic reaches the routed endpoint"
@@ -224,8 +226,14 @@ def test_routing_lets_a_second_tool_share_the_autopilot_link(start_sitl, start_a
                 break
         assert ack is not None and ack.result == M.MAV_RESULT_ACCEPTED, "the tool's command reached the autopilot"
         assert sim.truth(0)["armed"]
+        assert agent.stop() == 0
     finally:
         tool.close()
+    tlog = mavutil.mavlink_connection(str(run_dir(tmp_path) / "mavlink.tlog"))
+    relayed = tlog.recv_match(type="COMMAND_LONG", condition=f"COMMAND_LONG.command == {MavCmd.COMPONENT_ARM_DISARM}")
+    assert relayed is not None and relayed.get_srcSystem() == 250, "the tool's command, as relayed"
+    answer = tlog.recv_match(type="COMMAND_ACK", condition=f"COMMAND_ACK.command == {MavCmd.COMPONENT_ARM_DISARM}")
+    assert answer is not None and answer.get_srcSystem() == 1, "the autopilot's answer to it"
 
 
 def test_sigterm_and_systemd_notify_and_watchdog(start_sitl, start_agent, tmp_path):

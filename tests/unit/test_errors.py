@@ -66,13 +66,15 @@ def test_sigterm_is_ctrl_c_with_exit_143_and_the_callers_handler_comes_back():
 
 def test_a_reader_that_closes_the_pipe_ends_the_command_quietly():
     """`nac-sitl radio ... | head -1`: the table stops where head stopped reading, with the exit status a shell
-    gives a writer killed by SIGPIPE (141) and no traceback."""
+    gives a writer killed by SIGPIPE (141) and no traceback. 3,000 distances make some 150 KB of table, more than
+    a pipe holds (64 KB), so the writer meets the closed pipe however fast head exits."""
     import subprocess
     import sys
     from pathlib import Path
 
     cli = Path(sys.executable).parent / "nac-sitl"
-    done = subprocess.run(["bash", "-c", f"set -o pipefail; {cli} radio wifi-flight --draws 2000 | head -1; "
-                                         "echo \"status ${PIPESTATUS[0]}\""], capture_output=True, text=True,
-                          timeout=60)
-    assert done.stdout.splitlines()[-1] == "status 141" and done.stderr == "", (done.stdout, done.stderr)
+    distances = ",".join(f"{1 + k * 0.01:.2f}" for k in range(3000))
+    done = subprocess.run(["bash", "-c", f"set -o pipefail; {cli} radio wifi-flight --draws 10 --distances-m "
+                                         f"{distances} | head -1; echo \"status ${{PIPESTATUS[0]}}\""],
+                          capture_output=True, text=True, timeout=60)
+    assert done.stdout.splitlines()[-1] == "status 141" and done.stderr == "", (done.stdout[-300:], done.stderr)

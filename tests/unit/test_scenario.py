@@ -91,6 +91,9 @@ def test_the_shipped_scenarios_load_with_the_research_geometry():
     ("compute = 5\n" + TWO, "compute: expected a table [compute]"),
     ("name = '../escape'\n" + TWO, "name (it names the run directory): expected an id"),
     (TWO.replace("duration_s = 10", "duration_s = inf"), "duration_s: expected a finite number"),
+    (TWO + "[network]\nair = 'ether'\n", "air must be one of htb, medium, got 'ether'"),
+    (TWO + "[network]\nair = 'medium'\nqueue_packets = 0\n", "network.queue_packets: expected an integer within "
+                                                               "[1, 100000], got 0"),
 ])
 def test_bad_scenarios_name_the_file_and_the_key(tmp_path, text, message):
     path = tmp_path / "bad.toml"

@@ -1,0 +1,309 @@
+"""The shared Wi-Fi medium, frame by frame (pure, seeded; issue 28): every station's transmit queue, first in first
+out and bounded as its driver's is, and the 802.11 distributed coordination function that gives the air to one
+station at a time. What a frame costs is the standard's timing, not a fitted efficiency: the wait for the medium
+(AIFS and a random backoff of slots, doubling after a failed exchange), the HT preamble, the data at the pair's PHY
+rate, SIFS and the block acknowledgement at the control rate; frames to one receiver are aggregated (A-MPDU) as
+Linux's drivers do; each subframe is lost with the pair's frame error rate and retried until the retry limit
+(the first half at the chosen rate, the rest at the fallback rate, as a Minstrel retry chain ends); two stations
+whose backoffs end in the same slot collide and both pay for it. A small message therefore costs a few hundred
+microseconds on an idle medium and waits behind whatever its station queued before it.
+
+Time is the caller's (simulated seconds): offer() what a station sends, run_until() the medium to a time, and read
+the deliveries (with their queue wait and air time) that have completed by then.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+BROADCAST = -1
+
+
+@dataclass(frozen=True)
+class MacTiming:
+    """802.11n in the 2.4 GHz band, 20 MHz, one spatial stream, long guard interval, best-effort traffic."""
+
+    slot_s: float = 9e-6  # IEEE Std 802.11-2016, HT PHY characteristics: aSlotTime, short slot (2.4 GHz, all HT)
+    sifs_s: float = 10e-6  # same table: aSIFSTime in 2.4 GHz
+    signal_extension_s: float = 6e-6  # same table: aSignalExtension, after every OFDM PPDU in 2.4 GHz
+    aifsn: int = 3  # the default EDCA parameter set, AC_BE (best effort: all of NAC's traffic)
+    cw_min: int = 15  # AC_BE CWmin = aCWmin (15 for the OFDM and HT PHYs)
+    cw_max: int = 1023  # AC_BE CWmax = aCWmax
+    ht_preamble_s: float = 36e-6  # HT-mixed PPDU: L-STF 8 + L-LTF 8 + L-SIG 4 + HT-SIG 8 + HT-STF 4 + one HT-LTF 4 us
+    legacy_preamble_s: float = 20e-6  # OFDM PPDU (the block ack): preamble 16 us + SIGNAL 4 us
+    symbol_s: float = 4e-6  # OFDM symbol with the 800 ns guard interval
+    control_rate_bps: float = 24e6  # a control response goes at a basic rate: 24 Mbit/s, the highest mandatory one
+    broadcast_rate_bps: float = 1e6  # group frames at the lowest basic rate (mac80211's default for 2.4 GHz)
+    block_ack_bytes: int = 32  # compressed BlockAck frame
+    mpdu_overhead_bytes: int = 38  # QoS data MAC header 26 + FCS 4 + LLC/SNAP 8 (RFC 1042), per IP packet
+    delimiter_bytes: int = 4  # A-MPDU subframe delimiter; subframes are padded to 4 bytes
+    max_ampdu_bytes: int = 65535  # HT capability "maximum A-MPDU length exponent" 3: 2^16 - 1 bytes
+    max_ampdu_frames: int = 64  # the block ack window
+    max_ppdu_s: float = 4e-3  # Linux ath9k: an aggregate holds at most 4 ms of airtime (ath_max_4ms_framelen)
+
+    @property
+    def aifs_s(self) -> float:
+        return self.sifs_s + self.aifsn * self.slot_s
+
+    def ppdu_s(self, payload_bytes: int, rate_bps: float, preamble_s: float | None = None) -> float:
+        """Airtime of one PPDU: preamble, SERVICE (16 bits), the payload and the tail (6 bits) in whole symbols."""
+        bits_per_symbol = rate_bps * self.symbol_s
+        symbols = math.ceil((16 + 8 * payload_bytes + 6) / bits_per_symbol)
+        preamble = self.ht_preamble_s if preamble_s is None else preamble_s
+        return preamble + symbols * self.symbol_s + self.signal_extension_s
+
+    def block_ack_s(self) -> float:
+        return self.ppdu_s(self.block_ack_bytes, self.control_rate_bps, self.legacy_preamble_s)
+
+    def subframe_bytes(self, ip_bytes: int) -> int:
+        raw = ip_bytes + self.mpdu_overhead_bytes + self.delimiter_bytes
+        return raw + (-raw) % 4
+
+
+# Linux's default transmit queue: DEFAULT_TX_QUEUE_LEN, the pfifo_fast a companion's wlan0 gets, in packets.
+DEFAULT_QUEUE_PACKETS = 1000
+
+
+@dataclass
+class Frame:
+    """What a station queued: one IP packet, or a TCP segmentation offload's run of them (`segments` packets of
+    one flow handed over as one, as Linux hands them to a TUN device): on the air each segment is its own MPDU."""
+
+    src: int
+    dst: int  # a station, or BROADCAST
+    size_bytes: int  # the IP packet, or the segments' bytes together
+    item: object  # the caller's (the packet itself, for a delay line)
+    enqueued_s: float
+    segments: int = 1
+    first_sent_s: float | None = None
+    tries: list[int] = field(default_factory=list)  # per segment not yet through: failed tries so far
+
+    def __post_init__(self):
+        self.tries = [0] * self.segments
+
+    @property
+    def segment_bytes(self) -> int:
+        return -(-self.size_bytes // self.segments)
+
+
+@dataclass(frozen=True)
+class Delivery:
+    frame: Frame
+    dst: int
+    delivered_s: float
+
+    @property
+    def queue_s(self) -> float:
+        """From the queue to the air: waiting behind earlier frames, and for the medium."""
+        return self.frame.first_sent_s - self.frame.enqueued_s
+
+
+@dataclass
+class MediumStats:
+    offered: int = 0
+    delivered: int = 0
+    queue_drops: int = 0  # tail drops at a full queue
+    retry_drops: int = 0  # frames that failed every try
+    exchanges: int = 0
+    collisions: int = 0
+    busy_s: float = 0.0  # airtime used, collisions and acknowledgements included
+    airtime_s: dict = field(default_factory=dict)  # station -> airtime its transmissions used
+
+
+class Medium:
+    """One collision domain: every station hears every other (the vehicles fly within tens of metres)."""
+
+    def __init__(self, stations: int, timing: MacTiming = MacTiming(), queue_packets: int = DEFAULT_QUEUE_PACKETS,
+                 retry_limit: int = 7, seed: int = 0):
+        if queue_packets < 1:
+            raise ValueError(f"queue_packets must be >= 1, got {queue_packets}")
+        self.n, self.timing, self.queue_packets, self.retry_limit = stations, timing, queue_packets, retry_limit
+        self.rng = np.random.default_rng(seed)
+        self.queues: list[deque[Frame]] = [deque() for _ in range(stations)]
+        self.queued = [0] * stations  # packets in each queue
+        self.cw = [timing.cw_min] * stations
+        self.backoff: list[int | None] = [None] * stations  # slots left to count, while backlogged
+        self.counting_from_s = [0.0] * stations  # when its count (re)started: backlogged or medium idle again
+        self.idle_from_s = 0.0  # the medium is free from here on
+        self.phy_bps = np.zeros((stations, stations))
+        self.per = np.ones((stations, stations))
+        self.fallback_bps = np.zeros((stations, stations))
+        self.fallback_per = np.ones((stations, stations))
+        self.stats = MediumStats(airtime_s={i: 0.0 for i in range(stations)})
+        self._done: list[Delivery] = []  # delivered by the last transmission run, not yet handed out
+
+    def set_links(self, phy_bps, per, fallback_bps=None, fallback_per=None) -> None:
+        """Each ordered pair's PHY rate (0: out of range) and frame error rate; the retry chain's fallback (MCS 0)."""
+        self.phy_bps, self.per = np.asarray(phy_bps, float), np.clip(np.asarray(per, float), 0.0, 1.0)
+        self.fallback_bps = self.phy_bps if fallback_bps is None else np.asarray(fallback_bps, float)
+        self.fallback_per = self.per if fallback_per is None else np.clip(np.asarray(fallback_per, float), 0.0, 1.0)
+
+    def offer(self, t_s: float, src: int, dst: int, size_bytes: int, item: object = None, segments: int = 1) -> bool:
+        """Queue a packet (or a run of `segments` packets) at station src, in time order after run_until(t_s);
+        False: its queue had no room for them (a queue holds queue_packets packets)."""
+        self.stats.offered += 1
+        queue = self.queues[src]
+        if self.queued[src] + segments > self.queue_packets:
+            self.stats.queue_drops += 1
+            return False
+        queue.append(Frame(src, dst, size_bytes, item, t_s, max(segments, 1)))
+        self.queued[src] += max(segments, 1)
+        if self.backoff[src] is None:
+            self.backoff[src] = int(self.rng.integers(0, self.cw[src] + 1))
+            self.counting_from_s[src] = max(t_s, self.idle_from_s)
+        return True
+
+    def backlog(self, station: int) -> int:
+        """Packets queued at the station (a segmentation offload's run counts each of its segments)."""
+        return self.queued[station]
+
+    def next_event_s(self) -> float | None:
+        """When the next transmission starts or the next delivery completes (None: nothing is under way)."""
+        start = self._next_start()
+        times = [start[0]] if start is not None else []
+        times += [d.delivered_s for d in self._done]
+        return min(times) if times else None
+
+    def run_until(self, t_s: float, start_horizon_s: float = 0.0) -> list[Delivery]:
+        """Every transmission that starts by t_s (or t_s + start_horizon_s: decided that much ahead, so a caller
+        on a real clock need not wake for each start), done; the deliveries completed by t_s, in time order."""
+        while (start := self._next_start()) is not None and start[0] <= t_s + start_horizon_s:
+            self._transmit(*start)
+        ready = [d for d in self._done if d.delivered_s <= t_s]
+        self._done = [d for d in self._done if d.delivered_s > t_s]
+        return sorted(ready, key=lambda d: d.delivered_s)
+
+    # ---- one channel access ----------------------------------------------------------------------------------
+    def _slot_of(self, station: int) -> int:
+        """The slot (counted from the end of AIFS after the medium went idle) in which the station's count ends."""
+        base = self.idle_from_s + self.timing.aifs_s
+        waited = max(0, math.ceil((self.counting_from_s[station] - base) / self.timing.slot_s - 1e-9))
+        return waited + self.backoff[station]
+
+    def _next_start(self) -> tuple[float, list[int], int] | None:
+        backlogged = [i for i in range(self.n) if self.queues[i]]
+        if not backlogged:
+            return None
+        slots = {i: self._slot_of(i) for i in backlogged}
+        first = min(slots.values())
+        winners = [i for i in backlogged if slots[i] == first]
+        return self.idle_from_s + self.timing.aifs_s + first * self.timing.slot_s, winners, first
+
+    def _transmit(self, start_s: float, winners: list[int], slot: int) -> None:
+        t = self.timing
+        for i in range(self.n):  # the losers froze their count where the medium went busy
+            if self.queues[i] and i not in winners:
+                waited = max(0, math.ceil((self.counting_from_s[i] - self.idle_from_s - t.aifs_s) / t.slot_s - 1e-9))
+                self.backoff[i] = max(self.backoff[i] - max(slot - waited, 0), 0)
+        ends = []
+        for src in winners:
+            ends.append(self._exchange(src, start_s, collided=len(winners) > 1))
+        self.stats.exchanges += 1
+        self.stats.collisions += len(winners) > 1
+        self.idle_from_s = max(ends)
+        self.stats.busy_s += self.idle_from_s - start_s
+        for i in range(self.n):
+            if not self.queues[i]:
+                self.backoff[i] = None
+                continue
+            if i in winners:  # a new count for its next frame, from a window reset or doubled by the outcome
+                self.backoff[i] = int(self.rng.integers(0, self.cw[i] + 1))
+            self.counting_from_s[i] = self.idle_from_s
+
+    def _exchange(self, src: int, start_s: float, collided: bool) -> float:
+        """src sends its head frames (an aggregate to one receiver, or one broadcast); returns when the medium is
+        free again. A collision loses every subframe."""
+        t = self.timing
+        queue = self.queues[src]
+        head = queue[0]
+        if head.dst == BROADCAST:
+            queue.popleft()
+            self.queued[src] -= head.segments
+            head.first_sent_s = start_s if head.first_sent_s is None else head.first_sent_s
+            end = start_s + t.ppdu_s(t.subframe_bytes(head.size_bytes), t.broadcast_rate_bps, t.legacy_preamble_s)
+            if not collided:
+                for j in range(self.n):
+                    if j != src and self.phy_bps[src, j] > 0 and self.rng.random() >= self.per[src, j]:
+                        self._done.append(Delivery(head, j, end))
+                        self.stats.delivered += 1
+            self.stats.airtime_s[src] += end - start_s
+            return end
+        dst = head.dst
+        fallback = max(head.tries) >= (self.retry_limit + 1) // 2
+        rate = (self.fallback_bps if fallback else self.phy_bps)[src, dst]
+        per = (self.fallback_per if fallback else self.per)[src, dst]
+        if rate <= 0:  # out of range: the tries go at the lowest rate and all fail
+            rate, per = t.control_rate_bps, 1.0
+        batch, count, size = [], 0, 0  # (frame, how many of its segments) in this aggregate
+        for frame in queue:
+            if frame.dst != dst:
+                break
+            sub = t.subframe_bytes(frame.segment_bytes)
+            fit = 0
+            while fit < len(frame.tries) and count < t.max_ampdu_frames and size + sub <= t.max_ampdu_bytes \
+                    and (count == 0 or t.ppdu_s(size + sub, rate) <= t.max_ppdu_s):
+                fit, count, size = fit + 1, count + 1, size + sub
+            if fit:
+                batch.append((frame, fit))
+            if fit < len(frame.tries):
+                break
+        data_end = start_s + t.ppdu_s(size, rate)
+        end = data_end + t.sifs_s + t.block_ack_s()
+        self.stats.airtime_s[src] += end - start_s
+        through = 0
+        for frame, sent in batch:
+            frame.first_sent_s = start_s if frame.first_sent_s is None else frame.first_sent_s
+            kept = []
+            for k, tries in enumerate(frame.tries):
+                if k >= sent:
+                    kept.append(tries)
+                elif collided or self.rng.random() < per:
+                    kept.append(tries + 1)
+                else:
+                    through += 1
+            frame.tries = kept
+        # in the queue's order, as the receiver's reorder buffer releases them: a frame through (or lost) behind
+        # one still being retried waits for it
+        while queue and queue[0].dst == dst and not (queue[0].tries and max(queue[0].tries) <= self.retry_limit):
+            frame = queue.popleft()
+            self.queued[src] -= frame.segments
+            if frame.tries:  # a segment failed every try: the packet (a run: all of it) is lost
+                self.stats.retry_drops += 1
+            else:
+                self._done.append(Delivery(frame, dst, data_end))
+                self.stats.delivered += 1
+        # no block ack came back (nothing got through): the window doubles; any acknowledgement resets it
+        self.cw[src] = t.cw_min if through else min(2 * self.cw[src] + 1, t.cw_max)
+        return end
+
+
+def expected_message_s(timing: MacTiming, message_bytes: int, phy_bps: float, per: float = 0.0,
+                       mtu_bytes: int = 1500) -> float:
+    """The mean air time of a message sent alone on an idle medium (the sleep network's per-message charge):
+    IP packets of the MTU, aggregated as the medium does, each exchange paying AIFS, the mean backoff (half the
+    minimum window), preamble, data, SIFS and the block ack; lost subframes are sent again (1 / (1 - per) times
+    the air time on average)."""
+    if phy_bps <= 0 or per >= 1:
+        return math.inf
+    packets = [mtu_bytes] * (message_bytes // mtu_bytes) + ([message_bytes % mtu_bytes] if message_bytes % mtu_bytes
+                                                            else [])
+    total, batch, size = 0.0, 0, 0
+    backoff_s = timing.cw_min / 2 * timing.slot_s
+
+    def exchange(size_bytes: int) -> float:
+        return timing.aifs_s + backoff_s + timing.ppdu_s(size_bytes, phy_bps) + timing.sifs_s + timing.block_ack_s()
+
+    for packet in packets or [0]:
+        sub = timing.subframe_bytes(packet)
+        if batch and (batch >= timing.max_ampdu_frames or size + sub > timing.max_ampdu_bytes
+                      or timing.ppdu_s(size + sub, phy_bps) > timing.max_ppdu_s):
+            total += exchange(size)
+            batch, size = 0, 0
+        batch += 1
+        size += sub
+    total += exchange(size)
+    return total / (1.0 - per)

@@ -1,0 +1,229 @@
+"""The air as a delay line (issue 28): one process holds every station's `air0`, a TUN device it creates in the
+station's namespace, and carries each IP packet through the Wi-Fi medium (nac_onboard.radio.medium): queued at
+its sender first in first out, sent when the medium gives that station the air, delivered (written to the
+receiver's `air0`) when its frame has been on the air. These kernels have no netem; a TUN device is how a packet can
+be held for a time. Everything a station sends (MPI, probes, peer state) goes through its one queue.
+
+Time is the run's (nac_onboard.clock: simulated seconds, the simulator's pace): a frame of T simulated seconds is
+written T / speed-up wall seconds after it was sent. What arrives late (the process could not keep up) is written
+at once and counted, never dropped.
+
+    python -m sitl.network.delay_line NS:ADDRESS [NS:ADDRESS ...] [--queue-packets N] [--retry-limit N] [--seed N]
+
+It prints `delay line ready` once every `air0` exists, then reads link updates on stdin, one JSON object a line
+({"phy_bps": [[...]], "per": [[...]], "fallback_bps": ..., "fallback_per": ...}, N x N each), and prints its
+counters as one JSON object a line every STATS_PERIOD_S wall seconds and at its end (stdin closed, or SIGTERM).
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import fcntl
+import json
+import os
+import selectors
+import signal
+import socket
+import struct
+import sys
+import time
+
+import numpy as np
+
+from nac_onboard.clock import from_env
+from nac_onboard.radio.medium import BROADCAST, DEFAULT_QUEUE_PACKETS, MacTiming, Medium
+from sitl.network.netns import NetworkError, in_netns
+
+TUNSETIFF, TUNSETOFFLOAD, IFF_TUN, IFF_NO_PI, IFF_VNET_HDR = 0x400454CA, 0x400454D0, 0x0001, 0x1000, 0x4000
+TUN_F_CSUM, TUN_F_TSO4 = 0x01, 0x02
+VNET_HDR = struct.Struct("<BBHHHH")  # virtio_net_hdr: flags, gso_type, hdr_len, gso_size, csum_start, csum_offset
+VNET_GSO_NONE = 0
+PR_SET_TIMERSLACK = 29
+MAX_WAIT_S = 0.05  # wall: the longest select() sleeps, so stdin and the counters are served
+# Wall seconds a timed wake-up is begun early and the rest spun on the clock; also how far ahead (times the pace)
+# a transmission's start is decided, so a frame costs one wake-up (its delivery), not two. Measured on this
+# machine: select's wake-ups come 50-100 us late.
+EARLY_S = 0.0002
+STATS_PERIOD_S = 1.0
+LATE_S = 0.001  # simulated: a delivery written this much after its time counts as late
+READY = "delay line ready"
+
+
+def open_tun(namespace: str, name: str = "air0") -> int:
+    """A TUN device named `name` in `namespace`, non-blocking; it exists while the fd is open, so it goes with
+    this process however it ends. It takes TCP segmentation offload (as a virtio NIC does): the station's stack
+    hands over up to 64 KB of a flow as one packet behind a virtio_net_hdr, and the medium charges it as the
+    MTU-sized packets it stands for, so a bulk flow costs this process a few hundred reads a second, not
+    thousands."""
+    def make() -> int:
+        fd = os.open("/dev/net/tun", os.O_RDWR | os.O_NONBLOCK)
+        fcntl.ioctl(fd, TUNSETIFF, struct.pack("16sH", name.encode(), IFF_TUN | IFF_NO_PI | IFF_VNET_HDR))
+        fcntl.ioctl(fd, TUNSETOFFLOAD, TUN_F_CSUM | TUN_F_TSO4)
+        return fd
+    return in_netns(namespace, make)
+
+
+def segments_of(header: bytes, ip_bytes: int) -> int:
+    """How many packets of the MTU a packet read with its virtio_net_hdr stands for (1 unless it is a TSO run)."""
+    _, gso_type, hdr_len, gso_size, _, _ = VNET_HDR.unpack_from(header)
+    if gso_type == VNET_GSO_NONE or gso_size == 0:
+        return 1
+    return max(1, -(-(ip_bytes - hdr_len) // gso_size))
+
+
+class DelayLine:
+    def __init__(self, namespaces: list[str], addresses: list[str], queue_packets: int, retry_limit: int,
+                 seed: int, out=sys.stdout):
+        self.clock = from_env()
+        self.medium = Medium(len(namespaces), MacTiming(), queue_packets, retry_limit, seed)
+        self.index = {socket.inet_aton(a): k for k, a in enumerate(addresses)}
+        self.fds = [open_tun(ns) for ns in namespaces]
+        self.out = out
+        self.counters = {"packets_in": 0, "not_ipv4": 0, "unknown_destination": 0, "late": 0, "max_late_s": 0.0,
+                         "updates": 0, "bad_updates": 0}
+        self.queue_s: list[float] = []  # since the last counters line
+        self.air_s: list[float] = []
+        self._stop = False
+
+    def run(self, control) -> None:
+        # select(2) sleeps to the microsecond; epoll and poll round a timeout up to whole milliseconds, which
+        # would add a millisecond to every frame of a few hundred microseconds (measured: 2.9 ms round trips
+        # against the model's 0.49). A station count of fds is well within select's limits.
+        selector = selectors.SelectSelector()
+        _fine_timer_slack()
+        for k, fd in enumerate(self.fds):
+            selector.register(fd, selectors.EVENT_READ, k)
+        os.set_blocking(control.fileno(), False)
+        selector.register(control, selectors.EVENT_READ, None)
+        pending = b""
+        next_stats = time.monotonic() + STATS_PERIOD_S
+        print(READY, file=self.out, flush=True)
+        while not self._stop:
+            now = self._deliver()
+            due = self.medium.next_event_s()
+            wait = MAX_WAIT_S if due is None else min((due - now) / self.clock.speedup, MAX_WAIT_S)
+            deadline = time.monotonic() + wait
+            ready = selector.select(max(wait - EARLY_S, 0.0))
+            if not ready and due is not None:
+                while time.monotonic() < deadline:
+                    pass  # the last stretch spun on the clock: a timed wake-up comes 50-100 us late
+            now = self._deliver()
+            for key, _ in ready:
+                if key.data is None:
+                    chunk = os.read(control.fileno(), 1 << 20)
+                    if not chunk:
+                        self._stop = True
+                        break
+                    pending += chunk
+                    *lines, pending = pending.split(b"\n")
+                    for line in lines:
+                        self._update(line)
+                else:
+                    self._take(key.data, key.fileobj, now)
+            if time.monotonic() >= next_stats:
+                next_stats += STATS_PERIOD_S
+                self._stats(now)
+        self._stats(self.clock.now_s())
+
+    def stop(self, *_) -> None:
+        self._stop = True
+
+    def _take(self, src: int, fd: int, now_s: float) -> None:
+        while True:
+            try:
+                packet = os.read(fd, 65535)
+            except (BlockingIOError, InterruptedError):
+                return
+            self.counters["packets_in"] += 1
+            ip = VNET_HDR.size
+            if len(packet) < ip + 20 or packet[ip] >> 4 != 4:
+                self.counters["not_ipv4"] += 1  # IPv6 is off on air0; anything else is not for the air
+                continue
+            dst = self.index.get(packet[ip + 16:ip + 20])
+            if dst is None:
+                if packet[ip + 19] != 255:
+                    self.counters["unknown_destination"] += 1
+                    continue
+                dst = BROADCAST
+            size = len(packet) - ip
+            self.medium.offer(now_s, src, dst, size, packet, segments_of(packet, size))
+
+    def _deliver(self) -> float:
+        now = self.clock.now_s()
+        for delivery in self.medium.run_until(now, EARLY_S * self.clock.speedup):
+            late = now - delivery.delivered_s
+            if late > LATE_S:
+                self.counters["late"] += 1
+                self.counters["max_late_s"] = max(self.counters["max_late_s"], late)
+            self.queue_s.append(delivery.queue_s)
+            self.air_s.append(delivery.delivered_s - delivery.frame.first_sent_s)
+            try:
+                os.write(self.fds[delivery.dst], delivery.frame.item)
+            except OSError:  # the receiver's air0 is down or its queue full: the packet is lost there
+                self.counters["write_failed"] = self.counters.get("write_failed", 0) + 1
+        return now
+
+    def _update(self, line: bytes) -> None:
+        n = len(self.fds)
+        try:
+            update = json.loads(line)
+            matrices = {key: np.asarray(update[key], float) for key in ("phy_bps", "per")}
+            for key in ("fallback_bps", "fallback_per"):
+                matrices[key] = np.asarray(update[key], float) if key in update else None
+            if any(m is not None and (m.shape != (n, n) or not np.isfinite(m).all()) for m in matrices.values()):
+                raise ValueError(f"every matrix {n} x {n} and finite")
+        except (ValueError, KeyError, TypeError) as err:
+            self.counters["bad_updates"] += 1
+            print(json.dumps({"error": f"link update refused: {err}"}), file=self.out, flush=True)
+            return
+        self.medium.set_links(matrices["phy_bps"], matrices["per"], matrices["fallback_bps"],
+                              matrices["fallback_per"])
+        self.counters["updates"] += 1
+
+    def _stats(self, now_s: float) -> None:
+        s = self.medium.stats
+        line = {"t_sim_s": round(now_s, 4), **self.counters, "offered": s.offered, "delivered": s.delivered,
+                "queue_drops": s.queue_drops, "retry_drops": s.retry_drops, "exchanges": s.exchanges,
+                "collisions": s.collisions, "busy_s": round(s.busy_s, 6),
+                "backlog": [self.medium.backlog(k) for k in range(len(self.fds))],
+                "queue_p50_s": _median(self.queue_s), "air_p50_s": _median(self.air_s)}
+        self.queue_s, self.air_s = [], []
+        print(json.dumps(line), file=self.out, flush=True)
+
+
+def _fine_timer_slack() -> None:
+    """1 us of timer slack (PR_SET_TIMERSLACK) instead of Linux's default 50 us, for this process's waits."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_TIMERSLACK, 1000, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+
+
+def _median(values: list[float]) -> float | None:
+    return round(float(np.median(values)), 6) if values else None
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m sitl.network.delay_line", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("stations", nargs="+", help="NAMESPACE:ADDRESS of each station, in index order")
+    parser.add_argument("--queue-packets", type=int, default=DEFAULT_QUEUE_PACKETS)
+    parser.add_argument("--retry-limit", type=int, default=7)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    pairs = [s.rpartition(":") for s in args.stations]
+    try:
+        line = DelayLine([p[0] for p in pairs], [p[2] for p in pairs], args.queue_packets, args.retry_limit,
+                         args.seed)
+    except (NetworkError, OSError, ValueError) as err:
+        print(f"delay line: {err}", file=sys.stderr)
+        return 2
+    signal.signal(signal.SIGTERM, line.stop)
+    signal.signal(signal.SIGINT, line.stop)
+    line.run(sys.stdin)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,142 @@
+"""The kernel network with a frame-level air (`[network] air = "medium"`, issue 28): each station's namespace has
+an `air0` that is a TUN device of one delay-line process (sitl.network.delay_line), which carries every packet
+through the 802.11 medium model: one FIFO transmit queue per station, channel access, aggregation, retries and
+collisions, in the run's simulated time. No bridge, no tc, no nftables: rate, loss, queueing and air time are the
+medium's. The shaper hands it each pair's PHY rate and frame error rate (and the retry chain's fallback) instead of
+HTB rates and drop rules; the delay line's counters become `air_medium` records in network.jsonl.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+from nac_onboard.child_process import die_with_parent_preexec
+from nac_onboard.clock import ENV as CLOCK_ENV
+from nac_onboard.flight_log import JsonlLog
+from nac_onboard.radio.medium import DEFAULT_QUEUE_PACKETS
+from nac_onboard.records import kinds
+from sitl.network import netns
+from sitl.network.air import AirNetwork, Station
+from sitl.network.delay_line import READY
+from sitl.network.shaping import AirState
+
+log = logging.getLogger(__name__)
+READY_TIMEOUT_S = 10.0
+
+
+class MediumAir(AirNetwork):
+    def __init__(self, vehicle_ids: list[str], ap: int | None, sharing: bool,
+                 probe_ports: list[int | None] | None = None, speedup: float = 1.0,
+                 queue_packets: int = DEFAULT_QUEUE_PACKETS, clock_path: Path | None = None, seed: int = 0):
+        super().__init__(vehicle_ids, ap, sharing, probe_ports, speedup)
+        self.queue_packets, self.clock_path, self.seed = queue_packets, clock_path, seed
+        self.line: subprocess.Popen | None = None
+        self.counters: dict | None = None  # the delay line's last counters
+        self.errors: list[str] = []
+        self._records: JsonlLog | None = None
+        self._reader: threading.Thread | None = None
+
+    @property
+    def namespaces(self) -> list[str]:
+        return [s.netns for s in self.stations]
+
+    def record_to(self, out: JsonlLog) -> None:
+        """From now on each counters line of the delay line is an `air_medium` record in `out`."""
+        self._records = out
+
+    def _build(self) -> None:
+        lines = []
+        for name in self.namespaces:
+            lines.append(f"netns add {name}")
+            self.created.append(name)
+        netns.run(["ip", "-batch", "-"], "creating the namespaces", "\n".join(lines) + "\n")
+        for s in self.stations:
+            netns.run(["ip", "-n", s.netns, "link", "set", "lo", "up"], f"{s.vehicle_id}'s loopback")
+            netns.run(["ip", "netns", "exec", s.netns, "sysctl", "-q", "-w", "net.ipv6.conf.all.disable_ipv6=1",
+                       "net.ipv6.conf.default.disable_ipv6=1", *self.tcp_settings()], f"{s.vehicle_id}'s settings")
+        env = {**os.environ, CLOCK_ENV: str(self.clock_path)} if self.clock_path is not None else None
+        self.line = subprocess.Popen(
+            [sys.executable, "-m", "sitl.network.delay_line", *(f"{s.netns}:{s.address}" for s in self.stations),
+             "--queue-packets", str(self.queue_packets), "--seed", str(self.seed)],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1, env=env,
+            preexec_fn=die_with_parent_preexec())
+        self._wait_ready()
+        for s in self.stations:
+            netns.run(["ip", "-n", s.netns, "-batch", "-"], f"{s.vehicle_id}'s air0",
+                      f"addr add {s.address}/16 dev air0\nlink set air0 up\n")
+        self._reader = threading.Thread(target=self._read_counters, name="delay-line", daemon=True)
+        self._reader.start()
+        self.wait_for_carrier()
+
+    def _wait_ready(self) -> None:
+        seen: list[str] = []
+
+        def first_line() -> None:
+            seen.append(self.line.stdout.readline())
+
+        reader = threading.Thread(target=first_line, daemon=True)
+        reader.start()
+        reader.join(READY_TIMEOUT_S)
+        if not seen or seen[0].strip() != READY:
+            self.line.kill()
+            why = self.line.stderr.read() if self.line.poll() is not None else "no answer"
+            raise netns.NetworkError(f"the delay line did not start within {READY_TIMEOUT_S:g} s: "
+                                     f"{(seen[0] if seen else '').strip() or why.strip()}")
+
+    def _read_counters(self) -> None:
+        fields = {f.name for f in kinds.AIR_MEDIUM.fields}
+        for line in self.line.stdout:
+            try:
+                counters = json.loads(line)
+            except ValueError:
+                continue
+            if "error" in counters:
+                self.errors.append(counters["error"])
+                log.warning("delay line: %s", counters["error"])
+                continue
+            self.counters = counters
+            if self._records is not None:
+                self._records.write(kinds.AIR_MEDIUM, **{k: v for k, v in counters.items() if k in fields})
+
+    @staticmethod
+    def _running(station: Station) -> bool:
+        """A TUN device with its reader attached is up with operstate UNKNOWN (it has no carrier of its own)."""
+        shown = netns.run(["ip", "-n", station.netns, "-j", "link", "show", "dev", "air0"],
+                          f"{station.vehicle_id}'s air0")
+        try:
+            flags = json.loads(shown)[0].get("flags", [])
+        except (ValueError, IndexError, AttributeError):
+            return False
+        return "UP" in flags and "LOWER_UP" in flags
+
+    def apply(self, state: AirState, pace: float) -> None:
+        frames = {key: value.tolist() for key, value in state.frames.items()}
+        try:
+            self.line.stdin.write(json.dumps(frames) + "\n")
+            self.line.stdin.flush()
+        except (OSError, ValueError) as err:
+            raise netns.NetworkError(f"the delay line stopped: {err}") from None
+
+    def close(self) -> None:
+        if self.line is not None:
+            try:
+                self.line.stdin.close()  # its end: the last counters, then exit
+            except OSError:
+                pass
+            try:
+                self.line.wait(5.0)
+            except subprocess.TimeoutExpired:
+                self.line.kill()
+                self.line.wait(5.0)
+            if self._reader is not None:
+                self._reader.join(2.0)
+            self.line = None
+        for name in reversed(self.created):
+            netns.delete_namespace(name)
+        self.created = []

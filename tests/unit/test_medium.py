@@ -1,0 +1,130 @@
+"""The Wi-Fi medium frame by frame (nac_onboard.radio.medium): the standard's timing, FIFO queues, aggregation,
+contention, retries. Seeded: every count below is the same on every run; the bounds on random outcomes are several
+standard deviations of their binomial laws, stated where they are used."""
+
+import numpy as np
+import pytest
+
+from nac_onboard.radio.medium import BROADCAST, MacTiming, Medium, expected_message_s
+
+T = MacTiming()
+
+
+def medium(stations: int, rate_bps: float, per: float = 0.0, **kwargs) -> Medium:
+    m = Medium(stations, **kwargs)
+    m.set_links(np.full((stations, stations), rate_bps), np.full((stations, stations), per))
+    return m
+
+
+def test_the_timing_is_the_standards():
+    """AIFS[BE] = SIFS + 3 slots; a 1,500-byte packet at MCS 7 (65 Mbit/s): 36 us of HT preamble, 48 symbols of
+    4 us for its 1,544 bytes with headers, delimiter and padding, and the 6 us signal extension."""
+    assert T.aifs_s == pytest.approx(37e-6)
+    assert T.subframe_bytes(1500) == 1544
+    assert T.ppdu_s(1544, 65e6) == pytest.approx(36e-6 + 48 * 4e-6 + 6e-6)
+    assert T.block_ack_s() == pytest.approx(20e-6 + 3 * 4e-6 + 6e-6)  # 32 bytes at 24 Mbit/s: 3 symbols
+
+
+def test_a_lone_small_frame_costs_a_quarter_of_a_millisecond_not_microseconds():
+    """One 100-byte message on an idle medium at 30 Mbit/s: delivered after AIFS, 0-15 slots of backoff and its
+    PPDU, as the closed form says on average."""
+    m = medium(2, 30e6)
+    m.offer(0.0, 0, 1, 100, "hello")
+    (delivery,) = m.run_until(1.0)
+    ppdu = T.ppdu_s(T.subframe_bytes(100), 30e6)
+    assert T.aifs_s + ppdu <= delivery.delivered_s <= T.aifs_s + 15 * T.slot_s + ppdu + 1e-12
+    assert delivery.dst == 1 and delivery.frame.item == "hello"
+    assert expected_message_s(T, 100, 30e6) == pytest.approx(
+        T.aifs_s + 7.5 * T.slot_s + ppdu + T.sifs_s + T.block_ack_s())
+
+
+def test_a_small_message_waits_behind_the_bulk_its_station_queued_first():
+    """First in, first out: 999 packets of a bulk transfer, then a 100-byte message; it leaves last, after the
+    bulk's whole air time (about 0.43 s at 30 Mbit/s), and every packet arrives in order."""
+    m = medium(2, 30e6)
+    for k in range(999):
+        m.offer(0.0, 0, 1, 1500, k)
+    m.offer(0.0, 0, 1, 100, "small")
+    delivered = m.run_until(10.0)
+    assert [d.frame.item for d in delivered] == [*range(999), "small"]
+    assert delivered[-1].queue_s > 0.4 and m.stats.queue_drops == 0
+
+
+def test_a_full_queue_drops_the_tail_and_counts_it():
+    m = medium(2, 30e6, queue_packets=10)
+    accepted = [m.offer(0.0, 0, 1, 1500, k) for k in range(15)]
+    assert accepted == [True] * 10 + [False] * 5 and m.stats.queue_drops == 5
+    assert [d.frame.item for d in m.run_until(1.0)] == list(range(10))
+    with pytest.raises(ValueError, match="queue_packets"):
+        Medium(2, queue_packets=0)
+
+
+@pytest.mark.parametrize("rate_bps", [6.5e6, 65e6])
+def test_saturated_goodput_is_what_aggregation_and_the_timing_allow(rate_bps):
+    """20,000 packets back to back: the frame-by-frame medium carries what the closed form says (aggregates of up
+    to 4 ms, each paying access, preamble and block ack), within 1 % (the backoff draws average out over the
+    aggregates: at least 400 of them). At 65 Mbit/s that is about 60 Mbit/s, at 6.5 Mbit/s about 6."""
+    m = medium(2, rate_bps, queue_packets=20_000)
+    for _ in range(20_000):
+        m.offer(0.0, 0, 1, 1500)
+    delivered = m.run_until(100.0)
+    goodput = 20_000 * 1500 * 8 / delivered[-1].delivered_s
+    assert goodput == pytest.approx(20_000 * 1500 * 8 / expected_message_s(T, 20_000 * 1500, rate_bps), rel=0.01)
+    assert 0.85 * rate_bps < goodput < 0.95 * rate_bps
+
+
+def test_two_saturated_stations_share_the_air_and_sometimes_collide():
+    """Two stations sending to a third: each gets half the frames (within 5 %), and some exchanges collide: with
+    both drawing from 16 slots, about 1 in 16 (Bianchi's model for 2 stations); here between 2 % and 15 %."""
+    m = medium(3, 65e6, queue_packets=100_000, seed=1)
+    for _ in range(20_000):
+        m.offer(0.0, 0, 2, 1500)
+        m.offer(0.0, 1, 2, 1500)
+    delivered = m.run_until(2.0)
+    share = sum(d.frame.src == 0 for d in delivered) / len(delivered)
+    assert share == pytest.approx(0.5, abs=0.05)
+    assert 0.02 < m.stats.collisions / m.stats.exchanges < 0.15
+
+
+def test_frame_errors_are_retried_and_only_the_exhausted_are_lost():
+    """A frame error rate of 0.5 and 7 retries: a packet is lost when all 8 tries fail, 0.5^8 of 20,000 = 78 on
+    average (binomial standard deviation 8.8; the bound is 4 of them), and nothing is lost without errors."""
+    m = medium(2, 30e6, per=0.5, queue_packets=20_000, seed=3)
+    for _ in range(20_000):
+        m.offer(0.0, 0, 1, 1500)
+    delivered = m.run_until(100.0)
+    assert abs(m.stats.retry_drops - 78.1) < 4 * 8.8
+    assert len(delivered) + m.stats.retry_drops == 20_000
+
+
+def test_out_of_range_every_try_fails_and_still_costs_air():
+    m = medium(2, 0.0)
+    m.offer(0.0, 0, 1, 1500)
+    assert m.run_until(1.0) == [] and m.stats.retry_drops == 1
+    assert m.stats.exchanges == 8 and m.stats.busy_s > 8 * T.ppdu_s(1544, T.control_rate_bps)
+
+
+def test_a_broadcast_goes_once_at_the_basic_rate_to_every_station_in_range():
+    m = Medium(3)
+    rates = np.full((3, 3), 30e6)
+    rates[0, 2] = 0.0  # station 2 is out of station 0's range
+    m.set_links(rates, np.zeros((3, 3)))
+    m.offer(0.0, 0, BROADCAST, 200, "state")
+    delivered = m.run_until(1.0)
+    assert [d.dst for d in delivered] == [1] and m.stats.exchanges == 1
+    assert delivered[0].delivered_s > T.ppdu_s(T.subframe_bytes(200), T.broadcast_rate_bps, T.legacy_preamble_s)
+
+
+def test_a_segmentation_offload_run_costs_the_air_of_its_packets_and_their_room_in_the_queue():
+    """Linux hands a TUN device 64 KB of a TCP flow at once (TSO): as 44 packets of 1,500 bytes it takes the same
+    air time as 44 separate packets (three aggregates of at most 4 ms), and 44 places of the queue."""
+    single, run = medium(2, 65e6, seed=5), medium(2, 65e6, seed=5)
+    for k in range(44):
+        single.offer(0.0, 0, 1, 1500, k)
+    run.offer(0.0, 0, 1, 44 * 1500, "run", segments=44)
+    assert run.backlog(0) == single.backlog(0) == 44
+    last_single = single.run_until(1.0)[-1].delivered_s
+    (delivered,) = run.run_until(1.0)
+    assert delivered.delivered_s == pytest.approx(last_single) and run.stats.exchanges == single.stats.exchanges == 3
+    full = medium(2, 65e6, queue_packets=50)
+    assert full.offer(0.0, 0, 1, 44 * 1500, segments=44) and not full.offer(0.0, 0, 1, 10 * 1500, segments=10)
