@@ -1,6 +1,8 @@
 """The kernel network of SITL experiments: how exactly it shapes, how fast it follows the vehicles, and what a
 whole run costs on this machine (needs root, ip, tc, nft and iperf3).
 
+0. The frame-level air (delay line): a small message's round trip against the medium model's, at each speed-up,
+   and the delay line's CPU per 1,000 packets a second while iperf3 sends through it.
 1. Shaping accuracy: real iperf3 (3 s) through a shaped pair at 1, 10 and 50 Mbit/s: received / target.
 2. Shaper update latency: a position change, until the kernel's HTB class holds the new rate (read back with
    `tc class show`): the shaper's write plus tc's apply.
@@ -23,22 +25,27 @@ import os
 import re
 import resource
 import shutil
+import socket
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
+import types
 from pathlib import Path
 
 import numpy as np
 
 from missions import save_mission
+from nac_onboard.clock import publish as publish_clock
 from nac_onboard.flight_log import JsonlLog
 from nac_onboard.radio.channel import PRESETS, ChannelModel
+from nac_onboard.radio.medium import MacTiming, expected_message_s
 from sitl.experiment.runner import Outcome, run_scenario
 from sitl.experiment.scenario import load_scenario
 from sitl.network.air import AirNetwork
-from sitl.network.netns import NetworkUnavailable, check_kernel_network
+from sitl.network.medium_air import MediumAir
+from sitl.network.netns import NetworkUnavailable, check_kernel_network, socket_in_netns
 from sitl.network.shaper import Shaper
 from sitl.scenarios.generate import at, hover, route
 
@@ -167,6 +174,68 @@ def _round(value):
     return None if value is None else round(float(value), 2)
 
 
+def delay_line(speedup: float, samples: int, iperf_s: int, folder: Path) -> dict:
+    """The frame-level air (`[network] air = "medium"`) between two stations at 30 Mbit/s PHY: a 100-byte UDP echo's
+    round trip (simulated seconds) against the medium model's, and the delay line's CPU while iperf3 sends through
+    it, per 1,000 packets a second it carries (offload runs counted as the packets they stand for)."""
+    phy_bps = 30e6
+    clock_path = folder / f"clock-{speedup:g}.json"
+    publish_clock(str(clock_path), speedup, 0.0)
+    air = MediumAir(["a", "b"], ap=0, sharing=True, speedup=speedup, clock_path=clock_path).create()
+    a, b = air.stations
+    try:
+        rates = np.array([[0.0, phy_bps], [phy_bps, 0.0]])
+        air.apply(types.SimpleNamespace(frames={"phy_bps": rates, "per": np.zeros((2, 2))}), speedup)
+        server = socket_in_netns(b.netns, socket.AF_INET, socket.SOCK_DGRAM)
+        server.bind((b.address, 9000))
+        client = socket_in_netns(a.netns, socket.AF_INET, socket.SOCK_DGRAM)
+        client.settimeout(5.0)
+        rtts = []
+        for _ in range(samples + 5):
+            start = time.perf_counter()
+            client.sendto(b"x" * 100, (b.address, 9000))
+            message, sender = server.recvfrom(2048)
+            server.sendto(message, sender)
+            client.recvfrom(2048)
+            rtts.append((time.perf_counter() - start) * speedup)
+            time.sleep(0.005)
+        server.close()
+        client.close()
+        iperf = subprocess.Popen([*air.exec_prefix(1), "iperf3", "-s", "-1", "-B", b.address],
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(0.3)
+        cpu0, t0, packets0 = _cpu_s(air.line.pid), time.monotonic(), _carried(air)
+        sent = subprocess.run([*air.exec_prefix(0), "iperf3", "-c", b.address, "-t", str(iperf_s), "--json"],
+                              capture_output=True, text=True, timeout=60 + iperf_s)
+        time.sleep(1.1)  # the delay line's next counters line
+        cpu_s, wall_s, packets = _cpu_s(air.line.pid) - cpu0, time.monotonic() - t0, _carried(air) - packets0
+        iperf.wait(10)
+    finally:
+        air.close()
+    model_s = 2 * expected_message_s(MacTiming(), 128, phy_bps)
+    measured = sorted(rtts[5:])
+    cpu_pct = 100 * cpu_s / wall_s
+    rate = packets / wall_s
+    mbps = json.loads(sent.stdout)["end"]["sum_received"]["bits_per_second"] / speedup / 1e6 if sent.stdout else None
+    median = statistics.median(measured)
+    return {"speedup": speedup, "rtt_median_ms": round(median * 1e3, 3),
+            "rtt_p90_ms": round(measured[int(0.9 * (len(measured) - 1))] * 1e3, 3),
+            "model_ms": round(model_s * 1e3, 3), "rtt_ratio": round(median / model_s, 3),
+            "iperf3_mbps_simulated": mbps and round(mbps, 2),
+            "packets_per_s": round(rate), "cpu_pct": round(cpu_pct, 1),
+            "cpu_pct_per_1000_pps": round(cpu_pct / (rate / 1000), 2) if rate else None}
+
+
+def _cpu_s(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _carried(air: MediumAir) -> int:
+    """Packets the medium has carried so far (its last counters line), offload runs as their segments."""
+    return (air.counters or {}).get("segments_delivered", 0)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rates", type=float, nargs="+", default=[1.0, 10.0, 50.0], help="Mbit/s")
@@ -187,6 +256,9 @@ def main() -> int:
     os.environ.setdefault("NAC_DATA_DIR", str(DATA))
     folder = Path(tempfile.mkdtemp(prefix="nac-bench-net-"))
     try:
+        for speedup in args.speedups:
+            print(json.dumps({"delay_line": delay_line(speedup, args.latency_samples, args.iperf_s, folder)}),
+                  flush=True)
         for rate in args.rates:
             print(json.dumps({"shaping_accuracy": shaping_accuracy(rate, args.iperf_s, folder)}), flush=True)
         print(json.dumps({"update_latency": update_latency(args.latency_samples, folder)}), flush=True)

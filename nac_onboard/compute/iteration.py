@@ -26,6 +26,7 @@ class IterationLinks:
         self.down_s = [0.0] * workers
         self.up_s = [0.0] * workers
         self.compute_s: list = [None] * workers
+        self.phy_bps: list = [0.0] * workers  # the emulated link's PHY rate, for a medium charging per frame
 
     def present(self, rank: int) -> bool:
         return self.absent[rank - 1] is None

@@ -17,12 +17,12 @@ BITS_PER_FLOAT = 64
 # master -> worker: [kind, iteration, rate_bps, extra_rows, loss | payload...] (rate and loss: the emulated link's)
 KIND_WORK, KIND_EXTRA, KIND_STOP, KIND_WARMUP = 1.0, 2.0, 3.0, 4.0  # extra: re-assigned rows of A, then B
 WORK_KIND, WORK_ITERATION, WORK_RATE_BPS, WORK_EXTRA_ROWS, WORK_LOSS = 0, 1, 2, 3, 4
-WORK_HEADER = 5
+WORK_HEADER = 6
 
 
 def work_header(kind: float, iteration: float = 0.0, rate_bps: float = 0.0, extra_rows: float = 0.0,
-                loss: float = 0.0) -> tuple[float, ...]:
-    return (kind, iteration, rate_bps, extra_rows, loss)
+                loss: float = 0.0, phy_bps: float = 0.0) -> tuple[float, ...]:
+    return (kind, iteration, rate_bps, extra_rows, loss, phy_bps)
 
 # worker -> master: [iteration, compute_s, up_s, rows, sse | result...] (rows, sse, result: the task's Answer)
 RESULT_ITERATION, RESULT_COMPUTE_S, RESULT_UP_S, RESULT_ROWS, RESULT_SSE = 0, 1, 2, 3, 4

@@ -160,7 +160,7 @@ def run_worker(comm, mpi, options: ComputeOptions) -> bool:
         if message is None:
             sys.stderr.write(f"worker {rank}: nothing from the master for {options.idle_timeout_s:g} s; aborting\n")
             comm.Abort(3)
-        kind, iteration, rate_bps, extra_rows, loss = message[:WORK_HEADER].tolist()  # Python floats: cheaper to test
+        kind, iteration, rate_bps, extra_rows, loss, phy_bps = message[:WORK_HEADER].tolist()  # floats: cheap tests
         if kind == KIND_STOP:
             inbox.close()
             return extra_rows == 0
@@ -170,7 +170,7 @@ def run_worker(comm, mpi, options: ComputeOptions) -> bool:
         t0 = time.perf_counter()
         result, rows, sse = task.work(message[WORK_HEADER:], int(extra_rows) if kind == KIND_EXTRA else None)
         compute_s = time.perf_counter() - t0
-        up_s = emulation.delay(result.size * BITS_PER_FLOAT, rate_bps, loss)
+        up_s = emulation.delay(result.size * BITS_PER_FLOAT, rate_bps, loss, phy_bps)
         answer = answers.get(result.size)
         if answer is None:
             answer = answers[result.size] = message_buffer((), RESULT_HEADER + result.size, pad)
@@ -228,7 +228,7 @@ class Master:
                     links.absent[k] = "no_position"
                 else:
                     now = self.emulation.link(d, rank, (self.options.vehicle_of(0), self.options.vehicle_of(rank)))
-                    links.rate_bps[k], links.loss[k] = now.capacity_bps, now.loss
+                    links.rate_bps[k], links.loss[k], links.phy_bps[k] = now.capacity_bps, now.loss, now.phy_bps
                     if not now.in_range:
                         links.absent[k] = "out_of_range"
         return links
@@ -247,13 +247,13 @@ class Master:
         """Send one input; `message` is a reusable buffer whose payload part is already filled. Returns the buffer
         the next send may fill (a copy, if a send that missed its deadline still holds this one)."""
         k = rank - 1
-        rate, loss = links.rate_bps[k] or 0.0, links.loss[k] or 0.0
+        rate, loss, phy = links.rate_bps[k] or 0.0, links.loss[k] or 0.0, links.phy_bps[k]
         # the research's emulation: the transfer takes I/C before it happens
-        down_s = self.emulation.delay(payload.size * BITS_PER_FLOAT, rate, loss) if self.emulation else 0.0
+        down_s = self.emulation.delay(payload.size * BITS_PER_FLOAT, rate, loss, phy) if self.emulation else 0.0
         if message is None:
             message = message_buffer((), WORK_HEADER + payload.size, self.pad)
             message[WORK_HEADER:WORK_HEADER + payload.size] = payload
-        message[:WORK_HEADER] = work_header(kind, iteration, rate, extra_rows, loss)
+        message[:WORK_HEADER] = work_header(kind, iteration, rate, extra_rows, loss, phy)
         sent = self._send_within(rank, message, self.clock.wall_s(self.options.timeout_s))
         links.bytes_down[k] += message.nbytes
         links.down_s[k] += down_s

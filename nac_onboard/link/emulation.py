@@ -39,12 +39,12 @@ class SleepEmulation:
         """The pair's link now. ids: the two vehicles' ids, for a replay table that recorded them."""
         return self.links.link(self.clock.now_s(), distance_m, pair, ids)
 
-    def transfer_s(self, payload_bits: float, rate_bps: float, loss: float = 0.0) -> float:
-        return self.links.transfer_s(payload_bits, rate_bps, loss)
+    def transfer_s(self, payload_bits: float, rate_bps: float, loss: float = 0.0, phy_bps: float = 0.0) -> float:
+        return self.links.transfer_s(payload_bits, rate_bps, loss, phy_bps)
 
-    def delay(self, payload_bits: float, rate_bps: float, loss: float = 0.0) -> float:
+    def delay(self, payload_bits: float, rate_bps: float, loss: float = 0.0, phy_bps: float = 0.0) -> float:
         """Sleep for the transfer's time, before it happens; returns its simulated seconds."""
-        seconds = self.transfer_s(payload_bits, rate_bps, loss)
+        seconds = self.transfer_s(payload_bits, rate_bps, loss, phy_bps)
         if seconds:
             time.sleep(self.clock.wall_s(seconds))
         return seconds

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nac_onboard.radio.medium import saturated_goodput_bps
+
 C_MPS = 299_792_458.0
 MIN_DISTANCE_M = 0.1  # closer than this the formulas are meaningless; distances are clamped
 
@@ -219,7 +221,11 @@ def link_rates(m, snr_db, snr_estimate_db=None) -> Sample:
         fallback_bps = np.full(phy.shape, rates[0])
         fallback_per = frame_error_rate(snr_db, thresholds[0], m.per_slope_db)
         loss = per ** first * fallback_per ** (m.retry_limit + 1 - first)
-    goodput = phy * m.mac_efficiency * (1.0 - per) * airtime
+    if m.mac == "802.11":
+        efficiency = np.array([saturated_goodput_bps(float(r)) / r if r > 0 else 0.0 for r in np.round(phy, -3).flat])
+        goodput = phy * efficiency.reshape(phy.shape) * (1.0 - per) * airtime
+    else:
+        goodput = phy * m.mac_efficiency * (1.0 - per) * airtime
     in_range = goodput >= max(m.min_rate_bps, 1.0)
     return Sample(snr_db, mcs, phy, per, np.where(in_range, goodput, 0.0), np.where(in_range, loss, 1.0),
                   in_range, fallback_bps, fallback_per)

@@ -28,6 +28,7 @@ from nac_onboard.radio import air_link
 PATH_LOSS_MODELS = ("free-space", "log-distance", "dual-slope", "two-ray", "hata-urban", "hata-large-city",
                     "hata-suburban", "hata-rural")
 RATE_MODELS = ("shannon", "802.11n")
+MAC_MODELS = ("efficiency", "802.11")
 
 
 class ChannelError(BadInput):
@@ -67,6 +68,10 @@ class ChannelModel:
     rate_adaptation_s: float = 0.0  # how far the rate choice lags the channel (0 = it follows at once)
     retry_limit: int = 7  # MAC retransmissions before a packet is lost to IP
     mac_efficiency: float = 1.0  # goodput / PHY rate (headers, contention, acknowledgements, TCP)
+    # "efficiency": a transfer's rate is the PHY rate x mac_efficiency; "802.11": the frame-level medium's own costs
+    # (nac_onboard.radio.medium: access, preamble, acknowledgement per aggregate), what a run on the frame-level air
+    # ([network] air = "medium") writes into its radio, so the sleep network charges what the delay line does
+    mac: str = "efficiency"
     background_airtime: float = 0.0  # the share of airtime other networks use
     min_rate_bps: float = 0.0
     max_rate_bps: float | None = None  # a radio's top rate (Shannon has none)
@@ -88,6 +93,8 @@ class ChannelModel:
             fail(f"path_loss must be one of {', '.join(PATH_LOSS_MODELS)}, got {self.path_loss!r}")
         if self.rate_model not in RATE_MODELS:
             fail(f"rate_model must be one of {', '.join(RATE_MODELS)}, got {self.rate_model!r}")
+        if self.mac not in MAC_MODELS:
+            fail(f"mac must be one of {', '.join(MAC_MODELS)}, got {self.mac!r}")
         if self.polarization not in ("vertical", "horizontal"):
             fail(f"polarization must be vertical or horizontal, got {self.polarization!r}")
         if self.rate_model == "802.11n" and self.channel_width_mhz not in (20, 40):

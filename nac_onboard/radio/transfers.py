@@ -19,9 +19,12 @@ import numpy as np
 
 from nac_onboard.radio.air_link import Radio
 from nac_onboard.radio.channel import ChannelModel
+from nac_onboard.radio.medium import MacTiming, expected_message_s
 from nac_onboard.radio.replay import ReplayLinks
 
 SEGMENT_BITS = 1448 * 8  # a TCP segment's payload on a 1500-byte path
+TCP_IP_HEADER_BYTES = 52  # IPv4 20 + TCP 20 + the timestamps option 12, per segment
+TIMING = MacTiming()
 RTO_S = 0.2  # Linux's minimum retransmission timeout: what one lost segment costs a small transfer
 
 
@@ -33,6 +36,7 @@ class LinkNow:
     capacity_bps: float
     in_range: bool
     loss: float = 0.0
+    phy_bps: float = 0.0  # the PHY rate, for a channel whose mac is "802.11" (0 out of range)
 
 
 class _Pair:
@@ -70,15 +74,26 @@ class PairLinks:
         sample = state.radio.step(dt_s, [distance_m], moved_m=[moved_m],
                                   speed_mps=[moved_m / dt_s if dt_s > 0 else 0.0])
         state.t_s, state.distance_m = now_s, distance_m
-        return LinkNow(distance_m, float(sample.goodput_bps[0]), bool(sample.in_range[0]), float(sample.loss[0]))
+        in_range = bool(sample.in_range[0])
+        return LinkNow(distance_m, float(sample.goodput_bps[0]), in_range, float(sample.loss[0]),
+                       float(sample.phy_bps[0]) if in_range else 0.0)
 
-    def transfer_s(self, payload_bits: float, rate_bps: float, loss: float = 0.0) -> float:
+    def transfer_s(self, payload_bits: float, rate_bps: float, loss: float = 0.0, phy_bps: float = 0.0) -> float:
         """How long a transfer of payload_bits takes at rate_bps (0 when no rate is emulated), a retransmission
-        timeout more when one of its segments is lost (loss: the link's, from `link`)."""
+        timeout more when one of its segments is lost (loss: the link's, from `link`). With a channel whose mac is
+        "802.11" and the link's PHY rate given, the frame-level medium's air time for the message instead: its TCP
+        segments aggregated, each exchange paying access, preamble and block ack, as the delay line charges them
+        (a lost subframe's retries are in `loss`'s timeout, as they are when the delay line drops it)."""
         if rate_bps <= 0:
             return 0.0
         bits = payload_bits + self.channel.overhead_bits
-        seconds = bits / rate_bps
+        if self.channel.mac == "802.11" and phy_bps > 0:
+            payload_bytes = math.ceil(bits / 8)
+            ip_bytes = payload_bytes + TCP_IP_HEADER_BYTES * max(math.ceil(bits / SEGMENT_BITS), 1)
+            airtime = 1.0 - self.channel.background_airtime  # what other networks leave of the medium
+            seconds = expected_message_s(TIMING, ip_bytes, phy_bps) / airtime
+        else:
+            seconds = bits / rate_bps
         if loss > 0:
             segments = max(math.ceil(bits / SEGMENT_BITS), 1)
             if self.rng.random() < 1.0 - (1.0 - min(loss, 1.0)) ** segments:

@@ -281,6 +281,7 @@ SHAPER_FAILED = Kind("shaper_failed", NETWORK_LOG, "tc or nft failed: links keep
 AIR_MEDIUM = Kind("air_medium", NETWORK_LOG, "the frame-level air's counters (delay line), once a wall second", (
     req("t_sim_s", "number", "s", "simulated time"), req("offered", "integer", "", "packets queued so far"),
     req("delivered", "integer", "", "packets delivered so far"),
+    opt("segments_delivered", "integer", "", "the same, a segmentation offload's run counted as its packets"),
     req("queue_drops", "integer", "", "packets dropped at a full transmit queue"),
     req("retry_drops", "integer", "", "packets lost after every MAC retry"),
     req("exchanges", "integer", "", "channel accesses"), req("collisions", "integer", "", "of them, collisions"),

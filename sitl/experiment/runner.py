@@ -182,6 +182,8 @@ class Experiment:
         ranks): the run directory says exactly which model made it. The shaper, in this process, gets the same
         model (self.radio); the scenario stays as it was loaded."""
         radio = self.scenario.channel
+        if self.scenario.network.air == "medium":  # every process charges what the frame-level air charges
+            radio = dataclasses.replace(radio, mac="802.11")
         path = run_channel_path(self.run_dir)
         path.parent.mkdir(parents=True, exist_ok=True)
         if self.replay is not None and self.network == "sleep":  # the kernel shaper holds the table itself

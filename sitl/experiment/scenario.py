@@ -8,6 +8,7 @@
     [compute]  task = "linreg"  iterations = 0  timeout_s = 3.0  args = []   # no [compute]: no MPI job
     [throughput]  period_s = 2.0  duration_s = 0.5  interval_s = 0.1
     [network]  period_s = 0.1  sharing = true   # the kernel network's shaper and the access point's airtime
+               air = "htb"  queue_packets = 1000  # or "medium": the 802.11 medium frame by frame (issue 28)
     [[vehicle]]  id = "master"  role = "master"  mission = "paper-flight-moving/master.plan"
     [[fault]]  at_s = 60  vehicle = "w1"  kind = "link_down"  duration_s = 5
 

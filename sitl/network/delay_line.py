@@ -184,6 +184,7 @@ class DelayLine:
     def _stats(self, now_s: float) -> None:
         s = self.medium.stats
         line = {"t_sim_s": round(now_s, 4), **self.counters, "offered": s.offered, "delivered": s.delivered,
+                "segments_delivered": s.segments_delivered,
                 "queue_drops": s.queue_drops, "retry_drops": s.retry_drops, "exchanges": s.exchanges,
                 "collisions": s.collisions, "busy_s": round(s.busy_s, 6),
                 "backlog": [self.medium.backlog(k) for k in range(len(self.fds))],

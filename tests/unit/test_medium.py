@@ -128,3 +128,28 @@ def test_a_segmentation_offload_run_costs_the_air_of_its_packets_and_their_room_
     assert delivered.delivered_s == pytest.approx(last_single) and run.stats.exchanges == single.stats.exchanges == 3
     full = medium(2, 65e6, queue_packets=50)
     assert full.offer(0.0, 0, 1, 44 * 1500, segments=44) and not full.offer(0.0, 0, 1, 10 * 1500, segments=10)
+
+
+def test_a_channel_on_the_802_11_mac_charges_the_mediums_costs_on_both_networks():
+    """`mac = "802.11"` (what [network] air = "medium" writes into a run's radio): a link's rate is the medium's
+    saturated goodput (about 0.92 of 65 Mbit/s, less of slower rates: the fixed costs weigh more), and a sleep-network
+    transfer costs what the delay line charges: a 272-byte gradient about a quarter of a millisecond at 30 Mbit/s,
+    several times its bits over the rate."""
+    import dataclasses
+
+    from nac_onboard.radio.channel import PRESETS, ChannelError
+    from nac_onboard.radio.medium import saturated_goodput_bps
+    from nac_onboard.radio.transfers import PairLinks
+
+    assert 0.9 < saturated_goodput_bps(65e6) / 65e6 < 0.95
+    assert saturated_goodput_bps(6.5e6) / 6.5e6 < saturated_goodput_bps(65e6) / 65e6
+    radio = dataclasses.replace(PRESETS["wifi-flight"], mac="802.11", shadowing_sigma_db=0.0, rician_k_db=None)
+    near = PairLinks(radio).link(0.0, 2.0)
+    assert near.phy_bps == 65e6 and near.capacity_bps == pytest.approx(saturated_goodput_bps(65e6), rel=0.01)
+    links = PairLinks(radio)
+    charged = links.transfer_s(272 * 8, 25e6, 0.0, phy_bps=30e6)
+    assert charged == pytest.approx(expected_message_s(T, 272 + 52, 30e6))
+    assert charged > 3 * 272 * 8 / 25e6
+    assert PairLinks(PRESETS["wifi-flight"]).transfer_s(272 * 8, 25e6, 0.0, phy_bps=30e6) == 272 * 8 / 25e6
+    with pytest.raises(ChannelError, match="mac must be one of efficiency, 802.11"):
+        dataclasses.replace(radio, mac="ethernet")
