@@ -497,7 +497,7 @@ class TextLimiter:
         """At the stop: a last record carrying what was counted since the last, if anything."""
         if self._last is None or not (self.repeated or self.dropped):
             return None
-        return self._record(self._last, self._last_logged_s)
+        return {**self._record(self._last, self._last_logged_s), "counts_only": True}
 
     def _record(self, key: tuple, now_s: float) -> dict:
         record = {"severity": key[0], "text": key[1]}

@@ -139,7 +139,9 @@ STATUSTEXT = Kind("statustext", AGENT_LOG, "the autopilot's STATUSTEXT (rate-lim
                   "per 5 s, at most 10 records a second)", (
     req("severity", "integer", "", "MAV_SEVERITY"), req("text", "string", "", "the text"),
     opt("repeated", "integer", "", "times the previous record's text came again, not logged, since that record"),
-    opt("dropped_since_last", "integer", "", "other texts not logged since the previous record (over the rate)")))
+    opt("dropped_since_last", "integer", "", "other texts not logged since the previous record (over the rate)"),
+    opt("counts_only", "boolean", "", "written at the agent's stop to carry the counts: its text is the previous "
+                                      "record's, not heard again")))
 LINK_OPEN_FAILED = Kind("link_open_failed", AGENT_LOG, "the autopilot link could not open (retried)", (
     req("uri", "string", "", "autopilot URI"), req("error", "string", "", "why"),
     req("attempts", "integer", "", "failed attempts so far")))

@@ -233,6 +233,7 @@ def test_statustext_floods_are_logged_rate_limited_and_every_text_counted(texts)
     counted = sum(1 + r.get("repeated", 0) + r.get("dropped_since_last", 0) for _, r in records)
     counted += (final.get("repeated", 0) + final.get("dropped_since_last", 0)) if final else 0
     assert counted == len(texts)
+    assert final is None or final["counts_only"] is True, "the stop's record says it is no text heard again"
     times = [t for t, _ in records]
     assert all(times[k + 5] - times[k] >= 1.0 for k in range(len(times) - 5)), "at most 5 records a second"
     for (t0, r0), (t1, r1) in zip(records, records[1:], strict=False):
