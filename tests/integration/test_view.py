@@ -586,3 +586,67 @@ def test_a_real_browser_reaches_the_view_by_its_address_and_localhost(browser, t
             assert len(browser.execute_script(VEHICLES_JS)) == 2, address
     finally:
         viewer.stop()
+
+
+def crowded_run(folder: Path) -> Path:
+    """A master at the origin and two workers near it (w1 7 m east flying north, w2 8 m east, its link where the
+    master's label would go first), each probed: short links and long labels, where labels land on lines or off
+    the map if anything does."""
+    import json
+
+    from tests.unit.test_view_records import telemetry
+
+    tracks = {"master": lambda k: (0.0, 0.0), "w1": lambda k: (7.0, 0.5 * k), "w2": lambda k: (8.0, 0.8)}
+    for vid, where in tracks.items():
+        (folder / vid).mkdir(parents=True)
+        (folder / vid / "agent.jsonl").write_text("".join(telemetry(1000.0 + k, *where(k)) for k in range(20)))
+    (folder / "master" / "throughput.jsonl").write_text("".join(json.dumps(
+        {"t_s": 1000.5 + k, "kind": "throughput", "client": "master", "server": w, "distance_m": 6.0,
+         "end": {"sum_received": {"bits_per_second": 2.34e7}}}) + "\n" for k in range(19) for w in ("w1", "w2")))
+    (folder / "experiment.json").write_text(json.dumps(
+        {"t_s": 999.0, "kind": "experiment", "speedup": 1.0,
+         "vehicles": [{"id": "master", "role": "master"}, {"id": "w1", "role": "worker"},
+                      {"id": "w2", "role": "worker"}]}) + "\n")
+    return folder
+
+
+LABEL_GEOMETRY_JS = """
+const map = document.getElementById('map').getBoundingClientRect();
+const rect = (e) => { const r = e.getBoundingClientRect(); return [r.left, r.top, r.right, r.bottom]; };
+const ends = (l) => { const m = l.getScreenCTM();
+  return ['1', '2'].map((k) => new DOMPoint(+l.getAttribute('x' + k), +l.getAttribute('y' + k)).matrixTransform(m))
+                   .map((p) => [p.x, p.y]); };
+return {map: [map.left, map.top, map.right, map.bottom],
+        labels: [...document.querySelectorAll('#vehicles text, #links text')].map((t) => [t.textContent, rect(t)]),
+        links: [...document.querySelectorAll('#links line')].map(ends)};
+"""
+
+
+@pytest.mark.parametrize("size", [(1400, 860), (1024, 700), (800, 600)])
+def test_labels_stay_on_the_map_and_off_the_links_at_every_page_size(browser, tmp_path, size):
+    """At three page sizes, the replayed run's last moment: every vehicle and link label lies inside the map, and
+    no link line passes through a label (the middle 90 % of each link, sampled every pixel, against each label's
+    box shrunk by a pixel: the vehicles' own glyphs touch their labels by design). Issue 33: labels were cut at
+    the map's edge and struck through by links."""
+    browser.set_window_size(*size)
+    replay = ViewThread(ViewServer(crowded_run(tmp_path / "run"), live=False), "127.0.0.1:0")
+    browser.get(replay.start())
+    try:
+        wait_for(browser, "return document.body.dataset.ready")
+        t0, t1 = browser.execute_script("return [window.nacView.t0, window.nacView.t1]")
+        scrub(browser, t1 - t0)
+        wait_for(browser, "return document.querySelectorAll('#links .link-label').length === 2")
+        shown = browser.execute_script(LABEL_GEOMETRY_JS)
+    finally:
+        replay.stop()
+    left, top, right, bottom = shown["map"]
+    assert len(shown["labels"]) == 5, shown["labels"]
+    for text, (x0, y0, x1, y1) in shown["labels"]:
+        assert left <= x0 and x1 <= right and top <= y0 and y1 <= bottom, (size, text, shown["map"])
+    for (ax, ay), (bx, by) in shown["links"]:
+        steps = max(int(np.hypot(bx - ax, by - ay)), 1)
+        for k in range(steps + 1):
+            f = 0.05 + 0.9 * k / steps
+            x, y = ax + (bx - ax) * f, ay + (by - ay) * f
+            struck = [text for text, (x0, y0, x1, y1) in shown["labels"] if x0 + 1 < x < x1 - 1 and y0 + 1 < y < y1 - 1]
+            assert not struck, (size, struck, (x, y))

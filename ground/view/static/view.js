@@ -143,8 +143,9 @@ function drawMap(t) {
   }
   const seen = visibleBox(), taken = view.scaleBox ? [view.scaleBox] : [];  // boxes [x, y, w, h], map units, y down
   const master = [...view.roles.keys()].find((v) => roleOf(v) === "master");
-  const segments = master !== undefined && here.has(master)  // the links' lines, which labels keep off
-    ? [...here].filter(([vid]) => vid !== master).map(([, p]) => [here.get(master), p]) : [];
+  const linkLines = master !== undefined && here.has(master)  // the links' lines, which labels keep off ...
+    ? [...here].filter(([vid]) => vid !== master).map(([, p]) => [here.get(master), p, LINK_WEIGHT]) : [];
+  const segments = [...linkLines, ...pathSegments(t)];  // ... and, less strictly, the trails and mission legs
   for (const [vid, p] of here) {
     const g = el("g", { class: "vehicle" + (p.armed === false ? " disarmed" : ""), id: "vehicle-" + vid, "data-id": vid, "data-e": p.e, "data-n": p.n, "data-t": p.t, "data-tb": p.tb,
                         transform: `translate(${p.e},${-p.n})` }, vehicles);
@@ -163,7 +164,7 @@ function drawMap(t) {
     label.textContent = text;
     taken.push([p.e + best[0], -p.n + best[1], w, size]);
   }
-  if (segments.length) {
+  if (linkLines.length) {
     for (const [vid, p] of here) {
       if (vid === master) continue;
       const probe = probeAt(master, vid, t), cap = capacityAt(master, vid, t);
@@ -206,21 +207,38 @@ function linkLabelSpot(m, p, w, size, taken, seen, segments) {
   }
   return best;
 }
-// What a label's box costs where it is: the area it shares with the labels placed, the area off the visible map, and
-// a box's worth for each point of a link inside it (struck through).
+// A label's cost in map units squared: what it covers of the labels placed, what of it is off the visible map, and
+// each line through it, its length inside times the label's height times the line's weight (a link struck through
+// costs three times a trail or a mission leg).
+const LINK_WEIGHT = 3, PATH_WEIGHT = 1;
 function labelCost(box, taken, seen, segments) {
   const area = box[2] * box[3], height = box[3];
   return taken.reduce((sum, b) => sum + overlap(box, b), 0) + area - overlap(box, seen) +
-         segments.reduce((sum, [a, b]) => sum + crossing(box, a, b) * height * height, 0);
+         segments.reduce((sum, [a, b, weight]) => sum + insideLength(box, a, b) * height * weight, 0);
 }
-// How many of 9 points along the link from vehicle a to vehicle b fall inside box (a label struck through).
-function crossing(box, a, b) {
-  let inside = 0;
-  for (let k = 1; k <= 9; k++) {
-    const x = a.e + (b.e - a.e) * k / 10, y = -(a.n + (b.n - a.n) * k / 10);
-    if (x > box[0] && x < box[0] + box[2] && y > box[1] && y < box[1] + box[3]) inside += 1;
+// The trails drawn (every few points: their shape, cheaply) and the missions' legs, as [a, b, PATH_WEIGHT].
+function pathSegments(t) {
+  const out = [];
+  for (const list of view.pos.values()) {
+    const trail = list.filter((q) => q.t <= t && q.t >= t - TRAIL_S).filter((q, k, all) => k % 5 === 0 || k === all.length - 1);
+    for (let k = 1; k < trail.length; k++) out.push([trail[k - 1], trail[k], PATH_WEIGHT]);
   }
-  return inside;
+  for (const [, points] of missionsOf(view.info))
+    for (let k = 1; k < points.length; k++)
+      out.push([{ e: points[k - 1][0], n: points[k - 1][1] }, { e: points[k][0], n: points[k][1] }, PATH_WEIGHT]);
+  return out;
+}
+// The length of the line from a to b inside box (Liang-Barsky clipping; map units, y down).
+function insideLength(box, a, b) {
+  const x0 = a.e, y0 = -a.n, dx = b.e - a.e, dy = -(b.n - a.n);
+  let lo = 0, hi = 1;
+  for (const [p, q] of [[-dx, x0 - box[0]], [dx, box[0] + box[2] - x0], [-dy, y0 - box[1]], [dy, box[1] + box[3] - y0]]) {
+    if (p === 0) { if (q < 0) return 0; continue; }
+    const r = q / p;
+    if (p < 0) lo = Math.max(lo, r); else hi = Math.min(hi, r);
+    if (lo > hi) return 0;
+  }
+  return (hi - lo) * Math.hypot(dx, dy);
 }
 function overlap(a, b) {
   const w = Math.min(a[0] + a[2], b[0] + b[2]) - Math.max(a[0], b[0]);
