@@ -286,6 +286,11 @@ def summarize(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, probes: pd.
         summary["measured_to_applied_by_bin"] = {
             f"{b.distance_from_m:g}-{b.distance_to_m:g} m": round(float(b.measured_to_applied_median), 3)
             for b in bins.itertuples() if pd.notna(b.measured_to_applied_median)}
+    if run.air_medium:  # the delay line's counters are cumulative: its last record is the run's
+        air = run.air_medium[-1]
+        summary["air"] = {key: air.get(key) for key in ("delivered", "late", "queue_drops", "retry_drops",
+                                                         "collisions", "exchanges")}
+        summary["air_late_share"] = air["late"] / air["delivered"] if air.get("delivered") else 0.0
     network = (run.experiment or {}).get("network")
     if network:
         summary["network"] = network.get("mode")

@@ -31,6 +31,9 @@ SUMMARY_LABELS = {
     "range_above_threshold_m": "largest distance with throughput above threshold (m)",
     "radio": "radio model", "threshold_mbps": "throughput threshold (Mbit/s)",
     "max_distance_m": "largest master-worker distance (m)",
+    "air": "frame-level air: packets delivered, late (written over 1 ms after their time: the host fell behind), "
+           "queue drops, retry drops, collisions, exchanges",
+    "air_late_share": "share of deliveries late (their timing is this host's, not the model's)",
 }
 TABLE_ROWS_SHOWN = 12
 

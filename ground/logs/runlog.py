@@ -37,6 +37,7 @@ class RunLog:
     iterations: list[dict] = field(default_factory=list)
     compute_runs: list[dict] = field(default_factory=list)  # run_started records
     link_rates: list[dict] = field(default_factory=list)  # the shaper's link_rates records (SITL, kernel network)
+    air_medium: list[dict] = field(default_factory=list)  # the frame-level air's counters (air = "medium")
     experiment: dict | None = None  # the runner's experiment.json, when there is one
     problems: list[str] = field(default_factory=list)
     missing: list[str] = field(default_factory=list)
@@ -90,6 +91,7 @@ def read_run(path: str | Path) -> RunLog:
         read = read_jsonl(network)
         _warn(run, read.problems)
         run.link_rates = read.of_kind(kinds.LINK_RATES)
+        run.air_medium = read.of_kind(kinds.AIR_MEDIUM)
     for vehicle_dir in sorted(p for p in path.iterdir() if p.is_dir()):
         _read_vehicle(run, vehicle_dir)
     for compute_log in sorted(path.rglob(kinds.COMPUTE_LOG.name)):

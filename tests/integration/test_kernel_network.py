@@ -286,7 +286,7 @@ def start_kernel_run(scenario: Path, run: Path) -> tuple[subprocess.Popen, Conso
                              "--speedup", "4", "--out", str(run), "--base-port", str(allocate_base_port(3, slots=5))],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV,
                             preexec_fn=as_at_a_terminal)
-    return proc, Console(proc, r"\| it \d+ ")  # the progress line once the MPI job computes
+    return proc, Console(proc, r"\| it \d+\b")  # the progress line once the MPI job computes
 
 
 @needs_kernel

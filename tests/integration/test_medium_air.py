@@ -153,5 +153,7 @@ def test_an_experiment_on_the_frame_level_air_trains_probes_and_records_its_queu
     assert network.of_kind("link_rates"), "the shaper's rates beside the medium's counters"
     assert result.summary["iterations"] > 10 and result.summary["final_cost"] < result.summary["first_cost"]
     assert result.summary["probes"] > 5 and result.summary["mean_throughput_mbps"] > 1.0
-    assert "802.11 medium" in (result.run_dir / "report.md").read_text()
+    report = (result.run_dir / "report.md").read_text()
+    assert "802.11 medium" in report and "share of deliveries late" in report, "the report names the air and counts"
+    assert result.summary["air"]["delivered"] == medium[-1]["delivered"] and 0 <= result.summary["air_late_share"] <= 1
     assert not [n for n in netns.namespaces() if n.startswith(experiment.air.prefix)]
