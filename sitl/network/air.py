@@ -59,15 +59,20 @@ class CommandStream:
             raise netns.NetworkError(f"{self.what}: {err}") from None
 
     def close(self) -> None:
-        try:
-            self.proc.stdin.close()
-        except OSError:
-            pass
-        try:
-            self.proc.wait(5.0)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait(5.0)
+        end_fed_process(self.proc)
+
+
+def end_fed_process(proc: subprocess.Popen, timeout_s: float = 5.0) -> None:
+    """A process fed on stdin ends at its input's end: close it and wait, then kill what did not end in time."""
+    try:
+        proc.stdin.close()
+    except OSError:
+        pass
+    try:
+        proc.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(timeout_s)
 
 
 @dataclass(frozen=True)

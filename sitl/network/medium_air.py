@@ -22,7 +22,7 @@ from nac_onboard.flight_log import JsonlLog
 from nac_onboard.radio.medium import DEFAULT_QUEUE_PACKETS
 from nac_onboard.records import kinds
 from sitl.network import netns
-from sitl.network.air import AirNetwork, Station
+from sitl.network.air import AirNetwork, Station, end_fed_process
 from sitl.network.delay_line import READY
 from sitl.network.shaping import AirState
 
@@ -125,18 +125,8 @@ class MediumAir(AirNetwork):
 
     def close(self) -> None:
         if self.line is not None:
-            try:
-                self.line.stdin.close()  # its end: the last counters, then exit
-            except OSError:
-                pass
-            try:
-                self.line.wait(5.0)
-            except subprocess.TimeoutExpired:
-                self.line.kill()
-                self.line.wait(5.0)
+            end_fed_process(self.line)  # its last counters, then its end: the TUN devices go with it
             if self._reader is not None:
                 self._reader.join(2.0)
             self.line = None
-        for name in reversed(self.created):
-            netns.delete_namespace(name)
-        self.created = []
+        super().close()  # the namespaces
