@@ -64,7 +64,7 @@ CLIENT_ERRORS = (OSError, LinkError, CommandError, MissionError)
 TAKEOFF_TIMEOUT_S = 60.0  # simulated
 COMPUTE_SETUP_TIMEOUT_S = 60.0  # wall: ranks started, data loaded, connections warmed up
 LANDING_SPEEDUP = 20.0  # the simulator alone ran 100 vehicles at 44x on this machine (docs/benchmarks.md, sitl_scale)
-CLOCK_PUBLISH_S = 0.2  # wall seconds between publications of the simulator's clock
+CLOCK_PUBLISH_S = 0.1  # wall seconds between publications of the simulator's clock (readers re-read as often)
 
 
 class Outcome(enum.Enum):
