@@ -180,11 +180,15 @@ class Medium:
         return sorted(ready, key=lambda d: d.delivered_s)
 
     # ---- one channel access ----------------------------------------------------------------------------------
+    def _slots_before_counting(self, station: int) -> int:
+        """Slots after the idle medium's AIFS that passed before the station began counting (it became backlogged
+        during them)."""
+        base = self.idle_from_s + self.timing.aifs_s
+        return max(0, math.ceil((self.counting_from_s[station] - base) / self.timing.slot_s - 1e-9))
+
     def _slot_of(self, station: int) -> int:
         """The slot (counted from the end of AIFS after the medium went idle) in which the station's count ends."""
-        base = self.idle_from_s + self.timing.aifs_s
-        waited = max(0, math.ceil((self.counting_from_s[station] - base) / self.timing.slot_s - 1e-9))
-        return waited + self.backoff[station]
+        return self._slots_before_counting(station) + self.backoff[station]
 
     def _next_start(self) -> tuple[float, list[int], int] | None:
         backlogged = [i for i in range(self.n) if self.queues[i]]
@@ -196,11 +200,10 @@ class Medium:
         return self.idle_from_s + self.timing.aifs_s + first * self.timing.slot_s, winners, first
 
     def _transmit(self, start_s: float, winners: list[int], slot: int) -> None:
-        t = self.timing
         for i in range(self.n):  # the losers froze their count where the medium went busy
             if self.queues[i] and i not in winners:
-                waited = max(0, math.ceil((self.counting_from_s[i] - self.idle_from_s - t.aifs_s) / t.slot_s - 1e-9))
-                self.backoff[i] = max(self.backoff[i] - max(slot - waited, 0), 0)
+                counted = max(slot - self._slots_before_counting(i), 0)
+                self.backoff[i] = max(self.backoff[i] - counted, 0)
         ends = []
         for src in winners:
             ends.append(self._exchange(src, start_s, collided=len(winners) > 1))

@@ -116,12 +116,14 @@ class AirNetwork:
             raise
         return self
 
+    def _add_namespaces(self) -> None:
+        """Every namespace of self.namespaces, each remembered as made (close() deletes what was) before it is."""
+        self.created += self.namespaces
+        netns.run(["ip", "-batch", "-"], "creating the namespaces",
+                  "".join(f"netns add {name}\n" for name in self.namespaces))
+
     def _build(self) -> None:
-        lines = []
-        for name in self.namespaces:
-            lines.append(f"netns add {name}")
-            self.created.append(name)
-        netns.run(["ip", "-batch", "-"], "creating the namespaces", "\n".join(lines) + "\n")
+        self._add_namespaces()
         links = ["link add air type bridge", "link set air up", "link set lo up"]
         moves = []
         for s in self.stations:

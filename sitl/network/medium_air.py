@@ -51,11 +51,7 @@ class MediumAir(AirNetwork):
         self._records = out
 
     def _build(self) -> None:
-        lines = []
-        for name in self.namespaces:
-            lines.append(f"netns add {name}")
-            self.created.append(name)
-        netns.run(["ip", "-batch", "-"], "creating the namespaces", "\n".join(lines) + "\n")
+        self._add_namespaces()
         for s in self.stations:
             netns.run(["ip", "-n", s.netns, "link", "set", "lo", "up"], f"{s.vehicle_id}'s loopback")
             netns.run(["ip", "netns", "exec", s.netns, "sysctl", "-q", "-w", "net.ipv6.conf.all.disable_ipv6=1",
