@@ -10,17 +10,22 @@ STAMP := $(VENV)/.installed
 
 # Python keeps what it compiles (__pycache__, not in git). A host that turns that off (PYTHONDONTWRITEBYTECODE, as
 # the development machine does) has every agent, MPI rank and command the suite starts compile NAC's modules again.
-# The venv is installed without byte-compiling (`pip --no-compile`: 50 of its 75 s here): modules compile on first
-# import.
+# The venv is installed by uv (pip installs uv in 10 s, uv the rest in 5 s: 17 s from nothing against 48 s with
+# pip alone), without byte-compiling: modules compile on first import. Where uv cannot be had, pip does it all.
 unexport PYTHONDONTWRITEBYTECODE
+NO_DEPS = $$($(BIN)/python -c "import sys; toml = __import__('tomllib' if sys.version_info >= (3, 11) else 'tomli'); \
+    print(' '.join(toml.load(open('pyproject.toml', 'rb'))['tool']['nac']['test-no-deps']))")
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 
 $(STAMP): pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install -q --no-compile -e '.[mpich,test]'
-	$(BIN)/python -m pip install -q --no-compile --no-deps $$($(BIN)/python -c "import sys; toml = __import__('tomllib' if \
-	    sys.version_info >= (3, 11) else 'tomli'); print(' '.join(toml.load(open('pyproject.toml', 'rb'))['tool']['nac']['test-no-deps']))")
+	if $(BIN)/python -m pip install -q uv && \
+	    $(BIN)/uv pip install --python $(BIN)/python -q -e '.[mpich,test]' && \
+	    $(BIN)/uv pip install --python $(BIN)/python -q --no-deps $(NO_DEPS); then :; else \
+	    $(BIN)/python -m pip install -q --no-compile -e '.[mpich,test]' && \
+	    $(BIN)/python -m pip install -q --no-compile --no-deps $(NO_DEPS); \
+	fi
 	touch $(STAMP)
 
 demo: $(STAMP)
