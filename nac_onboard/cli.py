@@ -6,6 +6,7 @@
     nac-onboard log check FILE...                                   read flight logs, report damaged lines
     nac-onboard state [--feed HOST:PORT]                             what the agent knows of everyone now
     nac-onboard compute --task matmul|linreg ...                     one MPI rank (run under mpiexec)
+    nac-onboard bench --task T [--workers N] [--device-ms MS]        the job's CPU per iteration (device profiles)
     nac-onboard data fetch [--url URL]                               the Forest Fires CSV into the user cache
     nac-onboard doctor [--role R] [--config FILE] [--json]           what this node has, and what its role lacks
     nac-onboard mpi hostfile [--feed HOST:PORT] [--out FILE]         MPICH hostfile from the peers the agent hears
@@ -21,11 +22,12 @@ import dataclasses
 import json
 import logging
 import os
+import platform
 import sys
 
 from nac_onboard.agent.config import load_agent_config
 from nac_onboard.errors import BadInput, OperationFailed, run_cli
-from nac_onboard.inputs import check_name, name_arg
+from nac_onboard.inputs import check_name, name_arg, number_arg
 from nac_onboard.link.throughput import DEFAULT_PORT
 
 
@@ -63,6 +65,16 @@ def build_parser() -> argparse.ArgumentParser:
     state.add_argument("--feed", default="127.0.0.1:47200")
     sub.add_parser("compute", help="one rank of the MPI job: mpiexec -n N+1 -bind-to core nac-onboard compute ... "
                                    "(see nac-onboard compute --help)", add_help=False)
+    bench = sub.add_parser("bench", help="CPU time per iteration of the job's own work on this machine (no MPI, no "
+                                         "network): run it here and on the companion; the ratio is a device "
+                                         "profile's slowdown")
+    bench.add_argument("--task", choices=("linreg", "matmul"), required=True)
+    bench.add_argument("--workers", type=number_arg(1, 1000, integer=True), default=3,
+                       help="the job's workers: the data is split into this many blocks (default: %(default)s)")
+    bench.add_argument("--seconds", type=number_arg(0.1, 600, unit="s"), default=5.0, dest="seconds")
+    bench.add_argument("--data", help="linreg: forestfires.csv (default $NAC_DATA_DIR, then the user cache)")
+    bench.add_argument("--device-ms", type=number_arg(0, 1e6, low_open=True, unit="ms"), dest="device_ms",
+                       help="the figure this command printed on the companion: prints the slowdown for its profile")
     data = sub.add_parser("data", help="the Forest Fires data set")
     dsub = data.add_subparsers(dest="action", required=True, metavar="ACTION")
     fetch = dsub.add_parser("fetch", help="download the UCI archive, check the CSV's sha256, keep it in the cache")
@@ -113,6 +125,8 @@ def run(args) -> int:
             return commands.write_hostfile(args.feed, args.out)
         program = args.program[1:] if args.program[:1] == ["--"] else args.program
         return commands.run_job(args.feed, args.hostfile, program, args.timeout_s)
+    if args.command == "bench":
+        return bench_command(args)
     if args.command == "data":
         from nac_onboard.compute import forestfires
 
@@ -122,6 +136,24 @@ def run(args) -> int:
     from nac_onboard.agent.state_feed import fetch_state
 
     print(json.dumps(fetch_state(args.feed), indent=2))
+    return 0
+
+
+def bench_command(args) -> int:
+    from nac_onboard.compute.device import SLOWDOWN_RANGE, bench
+    from nac_onboard.compute.options import options_from_argv
+
+    options = options_from_argv(["--task", args.task] + (["--data", args.data] if args.data else []))
+    result = bench(options, args.workers, args.seconds)
+    print(f"{result.task}, {result.workers} workers: {result.cpu_s * 1e3:.4g} ms CPU per iteration "
+          f"(master {result.master_cpu_s * 1e3:.3g} ms, one worker {result.worker_cpu_s * 1e3:.3g} ms; "
+          f"{result.iterations} iterations) on {platform.node()} ({platform.machine()}, Python "
+          f"{platform.python_version()})")
+    if args.device_ms is not None:
+        slowdown = args.device_ms / (result.cpu_s * 1e3)
+        low, high = SLOWDOWN_RANGE
+        print(f"slowdown = {args.device_ms:g} / {result.cpu_s * 1e3:.4g} = {slowdown:.3g}"
+              + ("" if low <= slowdown <= high else f" (outside {low:g}..{high:g}: a device profile cannot use it)"))
     return 0
 
 

@@ -334,19 +334,31 @@ CPU_SHARE_LIMIT = 0.10
 
 def speedup_warning(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, summary: dict) -> str | None:
     """Sped up, CPU time is X times longer in simulated seconds while transfers are not: when the workers'
-    computing is more than CPU_SHARE_LIMIT of an iteration, results in simulated time depend on the speed-up."""
-    speedup = float((run.compute_runs[-1].get("speedup") if run.compute_runs else None) or 1.0)
+    computing is more than CPU_SHARE_LIMIT of an iteration, results in simulated time depend on the speed-up. With
+    a device profile the work takes the device's time on the run's clock instead, unless this host was slower."""
+    started = run.compute_runs[-1] if run.compute_runs else {}
+    speedup = float(started.get("speedup") or 1.0)
+    stretched = float(started.get("cpu_slowdown") or 1.0) > 1.0
+    if stretched:
+        late = int((run.compute_ends[-1] if run.compute_ends else {}).get("late_cpu_segments") or 0)
+        summary["device"] = f"{started.get('device')}: {started.get('cpu_slowdown'):g}x this host's CPU time"
+        summary["late_cpu_segments"] = late
+        if late:
+            return (f"{late} work segments took longer on this host at {speedup:g}x than on the device "
+                    f"({started.get('device')}): their timings depend on the speed-up; run at a lower one")
     if its.empty or workers.empty or "compute_s" not in workers or workers["compute_s"].dropna().empty:
         return None
-    cpu_s = float(workers.groupby("iteration")["compute_s"].max().median()) * speedup
     median_s = float(its["duration_s"].median())
-    share = cpu_s / median_s if median_s > 0 else 0.0
-    summary["compute_share_of_iteration"] = round(share, 4)
     if speedup > 1 and 0 < median_s / speedup < SHORT_ITERATION_WALL_S:
         return (f"at {speedup:.1f}x an iteration lasted {1e3 * median_s / speedup:.1f} ms of wall-clock time: the "
                 f"MPI job's own costs on this machine (about {1e3 * MACHINE_ITERATION_COST_S:.1f} ms per "
                 "iteration, measured at 1x) are more than 10 % of it, so iterations per simulated minute depend "
                 "on the speed-up; run at 1x")
+    if stretched:  # compute_s is already simulated time
+        return None
+    cpu_s = float(workers.groupby("iteration")["compute_s"].max().median()) * speedup
+    share = cpu_s / median_s if median_s > 0 else 0.0
+    summary["compute_share_of_iteration"] = round(share, 4)
     if speedup > 1 and share > CPU_SHARE_LIMIT:
         return (f"at {speedup:g}x the workers' computing took {100 * share:.0f} % of an iteration in simulated time "
                 f"(more than {100 * CPU_SHARE_LIMIT:.0f} %): iterations per simulated minute depend on the speed-up; "

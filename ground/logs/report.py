@@ -24,6 +24,7 @@ SUMMARY_LABELS = {
     "p95_iteration_s": "p95 iteration time (s)", "iterations_per_min": "iterations per minute",
     "compute_span_s": "compute time (s)", "first_cost": "first training cost", "final_cost": "final training cost",
     "absent_iterations": "absent iterations per worker", "absence_reasons": "absence reasons",
+    "device": "companions' CPU (device profile)", "late_cpu_segments": "work segments slower here than on it",
     "probes": "throughput probes", "failed_probes": "failed probes", "mean_throughput_mbps": "mean throughput (Mbit/s)",
     "std_throughput_mbps": "throughput std, all probes (Mbit/s)",
     "std_throughput_per_link_mbps": "throughput std per link (Mbit/s)",

@@ -36,6 +36,7 @@ class RunLog:
     probes: list[dict] = field(default_factory=list)
     iterations: list[dict] = field(default_factory=list)
     compute_runs: list[dict] = field(default_factory=list)  # run_started records
+    compute_ends: list[dict] = field(default_factory=list)  # run_summary records
     link_rates: list[dict] = field(default_factory=list)  # the shaper's link_rates records (SITL, kernel network)
     air_medium: list[dict] = field(default_factory=list)  # the frame-level air's counters (air = "medium")
     experiment: dict | None = None  # the runner's experiment.json, when there is one
@@ -98,6 +99,7 @@ def read_run(path: str | Path) -> RunLog:
         read = read_jsonl(compute_log)
         _warn(run, read.problems)
         run.compute_runs += read.of_kind(kinds.RUN_STARTED)
+        run.compute_ends += read.of_kind(kinds.RUN_SUMMARY)
         run.iterations += read.of_kind(kinds.ITERATION)
     _check_clocks(run)
     if not run.vehicles and not run.iterations:

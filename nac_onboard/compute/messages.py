@@ -24,10 +24,11 @@ def work_header(kind: float, iteration: float = 0.0, rate_bps: float = 0.0, extr
                 loss: float = 0.0, phy_bps: float = 0.0) -> tuple[float, ...]:
     return (kind, iteration, rate_bps, extra_rows, loss, phy_bps)
 
-# worker -> master: [iteration, compute_s, up_s, rows, sse | result...] (rows, sse, result: the task's Answer)
-RESULT_ITERATION, RESULT_COMPUTE_S, RESULT_UP_S, RESULT_ROWS, RESULT_SSE = 0, 1, 2, 3, 4
-RESULT_HEADER = 5
-WARMUP_ANSWER = (-1.0, 0.0, 0.0, 0.0, 0.0)
+# worker -> master: [iteration, compute_s, up_s, rows, sse, late | result...] (rows, sse, result: the task's Answer;
+# late: the worker's work segments so far that its host did more slowly than its device profile, on the run's clock)
+RESULT_ITERATION, RESULT_COMPUTE_S, RESULT_UP_S, RESULT_ROWS, RESULT_SSE, RESULT_LATE = 0, 1, 2, 3, 4, 5
+RESULT_HEADER = 6
+WARMUP_ANSWER = (-1.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 def pad_floats(pad_bits: float) -> int:

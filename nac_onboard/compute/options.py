@@ -7,6 +7,7 @@ import sys
 from dataclasses import dataclass, field
 
 from nac_onboard.clock import Clock, from_env
+from nac_onboard.compute.device import HOST, DeviceProfile, load_device_profile
 from nac_onboard.compute.positions import (
     FeedDistances,
     FixedDistances,
@@ -59,6 +60,7 @@ class ComputeOptions:
     save_results: bool = False
     checkpoint_s: float = 10.0  # results.npz rewritten (atomically) this often while the job runs; 0 = at the end
     pad_bits: float = 0.0  # zeros appended to every message: the channel's overhead as real bytes (kernel network)
+    device: DeviceProfile = HOST  # the companion's CPU: each rank's work takes its time on the run's clock
     clock: Clock = field(default_factory=Clock)  # $NAC_SIM_CLOCK in SITL: times below are simulated seconds
 
     @property
@@ -125,6 +127,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rewrite results.npz this often while running (0: only at the end)")
     p.add_argument("--pad-bits", type=number_arg(0, 1e9, unit="bits"), default=0.0,
                    help="append this many bits of zeros to every message (a transfer's overhead, as real bytes)")
+    p.add_argument("--device", default="host",
+                   help="the companion's CPU: 'host' (this machine's speed) or a device profile TOML ([device] name, "
+                        "slowdown, source): each rank's work then takes that device's time")
     return p
 
 
@@ -160,7 +165,8 @@ def options_from_argv(argv: list[str] | None) -> ComputeOptions:
         emulate=args.emulate, channel=load_channel(args.channel), positions=args.positions, distances=distances,
         positions_script=args.positions_script, feed=args.feed, vehicles=vehicles, timeout_s=args.timeout_s,
         idle_timeout_s=args.idle_timeout_s, on_missing=args.on_missing, allocation=args.allocation,
-        save_results=args.save_results, checkpoint_s=args.checkpoint_s, pad_bits=args.pad_bits, clock=from_env())
+        save_results=args.save_results, checkpoint_s=args.checkpoint_s, pad_bits=args.pad_bits,
+        device=HOST if args.device == "host" else load_device_profile(args.device), clock=from_env())
     for option, path, what, limit in [("--a", options.a_path, "matrix A (.npy)", MAX_AUTOPILOT_LOG_BYTES),
                                       ("--data", options.data, "data set (CSV)", MAX_AUTOPILOT_LOG_BYTES),
                                       ("--positions-script", options.positions_script, "positions script",

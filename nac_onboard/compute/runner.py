@@ -35,6 +35,7 @@ import numpy as np
 
 from nac_onboard.child_process import die_with_parent
 from nac_onboard.compute import kernels
+from nac_onboard.compute.device import CpuStretch
 from nac_onboard.compute.iteration import IterationLinks
 from nac_onboard.compute.messages import (
     BITS_PER_FLOAT,
@@ -45,6 +46,7 @@ from nac_onboard.compute.messages import (
     RESULT_COMPUTE_S,
     RESULT_HEADER,
     RESULT_ITERATION,
+    RESULT_LATE,
     RESULT_ROWS,
     RESULT_SSE,
     RESULT_UP_S,
@@ -153,6 +155,7 @@ def run_worker(comm, mpi, options: ComputeOptions) -> bool:
     pad = pad_floats(options.pad_bits)
     inbox = Inbox(comm, mpi, [0], TAG_WORK, WORK_HEADER + task.largest_input(), pad)
     emulation = SleepEmulation(options.channel, options.clock)
+    stretch = CpuStretch(options.device.slowdown, options.clock)
     warmup_answer = message_buffer(WARMUP_ANSWER, 0, pad)
     answers = {}  # reused answer buffers by result size: no allocation per iteration
     while True:
@@ -168,13 +171,14 @@ def run_worker(comm, mpi, options: ComputeOptions) -> bool:
             comm.Send([warmup_answer, mpi.DOUBLE], dest=0, tag=TAG_RESULT)
             continue
         t0 = time.perf_counter()
+        stretch.begin()
         result, rows, sse = task.work(message[WORK_HEADER:], int(extra_rows) if kind == KIND_EXTRA else None)
-        compute_s = time.perf_counter() - t0
+        compute_s = stretch.hold() if stretch.active else time.perf_counter() - t0
         up_s = emulation.delay(result.size * BITS_PER_FLOAT, rate_bps, loss, phy_bps)
         answer = answers.get(result.size)
         if answer is None:
             answer = answers[result.size] = message_buffer((), RESULT_HEADER + result.size, pad)
-        answer[:RESULT_HEADER] = (iteration, compute_s, up_s, rows, sse)
+        answer[:RESULT_HEADER] = (iteration, compute_s, up_s, rows, sse, stretch.late)
         answer[RESULT_HEADER:RESULT_HEADER + result.size] = result
         comm.Send([answer, mpi.DOUBLE], dest=0, tag=TAG_RESULT)
 
@@ -199,6 +203,8 @@ class Master:
         self.pad = pad_floats(options.pad_bits)
         self.emulation = SleepEmulation(options.channel, self.clock) if options.emulate == "sleep" else None
         self.task: Task = options.task_class(options)
+        self.stretch = CpuStretch(options.device.slowdown, self.clock)
+        self.late_by_worker: dict[int, int] = {}  # rank -> its late work segments so far (its last answer's count)
         self.bounds: list[tuple[int, int]] = []
         self.stale_results = 0
         self.inbox: Inbox | None = None  # posted once the shards are known
@@ -351,8 +357,10 @@ class Master:
     def iterate(self, iteration: int, present: list[int], links: IterationLinks, t_start: float) -> dict:
         """One iteration of Algorithm 1: the task's input to the present workers, their answers until the deadline,
         the task's plan for the blocks that did not arrive, and the task's combination; the record's task fields."""
-        task = self.task
+        task, stretch = self.task, self.stretch
+        stretch.begin()
         payload = task.next_input(iteration)
+        master_s = stretch.hold() if stretch.active else 0.0
         self.send_all(present, iteration, payload, links)
         self.write_pending()
         answers = self.collect(iteration, set(present), links, self.deadline(t_start))
@@ -362,7 +370,10 @@ class Master:
             if missing else []
         if plan:
             record["reassigned"] = self.send_again(iteration, plan, answers, links, self.deadline(t_start, 2))
+        stretch.begin()
         record.update(task.combine(iteration, payload, answers))
+        if stretch.active:
+            record["master_compute_s"] = master_s + stretch.hold()
         return record
 
     def send_again(self, iteration: int, plan: list[Extra], answers: dict[int, Answer], links: IterationLinks,
@@ -399,6 +410,7 @@ class Master:
             waiting.discard(rank)
             k = rank - 1
             links.compute_s[k], links.up_s[k] = float(buf[RESULT_COMPUTE_S]), float(buf[RESULT_UP_S])
+            self.late_by_worker[rank] = int(buf[RESULT_LATE])
             links.bytes_up[k] += buf.nbytes
             results[rank] = answer_of(buf)
         for rank in waiting:
@@ -420,7 +432,8 @@ class Master:
                        channel=o.channel.name if emulating else None,
                        channel_validity=o.channel.validity() if emulating else None,
                        iterations=o.iterations, duration_s=o.duration_s, timeout_s=o.timeout_s,
-                       on_missing=o.on_missing, allocation=o.allocation, pid=os.getpid())
+                       on_missing=o.on_missing, allocation=o.allocation, pid=os.getpid(), device=o.device.name,
+                       cpu_slowdown=o.device.slowdown, device_source=o.device.source)
         self.wait_for_start()
         t_run, t_run_sim = time.monotonic(), self.clock.now_s()
         iteration, ended_by, idle_s = 0, "iterations", 0.0
@@ -464,7 +477,8 @@ class Master:
                        p95_duration_s=float(np.percentile(d, 95)),
                        absent_iterations={str(r): n for r, n in t.absences.items()},
                        stale_results=self.stale_results, lost_workers=sorted(self.unresponsive),
-                       failed_workers=sorted(self.lost), **task.final())
+                       failed_workers=sorted(self.lost),
+                       late_cpu_segments=self.stretch.late + sum(self.late_by_worker.values()), **task.final())
         return 0
 
     @property

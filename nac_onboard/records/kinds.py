@@ -218,6 +218,9 @@ RUN_STARTED = Kind("run_started", COMPUTE_LOG, "the job is set up (after one unt
     opt("iterations", "integer", "", "iterations asked for"), opt("duration_s", "number", "s", "duration asked for"),
     req("timeout_s", "number", "s", "a worker's answer deadline"), req("on_missing", "string", "", "skip or reassign"),
     req("allocation", "string", "", "rows per worker: equal or capacity"), req("pid", "integer", "", "master's pid"),
+    opt("device", "string", "", "the companions' device profile (host: this machine's speed)"),
+    opt("cpu_slowdown", "number", "", "the profile's CPU seconds per CPU second of this host"),
+    opt("device_source", "string", "", "who measured the slowdown, on what"),
 ))
 STARTED = Kind("started", COMPUTE_LOG, "the go arrived (--start-file)", (
     req("start_file", "string", "", "its path"), opt("end_at_s", "number", "s", "simulated time to end at")))
@@ -230,6 +233,8 @@ ITERATION = Kind("iteration", COMPUTE_LOG, "one iteration; `workers` holds one l
                                  "out_of_range, no_position, timeout), bytes_down, bytes_up (bytes), down_s, up_s, "
                                  "compute_s (s)"),
     req("complete", "boolean", "", "every worker's block arrived"),
+    opt("master_compute_s", "number", "s", "with a device profile: the master's own work (input and combine) on the "
+                                           "device's clock"),
     opt("cost", "number", "", "linreg: training cost (mean squared error / 2) before the update"),
     opt("rows_used", "integer", "", "linreg: data rows whose gradients arrived"),
     opt("reassigned", "object", "", "a task's plan for missing blocks (matmul --on-missing reassign): who computed "
@@ -244,6 +249,8 @@ RUN_SUMMARY = Kind("run_summary", COMPUTE_LOG, "the job's end", (
     req("absent_iterations", "object", "", "iterations each rank missed"),
     req("stale_results", "integer", "", "late answers dropped"), req("lost_workers", "list", "", "unresponsive ranks"),
     req("failed_workers", "list", "", "ranks whose MPI calls failed"),
+    opt("late_cpu_segments", "integer", "", "work segments (all ranks) this host did more slowly than the device "
+                                            "profile on the run's clock: their timings depend on the speed-up"),
     opt("final_cost", "number", "", "linreg: the last cost"),
 ), open="a task's own fields (Task.final(); final_cost is linreg's)")
 WORKER_LOST = Kind("worker_lost", COMPUTE_LOG, "an MPI call to a worker failed: it is not sent to again", (

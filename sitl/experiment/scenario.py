@@ -6,6 +6,7 @@
     [channel]  preset = "wifi-flight"           # or a TOML file (what `nac-ground logs calibrate` writes)
                background_airtime = 0.2         # any other channel field overrides the preset's
     [compute]  task = "linreg"  iterations = 0  timeout_s = 3.0  args = []   # no [compute]: no MPI job
+               device = "host"                  # or a device profile file: the companions' CPU (docs/compute.md)
     [throughput]  period_s = 2.0  duration_s = 0.5  interval_s = 0.1
     [network]  period_s = 0.1  sharing = true   # the kernel network's shaper and the access point's airtime
                air = "htb"  queue_packets = 1000  # or "medium": the 802.11 medium frame by frame (issue 28)
@@ -27,6 +28,7 @@ from pathlib import Path
 from missions import MissionFileError, load_mission
 from missions.geo import Home
 from missions.model import Mission
+from nac_onboard.compute.device import load_device_profile
 from nac_onboard.compute.tasks import all_tasks
 from nac_onboard.errors import BadInput
 from nac_onboard.inputs import check_id, check_number
@@ -68,6 +70,7 @@ class ComputePlan:
     timeout_s: float = ranged(3.0, 0.0, 3600.0, low_open=True, unit="s")
     on_missing: str = "incomplete"
     allocation: str = "equal"
+    device: str = "host"  # the companions' CPU: "host" or a device profile file (nac_onboard/compute/device.py)
     args: tuple[str, ...] = ()
 
 
@@ -164,7 +167,7 @@ def load_scenario(name_or_path: str) -> Scenario:
         description=get_value(data, "description", "str", where, ScenarioError, ""),
         duration_s=duration_s, vehicles=vehicles,
         channel=_channel(_table(data, "channel", where), path, where),
-        compute=_compute(_table(data, "compute", where), f"{where}: [compute]") if "compute" in data else None,
+        compute=_compute(_table(data, "compute", where), path, f"{where}: [compute]") if "compute" in data else None,
         throughput=(_probes(_table(data, "throughput", where), f"{where}: [throughput]")
                     if "throughput" in data else None),
         faults=tuple(_fault(f, ids, duration_s, f"{where}: fault {k + 1}")
@@ -258,8 +261,15 @@ def _vehicle(table: dict, scenario_path: Path, where: str) -> VehiclePlan:
     return VehiclePlan(vehicle_id, role, Home(lat, lon, alt))
 
 
-def _compute(table: dict, where: str) -> ComputePlan:
+def _compute(table: dict, path: Path, where: str) -> ComputePlan:
     plan = to_dataclass(ComputePlan, table, where, ScenarioError, table="compute")
+    if plan.device != "host":  # relative to the scenario; checked now (a bad profile: exit 2 naming its field)
+        device_path = path.parent / plan.device
+        try:
+            load_device_profile(device_path)
+        except BadInput as err:
+            raise ScenarioError(f"{where}: device: {err}") from None
+        plan = dataclasses.replace(plan, device=str(device_path.resolve()))
     tasks = all_tasks()
     if plan.task not in tasks:
         raise ScenarioError(f"{where}: compute.task must be one of {', '.join(tasks)}, got {plan.task!r}")

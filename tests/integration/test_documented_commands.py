@@ -236,5 +236,6 @@ def test_every_documented_command_runs_as_written(shell):
     run_and_read_an_experiment(shell)
     run_the_onboard_agents(shell)
     shell.run('python3 -c "import secrets; print(secrets.token_hex(32))" > fleet.key')  # docs/security.md
+    assert "slowdown = 0.5 / " in shell.run("nac-onboard bench --task linreg --seconds 1 --device-ms 0.5")
     missing = {c: f for c, f in commands.items() if c not in shell.ran and c not in NOT_RUN}
     assert not missing, f"documented but neither run nor excused: {missing}"

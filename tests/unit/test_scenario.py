@@ -7,6 +7,7 @@ import pytest
 from missions.geo import distance_m
 from nac_onboard.radio.channel import PRESETS
 from sitl import cli
+from sitl.experiment.commands import Ports, compute_args
 from sitl.experiment.scenario import SCENARIO_DIR, ScenarioError, load_scenario
 
 SHIPPED = sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
@@ -94,6 +95,8 @@ def test_the_shipped_scenarios_load_with_the_research_geometry():
     (TWO + "[network]\nair = 'ether'\n", "air must be one of htb, medium, got 'ether'"),
     (TWO + "[network]\nair = 'medium'\nqueue_packets = 0\n", "network.queue_packets: expected an integer within "
                                                                "[1, 100000], got 0"),
+    (TWO + "[compute]\ntask = 'linreg'\ndevice = 'no-such-device.toml'\n",
+     "[compute]: device: cannot read device profile"),
 ])
 def test_bad_scenarios_name_the_file_and_the_key(tmp_path, text, message):
     path = tmp_path / "bad.toml"
@@ -231,3 +234,16 @@ def test_a_scenarios_params_reach_every_vehicle_and_bad_ones_are_named(tmp_path)
                         .replace('mission = "', f'mission = "{SCENARIO_DIR}/'))
         with pytest.raises(ScenarioError, match=words):
             load_scenario(str(path))
+
+
+def test_a_scenarios_device_profile_is_checked_and_reaches_the_ranks(tmp_path):
+    (tmp_path / "tx2.toml").write_text('[device]\nname = "tx2"\nslowdown = 2000\nsource = "s"\n')
+    path = tmp_path / "s.toml"
+    path.write_text(TWO + "[compute]\ntask = 'linreg'\ndevice = 'tx2.toml'\n")
+    with pytest.raises(ScenarioError, match=r"tx2.toml: \[device\] slowdown: expected a number in 1..1000"):
+        load_scenario(str(path))
+    (tmp_path / "tx2.toml").write_text('[device]\nname = "tx2"\nslowdown = 6\nsource = "s"\n')
+    scenario = load_scenario(str(path))
+    assert scenario.compute.device == str((tmp_path / "tx2.toml").resolve())
+    args = compute_args(scenario, tmp_path / "run", Ports(47000), 100.0)
+    assert args[args.index("--device") + 1] == scenario.compute.device
