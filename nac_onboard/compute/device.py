@@ -7,7 +7,7 @@ seconds, at 1x as at any speed-up up to about the slowdown: above that the host'
 device's, the segment comes out late, and the run counts it (`late_cpu_segments`).
 
 The slowdown is the device's CPU time over this host's for the job's work. It is measured, not looked up: `nac-onboard
-compute bench` times the task's work here and on the companion, and the ratio goes into a profile file with who
+bench` times the task's work here and on the companion, and the ratio goes into a profile file with who
 measured it and where (NAC ships no Jetson figures: none we could find measures this work).
 """
 
@@ -62,12 +62,6 @@ def load_device_profile(path: str | Path) -> DeviceProfile:
     if unknown:
         raise BadInput(f"{path}: [device] has unknown fields {unknown}; expected name, slowdown, source")
     return DeviceProfile(name.strip(), float(slowdown), source.strip())
-
-
-def max_speedup(slowdown: float, ranks: int, cores: int) -> float:
-    """The fastest run whose ranks still finish their work before the device would: each rank's work takes
-    slowdown x its CPU time in simulated seconds, and ranks beyond the cores wait their turn for one."""
-    return slowdown * min(1.0, cores / max(ranks, 1))
 
 
 class CpuStretch:

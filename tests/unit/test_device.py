@@ -9,7 +9,7 @@ import time
 import pytest
 
 from nac_onboard.clock import Clock
-from nac_onboard.compute.device import HOST, CpuStretch, load_device_profile, max_speedup
+from nac_onboard.compute.device import HOST, CpuStretch, load_device_profile
 from nac_onboard.errors import BadInput
 from tests.conftest import SHARED_DATA
 
@@ -41,11 +41,6 @@ def test_a_bad_profile_is_refused_naming_the_file_and_field(tmp_path, body, mess
     with pytest.raises(BadInput, match=re.escape(message)) as err:
         load_device_profile(path)
     assert str(path) in str(err.value) and err.value.exit_code == 2
-
-
-def test_ranks_beyond_the_cores_lower_the_speedup_a_profile_allows():
-    assert max_speedup(8.0, ranks=2, cores=2) == 8.0
-    assert max_speedup(8.0, ranks=4, cores=2) == 4.0
 
 
 class _FourTimes(Clock):
