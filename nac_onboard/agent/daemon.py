@@ -87,6 +87,7 @@ class Agent:
         self.notifier = notifier or SystemdNotifier()
         self.stop_event = threading.Event()
         self.stop_reason = ""
+        self.stop_requested_s: float | None = None  # unix time of the stop signal: the logs end there, not at close
         a = config.autopilot
         self.signing_key = load_signing_key(a.signing_key_file) if a.signing_key_file else None
         self.log = JsonlLog(run_dir / kinds.AGENT_LOG.name)
@@ -187,7 +188,8 @@ class Agent:
         if pending is not None:
             self.log.write(kinds.STATUSTEXT, **pending)
         self.log.write(kinds.AGENT_STOPPED, reason=self.stop_reason or "closed", peer_rejects=self.peer_rejects,
-                       autopilot_refused=self.autopilot.refused, **self.counters)
+                       autopilot_refused=self.autopilot.refused, stop_requested_s=self.stop_requested_s,
+                       **self.counters)
         for f in (self.log, self.throughput_log, self.tlog):
             if f is not None:
                 f.close()
@@ -257,6 +259,7 @@ class Agent:
 
     def stop(self, reason: str) -> None:
         self.stop_reason = reason
+        self.stop_requested_s = time.time()
         self.stop_event.set()
 
     # ---- autopilot -----------------------------------------------------------------------------------------

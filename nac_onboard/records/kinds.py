@@ -102,6 +102,8 @@ AGENT_READY = Kind("agent_ready", AGENT_LOG, "sockets open, probes scheduled", (
 ))
 AGENT_STOPPED = Kind("agent_stopped", AGENT_LOG, "the agent stopped, with its counters", (
     req("reason", "string", "", "why"), req("peer_rejects", "object", "", "peer messages refused, by reason"),
+    opt("stop_requested_s", "number", "s", "unix time the stop signal came (null: closed without one); the logs "
+                                           "end about there, the record after the agent's cleanup"),
     *(req(name, "integer", "", doc) for name, doc in (
         ("frames_in", "MAVLink frames from the autopilot"), ("frames_out", "frames sent to the autopilot"),
         ("frames_routed", "frames relayed between endpoints"), ("telemetry", "telemetry records"),
