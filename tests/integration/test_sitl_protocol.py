@@ -196,7 +196,10 @@ def test_do_set_home_moves_home_for_rtl_and_relative_altitude_and_the_protocol_v
     assert reported is not None and abs(reported.latitude / 1e7 - new_home.lat_deg) < 1e-6
     assert abs(reported.x - 40.0) < 0.1 and abs(reported.altitude / 1000 - (home.alt_m + 5.0)) < 0.01
     position = gcs.recv("GLOBAL_POSITION_INT", 2.0)
-    assert abs(position.relative_alt / 1000 - (sim.truth(0)["pos_m"][2] - 5.0)) < 0.3, "height above the new home"
+    # within one message (its altitude above sea level and above home), not against the truth read later: at 10x on
+    # a loaded machine the message can be a step or two older (a CI run: 0.32 m off a climb that was still settling)
+    assert abs(position.relative_alt / 1000 - (position.alt / 1000 - (home.alt_m + 5.0))) < 0.002, \
+        "height above the new home"
     assert abs(gcs.recv("LOCAL_POSITION_NED", 2.0).z + 10.0) < 0.3, "the local frame stays where it was"
     assert gcs.download()[0].lat_deg == pytest.approx(new_home.lat_deg, abs=1e-7), "item 0 is the new home"
     assert gcs.set_mode("RTL") == M.MAV_RESULT_ACCEPTED
