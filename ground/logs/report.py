@@ -78,6 +78,7 @@ def _notes(tables: list[RunTables], experiment: dict | None) -> list[str]:
         lines += ["## Experiment", "", f"- scenario: `{experiment.get('scenario')}`",
                   f"- speed-up: {experiment.get('speedup', 1)}x ({experiment.get('speedup_note', '')})",
                   f"- network: {_network_line(experiment.get('network'))}",
+                  f"- probes: {_probes_line(experiment.get('probes'), experiment.get('network'))}",
                   f"- ended: {experiment.get('outcome', '?')}"
                   + (f" ({experiment['detail']})" if experiment.get("outcome") not in (None, "completed") else ""),
                   ""]
@@ -86,6 +87,24 @@ def _notes(tables: list[RunTables], experiment: dict | None) -> list[str]:
             lines += [f"## What this run lacks{f' ({t.name})' if len(tables) > 1 else ''}", ""]
             lines += [f"- {m}" for m in t.missing] + [f"- {p}" for p in t.problems] + [""]
     return lines
+
+
+def _probes_line(probes: dict | None, network: dict | None) -> str:
+    """Which probes ran and where their traffic went: beside the job in its queues, or apart from it."""
+    if not probes:
+        return "none, or not recorded (a run from before the experiment recorded its probes)"
+    period_s, duration_s = probes.get("period_s", 0), probes.get("duration_s", 0)
+    schedule = "back to back (continuous, as iperf3's tests)" if duration_s >= period_s else \
+        f"{duration_s:g} s every {period_s:g} s ({100 * duration_s / period_s:.0f} % of the time)"
+    tool = "iperf3" if probes.get("tool") == "iperf3" else "nac-onboard's probe"
+    network = network or {}
+    if network.get("mode") != "kernel":
+        where = "over this host's loopback, apart from the job's slept transfers"
+    elif network.get("air") == "medium":
+        where = "alongside the job, in the same stations' queues"
+    else:
+        where = "in a rate class of their own, apart from the job's traffic"
+    return f"{tool}, {schedule}, {where}"
 
 
 def _network_line(network: dict | None) -> str:

@@ -148,6 +148,7 @@ class Experiment:
                            radio={"name": self.radio.name, "describe": self.radio.describe(),
                                   "sources": self.radio.sources},
                            links=f"replay:{self.replay.source}" if self.replay else "model",
+                           probes=dataclasses.asdict(self.scenario.throughput) if self.scenario.throughput else None,
                            vehicles=[{"id": v.id, "role": v.role} for v in self.scenario.vehicles],
                            missions={v.id: [[it.lat_deg, it.lon_deg] for it in v.mission.items
                                             if it.lat_deg or it.lon_deg]

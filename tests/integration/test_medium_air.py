@@ -155,5 +155,6 @@ def test_an_experiment_on_the_frame_level_air_trains_probes_and_records_its_queu
     assert result.summary["probes"] > 5 and result.summary["mean_throughput_mbps"] > 1.0
     report = (result.run_dir / "report.md").read_text()
     assert "802.11 medium" in report and "share of deliveries late" in report, "the report names the air and counts"
+    assert "alongside the job, in the same stations' queues" in report, "the probes shared the job's queues"
     assert result.summary["air"]["delivered"] == medium[-1]["delivered"] and 0 <= result.summary["air_late_share"] <= 1
     assert not [n for n in netns.namespaces() if n.startswith(experiment.air.prefix)]
