@@ -68,7 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="CPU time per iteration of the job's own work on this machine (no MPI, no "
                                          "network): run it here and on the companion; the ratio is a device "
                                          "profile's slowdown")
-    bench.add_argument("--task", choices=("linreg", "matmul"), required=True)
+    bench.add_argument("--task", required=True, help="a task of the MPI job (linreg, matmul: nac-onboard compute's)")
     bench.add_argument("--workers", type=number_arg(1, 1000, integer=True), default=3,
                        help="the job's workers: the data is split into this many blocks (default: %(default)s)")
     bench.add_argument("--seconds", type=number_arg(0.1, 600, unit="s"), default=5.0, dest="seconds")

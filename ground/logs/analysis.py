@@ -20,6 +20,7 @@ import pandas as pd
 
 from ground.logs.runlog import RunLog
 from missions.geo import Home, ecef_to_enu, lla_to_ecef
+from nac_onboard.clock import PACE_LIMIT
 from nac_onboard.compute.iteration import iterations_per_min
 
 MAX_GAP_S = 2.0  # no interpolation across a longer silence: that is a lost link, not a straight flight
@@ -337,7 +338,8 @@ def speedup_warning(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, summa
     computing is more than CPU_SHARE_LIMIT of an iteration, results in simulated time depend on the speed-up. With
     a device profile the work takes the device's time on the run's clock instead, unless this host was slower."""
     started = run.compute_runs[-1] if run.compute_runs else {}
-    speedup = float(started.get("speedup") or 1.0)
+    speedup = float(started.get("speedup") or 1.0)  # the simulator's measured pace when the job started
+    sped_up = speedup > PACE_LIMIT  # a 1x run's pace reads up to PACE_LIMIT while the simulator catches up
     stretched = float(started.get("cpu_slowdown") or 1.0) > 1.0
     if stretched:
         late = int((run.compute_ends[-1] if run.compute_ends else {}).get("late_cpu_segments") or 0)
@@ -349,7 +351,7 @@ def speedup_warning(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, summa
     if its.empty or workers.empty or "compute_s" not in workers or workers["compute_s"].dropna().empty:
         return None
     median_s = float(its["duration_s"].median())
-    if speedup > 1 and 0 < median_s / speedup < SHORT_ITERATION_WALL_S:
+    if sped_up and 0 < median_s / speedup < SHORT_ITERATION_WALL_S:
         return (f"at {speedup:.1f}x an iteration lasted {1e3 * median_s / speedup:.1f} ms of wall-clock time: the "
                 f"MPI job's own costs on this machine (about {1e3 * MACHINE_ITERATION_COST_S:.1f} ms per "
                 "iteration, measured at 1x) are more than 10 % of it, so iterations per simulated minute depend "
@@ -359,7 +361,7 @@ def speedup_warning(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, summa
     cpu_s = float(workers.groupby("iteration")["compute_s"].max().median()) * speedup
     share = cpu_s / median_s if median_s > 0 else 0.0
     summary["compute_share_of_iteration"] = round(share, 4)
-    if speedup > 1 and share > CPU_SHARE_LIMIT:
+    if sped_up and share > CPU_SHARE_LIMIT:
         return (f"at {speedup:g}x the workers' computing took {100 * share:.0f} % of an iteration in simulated time "
                 f"(more than {100 * CPU_SHARE_LIMIT:.0f} %): iterations per simulated minute depend on the speed-up; "
                 "check at a lower one")

@@ -83,3 +83,55 @@ def research_findings(moving: RunTables, static: RunTables) -> list[str]:
             variance_larger_moving(moving, static) + _radio(moving, static),
             static_more_iterations(moving, static) + _radio(moving, static),
             trains_through_link_loss(moving) + _radio(moving)]
+
+
+# The research's flight test (DESIGN.md section 5, from its Figs 13(a) and 14(b)): linreg, a master and 2 workers.
+PAPER_STATIC_ITERATIONS = 640  # in 200 s of the static flight
+PAPER_STATIC_S = 200.0
+PAPER_MOVING_ITERATIONS = 310  # in the moving flight, up to its link loss
+PAPER_MOVING_LOSS_S = 75.0  # the link loss that ended the research's training
+PAPER_RANGE_M = 25.0  # where its throughput fell to nothing (Fig 11(b), as issue 28 reads it)
+
+
+def _since_start_s(t: RunTables):
+    its = t.iterations
+    start = its["start_sim_s"] if its["start_sim_s"].notna().all() else its["t_s"]  # simulated, if recorded
+    return start - start.iloc[0]
+
+
+def _ratio(nac: float | None, paper: float) -> str:
+    return f"{nac / paper:.3g}" if nac is not None else "-"
+
+
+def beside_the_research(moving: RunTables, static: RunTables) -> list[str]:
+    """NAC's numbers beside the research's testbed, each with the ratio NAC / research (a markdown table). The
+    research's figures are its published ones; nothing in NAC is fitted to them."""
+    rows = [("figure", "research", "NAC", "NAC / research")]
+    if not static.iterations.empty:
+        since = _since_start_s(static)
+        span_s = float(since.iloc[-1] + static.iterations["duration_s"].iloc[-1])
+        within = int((since < PAPER_STATIC_S).sum())
+        label = f"iterations in {PAPER_STATIC_S:g} s static ({static.name})"
+        if span_s < PAPER_STATIC_S:  # a shorter run: its pace over 200 s, and said so
+            within = round(len(since) * PAPER_STATIC_S / span_s)
+            label += f", at the pace of its {span_s:.1f} s"
+        rows.append((label, f"{PAPER_STATIC_ITERATIONS}", f"{within}", _ratio(within, PAPER_STATIC_ITERATIONS)))
+        per_10_s = 10 * float(static.iterations["duration_s"].median())
+        paper_10_s = 10 * PAPER_STATIC_S / PAPER_STATIC_ITERATIONS
+        rows.append(("time per 10 iterations, static (s; NAC: median x 10)", f"{paper_10_s:.2f}", f"{per_10_s:.3g}",
+                     _ratio(per_10_s, paper_10_s)))
+    if not moving.iterations.empty:
+        since = _since_start_s(moving)
+        before = int((since < PAPER_MOVING_LOSS_S).sum())
+        span_s = float(since.iloc[-1] + moving.iterations["duration_s"].iloc[-1])
+        short = f", which lasted {span_s:.1f} s" if span_s < PAPER_MOVING_LOSS_S else ""
+        rows.append((f"iterations in the moving flight's first {PAPER_MOVING_LOSS_S:g} s ({moving.name}{short})",
+                     f"{PAPER_MOVING_ITERATIONS}", f"{before}", _ratio(before, PAPER_MOVING_ITERATIONS)))
+        rows.append((f"iterations after {PAPER_MOVING_LOSS_S:g} s", "0 (training ended)",
+                     f"{len(since) - before}", "-"))
+    reach = moving.summary.get("range_above_threshold_m")
+    rows.append((f"range: throughput above {moving.summary.get('threshold_mbps', '?')} Mbit/s up to (m)",
+                 f"about {PAPER_RANGE_M:g}", f"{reach:g}" if reach is not None else "-",
+                 _ratio(reach, PAPER_RANGE_M)))
+    lines = ["| " + " | ".join(row) + " |" for row in rows]
+    return [lines[0], "| --- | --- | --- | --- |", *lines[1:]]

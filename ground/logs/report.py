@@ -162,9 +162,10 @@ class Comparison:
 
 def compare_runs(run_a: str | Path, run_b: str | Path, out: str | Path, master: str | None = None,
                  bin_m: float = DEFAULT_BIN_M, threshold_mbps: float = DEFAULT_THRESHOLD_MBPS,
-                 report_path: Path | None = None, findings=None) -> Comparison:
+                 report_path: Path | None = None, findings=None, beside=None) -> Comparison:
     """Each figure with both runs side by side, into out; report.md there or at report_path. `findings`, if given,
-    turns the two runs' tables into lines for a Findings section (also returned)."""
+    turns the two runs' tables into lines for a Findings section (also returned); `beside`, into a markdown table
+    of the runs beside the research."""
     reads = [read_run(run_a), read_run(run_b)]
     tables = [analyze(r, master, bin_m, threshold_mbps) for r in reads]
     names = [t.name for t in tables]
@@ -179,6 +180,8 @@ def compare_runs(run_a: str | Path, run_b: str | Path, out: str | Path, master: 
     lines = findings(*tables) if findings else []
     if lines:
         report += ["## Findings", "", *[f"- {line}" for line in lines], ""]
+    if beside:
+        report += ["## Beside the research", "", *beside(*tables), ""]
     report += [*_notes(tables, None), "## Summary", "", summary_table([t.summary for t in tables], names), ""]
     for name in figures.FIGURES:
         path = figures.draw(name, tables, out / f"{name}.png")

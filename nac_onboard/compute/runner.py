@@ -145,7 +145,7 @@ class Inbox:
 
 
 # ---- workers ---------------------------------------------------------------------------------------------------
-def run_worker(comm, mpi, options: ComputeOptions) -> bool:
+def run_worker(comm, mpi, options: ComputeOptions, log: JsonlLog) -> bool:
     """Answers the master until its STOP; returns whether MPI_Finalize may run (no rank was lost)."""
     rank = comm.Get_rank()
     bounds = comm.bcast(None, root=0)
@@ -161,6 +161,8 @@ def run_worker(comm, mpi, options: ComputeOptions) -> bool:
     while True:
         _, message = inbox.receive(time.monotonic() + options.clock.wall_s(options.idle_timeout_s))
         if message is None:
+            log.write(kinds.WORKER_GAVE_UP, rank=rank, idle_timeout_s=options.idle_timeout_s)
+            log.close()
             sys.stderr.write(f"worker {rank}: nothing from the master for {options.idle_timeout_s:g} s; aborting\n")
             comm.Abort(3)
         kind, iteration, rate_bps, extra_rows, loss, phy_bps = message[:WORK_HEADER].tolist()  # floats: cheap tests
@@ -622,7 +624,7 @@ def main(argv: list[str] | None = None) -> int:
             return code
         with JsonlLog(os.path.join(options.out, kinds.RANK_LOG.file_name(rank=comm.Get_rank()))) as log:
             log.write(kinds.WORKER_STARTED, rank=comm.Get_rank(), pid=os.getpid(), host=MPI.Get_processor_name())
-            finalizes = run_worker(comm, MPI, options)
+            finalizes = run_worker(comm, MPI, options, log)
             log.write(kinds.WORKER_STOPPED, rank=comm.Get_rank(), finalizes=finalizes)
         if not finalizes:
             end_without_finalize(0)

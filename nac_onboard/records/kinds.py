@@ -273,6 +273,10 @@ WORKER_STARTED = Kind("worker_started", RANK_LOG, "a worker rank started", (
     req("host", "string", "", "MPI processor name")))
 WORKER_STOPPED = Kind("worker_stopped", RANK_LOG, "a worker rank stopped", (
     req("rank", "integer", "", "MPI rank"), req("finalizes", "boolean", "", "whether it called MPI_Finalize")))
+WORKER_GAVE_UP = Kind("worker_gave_up", RANK_LOG, "a worker heard nothing from the master for its idle timeout and "
+                      "aborts the job (exit 3): recorded before MPI_Abort, which can end the job before its stderr "
+                      "is forwarded", (
+    req("rank", "integer", "", "MPI rank"), req("idle_timeout_s", "number", "s", "the wait it gave the master")))
 
 # ---- the kernel network: network.jsonl ---------------------------------------------------------------------------
 LINK_RATES = Kind("link_rates", NETWORK_LOG, "every pair's link, one list per field, one entry per pair", (

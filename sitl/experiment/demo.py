@@ -33,11 +33,12 @@ def run_demo(out: Path, speedup: float, base_port: int, stream=sys.stdout,
         if result.outcome is Outcome.INTERRUPTED:
             break
     if len(results) == len(scenarios) and all(r.report for r in results):
-        from ground.logs.findings import research_findings
+        from ground.logs.findings import beside_the_research, research_findings
         from ground.logs.report import compare_runs
 
         comparison = compare_runs(results[0].run_dir, results[1].run_dir, out / "comparison",
-                                  report_path=kinds.REPORT.at(out), findings=research_findings)
+                                  report_path=kinds.REPORT.at(out), findings=research_findings,
+                                  beside=beside_the_research)
         print(f"\ncomparison: {comparison.report_path}", file=stream)
         for line in comparison.findings:
             print(f"- {line}", file=stream)

@@ -230,7 +230,9 @@ def test_a_killed_master_leaves_its_last_checkpoint_and_the_workers_give_up(tmp_
         os.kill(master["pid"], signal.SIGKILL)
         code = proc.wait(timeout=30)
     assert code != 0
-    assert "nothing from the master for 2 s" in proc.stderr.read().decode()
+    # the worker's own record, not its stderr: MPI_Abort can end the job before hydra forwards that (a CI run)
+    gave_up = [r for k in (1, 2) for r in read_jsonl(tmp_path / f"rank-{k}.jsonl").of_kind("worker_gave_up")]
+    assert gave_up and gave_up[0]["idle_timeout_s"] == 2.0, proc.stderr.read().decode()[-2000:]
     read = read_jsonl(tmp_path / "compute.jsonl")
     assert read.problems == [] and len(read.of_kind("iteration")) >= 5
     checkpoint = np.load(tmp_path / "results.npz")

@@ -398,8 +398,8 @@ def run_job(options, drop=lambda dest, message: False) -> tuple[int, list[dict]]
 
     size = 4
     world = FakeWorld(size, drop)
-    workers = [threading.Thread(target=run_worker, args=(world.comm(r), FakeMPI, options), daemon=True)
-               for r in range(1, size)]
+    workers = [threading.Thread(target=run_worker, args=(world.comm(r), FakeMPI, options, RecordingLog()),
+                                daemon=True) for r in range(1, size)]
     for thread in workers:
         thread.start()
     log = RecordingLog()

@@ -16,7 +16,7 @@ from ground import cli
 from ground.logs.analysis import analyze
 from ground.logs.autopilot_logs import dataflash_positions, read_tlog, tlog_positions, ulog_positions
 from ground.logs.calibration import CalibrationError, fit_channel
-from ground.logs.findings import research_findings
+from ground.logs.findings import beside_the_research, research_findings
 from ground.logs.report import analyze_run
 from ground.logs.runlog import read_run
 from nac_onboard.flight_log import TlogWriter
@@ -218,6 +218,20 @@ def test_findings_state_whether_they_hold_with_their_numbers():
            "from iteration 3" in lines[3]
     static.summary["iterations_per_min"] = 50.0
     assert "**does not hold**" in research_findings(moving, static)[2]
+
+
+def test_the_runs_beside_the_research_with_ratios():
+    """The golden run (4 iterations in 2.5 s, range 10 m) as both flights: each figure beside the research's,
+    with NAC / research; a run shorter than 200 s is taken at its pace and says so."""
+    run = analyze(read_run(GOLDEN))
+    table = beside_the_research(run, copy.deepcopy(run))
+    assert table[:2] == ["| figure | research | NAC | NAC / research |", "| --- | --- | --- | --- |"]
+    assert "| iterations in 200 s static (golden-run), at the pace of its 2.5 s | 640 | 320 | 0.5 |" in table
+    assert "| time per 10 iterations, static (s; NAC: median x 10) | 3.12 | 5 | 1.6 |" in table
+    assert "| iterations in the moving flight's first 75 s (golden-run, which lasted 2.5 s) | 310 | 4 | 0.0129 |" \
+        in table
+    assert "| iterations after 75 s | 0 (training ended) | 0 | - |" in table
+    assert "| range: throughput above 1.0 Mbit/s up to (m) | about 25 | 10 | 0.4 |" in table
 
 
 @pytest.mark.parametrize(("speedup", "duration_sim_s", "warned"), [(4.0, 0.008, True), (4.0, 0.4, False),

@@ -1,0 +1,104 @@
+"""What each mechanism of the simulated air contributes to an iteration's time: `paper-flight-static` on the kernel
+network with the mechanisms added one at a time, each run's pace beside the research's (640 iterations in 200 s).
+
+    python benchmarks/mechanisms.py [--duration-s 60] [--speedup 1] [--smoke]
+
+Variants, each a whole run (simulator, agents, MPI job, probes):
+  htb             a rate class per pair, probes in classes of their own (the default air)
+  medium          every frame through the 802.11 medium: one FIFO queue per station, channel access, retries
+  medium-probes   the same, with the probes back to back (iperf3-style, continuous) in the stations' queues
+  medium-probes-device  the same, with every rank's work 100 times this host's CPU time (an illustrative
+                  profile: no sourced Jetson figure exists; `nac-onboard bench` measures one)
+Printed per variant: iterations, iterations per simulated minute, the median iteration and the iterations a
+200 s static flight would hold at that pace, with the ratio to the research's 640. Needs root (namespaces).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import io
+import json
+import os
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ground.logs.findings import PAPER_STATIC_ITERATIONS, PAPER_STATIC_S
+from nac_onboard.flight_log import read_jsonl
+from nac_onboard.records import kinds
+from sitl.experiment.runner import Outcome, run_scenario
+from sitl.experiment.scenario import load_scenario
+from sitl.launcher import allocate_base_port
+from sitl.network.netns import NetworkUnavailable, check_kernel_network
+
+import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+VARIANTS = ("htb", "medium", "medium-probes", "medium-probes-device")  # each adds one mechanism to the one before
+SMOKE = {"duration_s": 4.0, "speedup": 4.0, "variants": ["medium-probes"]}
+ILLUSTRATIVE_SLOWDOWN = 100.0
+
+
+def variant(name: str, folder: Path, duration_s: float):
+    scenario = load_scenario("paper-flight-static")
+    scenario = dataclasses.replace(scenario, duration_s=duration_s)
+    if name != "htb":
+        scenario = dataclasses.replace(scenario, network=dataclasses.replace(scenario.network, air="medium"))
+    if name.startswith("medium-probes"):
+        probes = scenario.throughput
+        scenario = dataclasses.replace(scenario, throughput=dataclasses.replace(probes, duration_s=probes.period_s))
+    if name.endswith("-device"):
+        device = folder / "illustrative.toml"
+        device.write_text(f'[device]\nname = "illustrative-{ILLUSTRATIVE_SLOWDOWN:g}x"\n'
+                          f'slowdown = {ILLUSTRATIVE_SLOWDOWN}\nsource = "benchmarks/mechanisms.py: an '
+                          f'illustration, not a measured device"\n')
+        scenario = dataclasses.replace(scenario, compute=dataclasses.replace(scenario.compute, device=str(device)))
+    return scenario
+
+
+def measure(name: str, duration_s: float, speedup: float, folder: Path) -> dict:
+    result = run_scenario(variant(name, folder, duration_s), folder / name, speedup, allocate_base_port(3, slots=5),
+                          out=io.StringIO(), network="kernel")
+    if result.outcome is not Outcome.COMPLETED:
+        return {"variant": name, "outcome": result.outcome.name.lower(), "detail": result.detail, "ok": False}
+    iterations = read_jsonl(kinds.COMPUTE_LOG.at(result.run_dir)).of_kind(kinds.ITERATION)
+    durations = [r.get("duration_sim_s", r["duration_s"]) for r in iterations]
+    per_min = result.summary.get("iterations_per_min")
+    in_200_s = per_min * PAPER_STATIC_S / 60 if per_min else None
+    return {"variant": name, "outcome": result.outcome.name.lower(), "iterations": len(iterations),
+            "iterations_per_sim_min": round(per_min, 1) if per_min else None,
+            "median_iteration_s": round(float(np.median(durations)), 4) if durations else None,
+            "iterations_in_200_s": round(in_200_s) if in_200_s else None,
+            "versus_research_640": round(in_200_s / PAPER_STATIC_ITERATIONS, 2) if in_200_s else None,
+            "air_late_share": result.summary.get("air_late_share"),
+            "ok": result.outcome is Outcome.COMPLETED}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--duration-s", type=float, default=60.0, help="simulated seconds per run")
+    parser.add_argument("--speedup", type=float, default=1.0)
+    parser.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS))
+    args = _common.parse_args(parser, SMOKE)
+    try:
+        check_kernel_network()
+    except NetworkUnavailable as err:
+        print(f"mechanisms: {err}", file=sys.stderr)
+        return 2
+    os.environ.setdefault("NAC_DATA_DIR", str(DATA))
+    folder = Path(tempfile.mkdtemp(prefix="nac-bench-mech-"))
+    try:
+        runs = [measure(name, args.duration_s, args.speedup, folder) for name in args.variants]
+        for run in runs:
+            print(json.dumps({"mechanism": run}), flush=True)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    return 0 if all(r["ok"] for r in runs) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
