@@ -102,7 +102,10 @@ def test_the_live_page_follows_the_simulator_and_the_replay_scrubs_through_the_r
     assert len(errors_m) > 30 and max(errors_m) < 1.0, f"drawn up to {max(errors_m):.2f} m from the truth"
     states = [s for k, s in enumerate(link_states) if s and (k == 0 or s != link_states[k - 1])]
     assert states[:3] == ["up", "out", "up"], f"w1's link over time: {states}"
-    assert iterations[-1] > iterations[len(iterations) // 4] > 0, "the iteration counter advanced"
+    # counted while watched: from the first iteration shown (on a loaded machine the job can start a quarter of the
+    # way into this 10x run: a CI run saw 0 there) to a larger count by the end
+    shown = [count for count in iterations if count > 0]
+    assert shown and shown[-1] > shown[0], f"the iteration counter advanced: {iterations}"
     shot = (run_dir / "view.png").read_bytes()
     assert shot[:8] == b"\x89PNG\r\n\x1a\n" and len(shot) > 20_000, "the live page's screenshot"
 
