@@ -10,6 +10,8 @@ import pytest
 
 from nac_onboard.agent.config import load_agent_config
 
+# pip downloading and unpacking for a minute, with minutes of timeout: beside the exclusive tests (make test)
+pytestmark = pytest.mark.niced
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 HOST_UNITS = Path("/usr/lib/systemd/system")
 needs_systemd = pytest.mark.skipif(not (shutil.which("systemd-analyze") and shutil.which("systemd-sysusers")

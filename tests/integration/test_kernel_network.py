@@ -44,15 +44,20 @@ needs_kernel = pytest.mark.skipif(bool(_kernel_network_missing()), reason=_kerne
 needs_iperf3 = pytest.mark.skipif(shutil.which("iperf3") is None, reason="iperf3 is not installed")
 
 
-def host_state() -> dict:
-    """What a run could leave on this host: namespaces, root-namespace links, qdiscs and nft tables."""
+def root_state() -> dict:
+    """What a run could leave in the root namespace: links, qdiscs and nft tables."""
     def out(command):
         return subprocess.run(command, capture_output=True, text=True).stdout
 
-    return {"namespaces": sorted(n for n in netns.namespaces() if n.startswith(netns.PREFIX)),
-            "links": sorted(re.findall(r"^\d+: ([^:@]+)", out(["ip", "-o", "link"]), re.M)),
+    return {"links": sorted(re.findall(r"^\d+: ([^:@]+)", out(["ip", "-o", "link"]), re.M)),
             "qdiscs": sorted(out(["tc", "qdisc", "show"]).splitlines()),
             "nft": sorted(out(["nft", "list", "tables"]).splitlines())}
+
+
+def run_namespaces(runner_pid: int) -> list[str]:
+    """The namespaces of the run whose runner is that process: the other runs on this host (make test's niced
+    tests, beside the exclusive ones) have their own."""
+    return sorted(n for n in netns.namespaces() if n.startswith(f"{netns.PREFIX}{runner_pid}-"))
 
 
 def shortened(name: str, folder: Path, duration_s: float, channel: str = "", max_speedup: float = 1.0,
@@ -177,7 +182,7 @@ def _measured_matches_applied(run_dir: Path, solid_below_m: float = 16.0, bin_m:
 
 @needs_kernel
 @pytest.mark.slow
-@pytest.mark.exclusive  # rates and times measured, the whole host's namespaces compared
+@pytest.mark.exclusive  # rates and times measured; the root namespace's links, qdiscs and tables compared
 def test_the_moving_flight_on_a_kernel_network(tmp_path):
     """paper-flight-moving end to end at 4x: probes measure the shaped links, w1 flies out of range (its MPI
     transfers stall in the network, not in a model check), training goes on without it, and it comes back.
@@ -187,7 +192,7 @@ def test_the_moving_flight_on_a_kernel_network(tmp_path):
     one that gets through can come up to about the outage's length after the link is steady again (measured with
     `ss -ti` in w1's namespace: back-off 7, 28.7 simulated seconds, then back at 108 s). One more failed
     retransmission (57 s) ends the research's 130 s before w1 answers: a clean-clone CI run saw that."""
-    before = host_state()
+    before = root_state()
     scenario = load_scenario("paper-flight-moving")
     scenario = dataclasses.replace(scenario, duration_s=scenario.duration_s + 40.0)
     result = run_scenario(scenario, tmp_path / "run", 4.0,
@@ -208,12 +213,12 @@ def test_the_moving_flight_on_a_kernel_network(tmp_path):
     assert compute.of_kind("worker_back"), "w1 answered again"
     during = [r["cost"] for r in iterations if r["workers"]["absent"][0] and r["cost"] is not None]
     assert during[-1] < during[0], "training went on without w1"
-    assert host_state() == before, "the network was removed"
+    assert run_namespaces(os.getpid()) == [] and root_state() == before, "the network was removed"
 
 
 @needs_kernel
 @pytest.mark.slow
-@pytest.mark.exclusive  # rates and times measured, the whole host's namespaces compared
+@pytest.mark.exclusive  # rates and times measured; the root namespace's links, qdiscs and tables compared
 def test_results_in_simulated_time_do_not_depend_on_the_speedup(tmp_path):
     """paper-flight-static shortened to 15 s (probes every second: some 30 a run), at 1x and at 4x on a kernel
     network, its radio's median link (no shadowing or fading: both runs see the same rates) and a per-transfer
@@ -270,7 +275,7 @@ def test_without_the_privileges_kernel_exits_2_quickly_and_sleep_still_runs(tmp_
     assert "--network kernel cannot build its network here" in refused.stderr, refused.stderr
     assert "use --network sleep" in refused.stderr and "Traceback" not in refused.stderr
     assert not (tmp_path / "refused").exists(), "nothing started"
-    assert not [n for n in netns.namespaces() if n.startswith(f"{netns.PREFIX}{proc.pid}-")], "the trial is gone"
+    assert run_namespaces(proc.pid) == [], "the trial is gone"
     ran = subprocess.run([*unprivileged, sys.executable, "-m", "sitl.cli", "experiment", str(scenario), "--speedup",
                           "4", "--out", str(tmp_path / "slept"), "--base-port", str(allocate_base_port(3, slots=5))],
                          capture_output=True, text=True, env=ENV, timeout=120)
@@ -290,15 +295,15 @@ def start_kernel_run(scenario: Path, run: Path) -> tuple[subprocess.Popen, Conso
 
 
 @needs_kernel
-@pytest.mark.exclusive  # rates and times measured, the whole host's namespaces compared
+@pytest.mark.exclusive  # rates and times measured; the root namespace's links, qdiscs and tables compared
 def test_ctrl_c_on_a_kernel_network_leaves_nothing_behind(tmp_path):
     """SIGTERM takes the same path (test_experiment.py stops a run on the sleep network with it)."""
     scenario = shortened("paper-flight-static", tmp_path, 600.0, max_speedup=4.0)
-    before = host_state()
+    before = root_state()
     proc, console = start_kernel_run(scenario, tmp_path / "run")
     try:
         assert console.seen.wait(90.0), console.text()
-        ours = [n for n in host_state()["namespaces"] if n not in before["namespaces"]]
+        ours = run_namespaces(proc.pid)
         assert len(ours) == 4, "a namespace per vehicle and the air's"
         pids = [pid for name in ours for pid in netns.pids_in(name)]
         assert len(pids) >= 6, "agents and MPI ranks run inside the namespaces"
@@ -310,7 +315,7 @@ def test_ctrl_c_on_a_kernel_network_leaves_nothing_behind(tmp_path):
             proc.wait()
     console.join()
     assert "interrupted" in console.text() and "ended: interrupted" in (tmp_path / "run" / "report.md").read_text()
-    assert host_state() == before, "namespaces, links, qdiscs and nft tables are gone"
+    assert run_namespaces(proc.pid) == [] and root_state() == before, "namespaces, links, qdiscs, nft tables gone"
     left = [pid for pid in pids if Path(f"/proc/{pid}").exists()]
     assert left == [], f"left running: {left}"
 
@@ -326,7 +331,7 @@ def test_sigkill_on_a_kernel_network_leaves_nothing_within_10_s(tmp_path):
     proc, console = start_kernel_run(scenario, tmp_path / "run")
 
     def ours() -> list[str]:
-        return [n for n in netns.namespaces() if n.startswith(f"{netns.PREFIX}{proc.pid}-")]
+        return run_namespaces(proc.pid)
 
     try:
         assert console.seen.wait(90.0), console.text()
