@@ -24,8 +24,6 @@ from sitl.network.netns import delete_namespace
 from tests.conftest import SHARED_DATA
 from tests.integration.test_experiment import write_scenario
 
-# a minute of commands with minutes of timeout, in a namespace of its own: beside the exclusive tests (make test)
-pytestmark = pytest.mark.niced
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 BLOCK = re.compile(r"```(?:sh|bash)\n(.*?)```", re.S)
