@@ -5,6 +5,7 @@ import dataclasses
 import json
 import os
 import secrets
+import statistics
 import subprocess
 import sys
 import threading
@@ -80,14 +81,16 @@ def test_loopback_rate_agrees_with_iperf3_within_10_percent(netns):
                  ["ip", "netns", "exec", ns, "tc", "qdisc", "add", "dev", "lo", "root", "tbf", "rate", "400mbit",
                   "burst", "256kb", "latency", "20ms"]])
     result = compare("127.0.0.1", runs=3, duration_s=1, netns_client=ns, netns_server=ns)
-    assert all(360e6 < bps < 420e6 for bps in result.iperf3_bps), "iperf3 sees the 400 Mbit/s cap"
+    assert 360e6 < statistics.median(result.iperf3_bps) < 420e6, f"iperf3 sees the 400 Mbit/s cap: {result.iperf3_bps}"
     assert abs(result.ratio - 1) < 0.10, result.describe(1e6, "Mbit/s")
 
 
 @needs_iperf3
 @pytest.mark.exclusive  # rates or times measured against a bound
 def test_rate_limited_link_agrees_with_iperf3_within_10_percent(netns):
-    """Two namespaces joined by a veth pair; the client side leaves through tc tbf at 10 Mbit/s."""
+    """Two namespaces joined by a veth pair; the client side leaves through tc tbf at 10 Mbit/s. iperf3's median
+    run is the sanity check, as the ratio is a median of pairs: one 1-second run can lose half its second to the
+    kernel's deferred teardown of namespaces an earlier test removed (CI saw 9.1, 9.5 and 5.3 Mbit/s)."""
     tag = secrets.token_hex(3)
     a, b, va, vb = f"nac-{tag}-a", f"nac-{tag}-b", f"nv{tag}a", f"nv{tag}b"
     netns([a, b], [["ip", "link", "add", va, "netns", a, "type", "veth", "peer", "name", vb, "netns", b],
@@ -97,7 +100,7 @@ def test_rate_limited_link_agrees_with_iperf3_within_10_percent(netns):
                    ["ip", "netns", "exec", a, "tc", "qdisc", "add", "dev", va, "root", "tbf", "rate", "10mbit",
                     "burst", "32kbit", "latency", "50ms"]])
     result = compare("10.77.0.2", runs=3, duration_s=1, netns_client=a, netns_server=b)
-    assert all(8e6 < bps < 10.5e6 for bps in result.iperf3_bps), "iperf3 sees the 10 Mbit/s shaping"
+    assert 8e6 < statistics.median(result.iperf3_bps) < 10.5e6, f"iperf3 sees 10 Mbit/s: {result.iperf3_bps}"
     assert abs(result.ratio - 1) < 0.10, result.describe(1e6, "Mbit/s")
 
 
