@@ -211,6 +211,8 @@ def _run_vehicle_command(args: argparse.Namespace, out) -> int:
         return 0
     # Everything that can be refused offline is checked before any link opens: bad input sends nothing.
     mission = ops.load_for_flight(args.file, FIRMWARES.get(args.firmware)) if key == ("mission", "upload") else None
+    if mission is not None:
+        ops.print_notes(args.file, mission, out)
     if args.command == "mode" and args.name.upper() not in COPTER_MODES:
         raise BadInput(f"unknown mode {args.name!r}; known: {', '.join(sorted(COPTER_MODES))}")
     signing_key = load_signing_key(args.signing_key_file) if args.signing_key_file else None

@@ -7,6 +7,7 @@ from pathlib import Path
 from missions.dialect import MODEL_CATALOGUE, CommandCatalogue
 from missions.errors import MissionFileError
 from missions.firmware import Firmware
+from missions.legacy import is_legacy, loads_legacy
 from missions.model import Mission
 from missions.plan import loads_plan, read_text, write_plan
 from missions.validate import validate
@@ -17,15 +18,19 @@ WPL_SUFFIXES = frozenset({".waypoints", ".txt"})
 
 
 def loads_mission(text: str, source: str = "<mission>") -> Mission:
-    """Parse .plan or QGC WPL text, whichever it is (JSON starts with '{'), without validating."""
+    """Parse .plan, QGC WPL or MAVProxy's older rally or fence text, whichever it is (JSON starts with '{'),
+    without validating."""
     start = text.lstrip()
     if start.startswith("{"):
         return loads_plan(text, source)
     if start.startswith("QGC WPL"):
         return loads_wpl(text, source)
+    if is_legacy(text):
+        return loads_legacy(text, source)
     first = start.splitlines()[0][:40] if start else ""
     raise MissionFileError(source, "line 1", f"starts with {first!r}; expected a QGroundControl .plan "
-                                             f"(JSON object) or a {HEADER!r} waypoint file")
+                                             f"(JSON object), a {HEADER!r} waypoint file, or a MAVProxy rally "
+                                             f"(RALLY lines) or fence (lat lon lines) file")
 
 
 def load_mission(path: str | Path, flight: bool = True, *, catalogue: CommandCatalogue = MODEL_CATALOGUE,

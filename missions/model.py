@@ -197,6 +197,9 @@ class Mission:
     home_current: bool = True
     #: where each (mission_type, seq) was read from ("item 3 (doJumpId 3)", "line 5"), for error messages
     origins: dict[tuple[int, int], str] = field(default_factory=dict, compare=False, repr=False)
+    #: what the reader did that the file did not say outright (a survey's stored items read in its place, rows
+    #: renumbered), one sentence each, for the commands to print once
+    notes: list[str] = field(default_factory=list, compare=False, repr=False)
 
     def where(self, mission_type: int, seq: int) -> str:
         found = self.origins.get((int(mission_type), seq))

@@ -2,8 +2,11 @@
 
 Format as QGC writes it: fileType "Plan", version 1; mission{version 2, firmwareType, vehicleType, cruiseSpeed,
 hoverSpeed, plannedHomePosition [lat, lon, alt AMSL], items}; geoFence{version 2, polygons, circles, breachReturn};
-rallyPoints{version 2, points}. Only SimpleItems have a MAVLink meaning: ComplexItems (survey, corridor scan,
-structure scan) are expanded by QGC itself at upload time, so they are refused here by name.
+rallyPoints{version 2, points}. Only SimpleItems have a MAVLink meaning. A survey or corridor scan (QGC's
+TransectStyleComplexItem) stores the SimpleItems QGC generated for it under `TransectStyleComplexItem.Items`, and QGC
+uploads exactly those in their place: so are they read here, in order, numbered on from the items before. A
+complex item that stores none (a structure scan, a landing pattern: QGC generates them only when it loads the plan)
+is refused by name.
 
 Older files QGC still loads are read as it reads them: items with four params and a `coordinate` [lat, lon, alt]
 (params 5-7) or with param1..param4 keys; geoFence and rallyPoints of version 1, which QGC ignores (so does this
@@ -182,11 +185,19 @@ def _read_mission_section(r: _Reader, m: dict, where: str, ground_station: str) 
         hover_speed_mps=r.number(m, "hoverSpeed", where, PlanInfo.hover_speed_mps),
         global_plan_altitude_mode=r.integer(m, "globalPlanAltitudeMode", where, None),
     )
-    home_lat, home_lon, home_alt = r.numbers(m, "plannedHomePosition", where, (3,))
-    home = None if home_lat == 0.0 and home_lon == 0.0 else PlannedHome(home_lat, home_lon, home_alt)
+    raw_items = r.field(m, "items", where, ("a list",))
+    # A plan of only a fence or rally points (QGC saves and loads those) has no home to fly from: QGC writes its
+    # unknown planned home as nulls, or none at all. With a mission to fly, the home is checked as ever.
+    raw_home = m.get("plannedHomePosition")
+    no_home = raw_home is None or (isinstance(raw_home, list) and all(x is None for x in raw_home))
+    home = None
+    if raw_items or not no_home:
+        home_lat, home_lon, home_alt = r.numbers(m, "plannedHomePosition", where, (3,))
+        if home_lat != 0.0 or home_lon != 0.0:
+            home = PlannedHome(home_lat, home_lon, home_alt)
     mission = Mission(home=home, plan=plan)
     mission.origins[(MissionType.MISSION, 0)] = f"{where} plannedHomePosition".removeprefix("top level ")
-    _read_items(r, r.field(m, "items", where, ("a list",)), mission)
+    _read_items(r, raw_items, mission)
     return mission
 
 
@@ -206,28 +217,54 @@ def _item_params(r: _Reader, obj: dict, where: str) -> list[float]:
     return params
 
 
+def _simple_items(r: _Reader, raw_items: list, mission: Mission) -> list[tuple[str, dict]]:
+    """(where, SimpleItem object) in the order QGC uploads them: a survey's or corridor scan's stored items in its
+    place. QGC's own names: TransectStyleComplexItem::_save writes them under "Items"."""
+    found = []
+    for k, raw in enumerate(raw_items, 1):
+        where = f"item {k}"
+        obj = r.obj(raw, where, "the item")
+        kind = r.field(obj, "type", where, ("a string",))
+        if kind != "ComplexItem":
+            if kind not in ("SimpleItem", "missionItem"):  # the second: QGC's first JSON format
+                raise r.fail(where, f'type is "{kind}"; expected "SimpleItem" or "ComplexItem"')
+            found.append((where, obj))
+            continue
+        complex_type = obj.get("complexItemType", "unknown")
+        where = f'item {k} (ComplexItem "{complex_type}")'
+        transect = obj.get("TransectStyleComplexItem")
+        stored = transect.get("Items") if isinstance(transect, dict) else None
+        if not stored:
+            raise r.fail(where, "stores no mission items (QGroundControl generates this kind's items when it "
+                                "loads the plan, and uploads those): load the plan in QGroundControl, upload it and "
+                                "download it (nac-ground mission download), or replace it with SimpleItems")
+        if not isinstance(stored, list):
+            raise r.fail(where, f'field "TransectStyleComplexItem.Items" is {_json_type(stored)}; expected a list')
+        for j, inner in enumerate(stored, 1):
+            inner_where = f"{where} stored item {j}"
+            inner_obj = r.obj(inner, inner_where, "the stored item")
+            inner_kind = r.field(inner_obj, "type", inner_where, ("a string",), "SimpleItem")
+            if inner_kind != "SimpleItem":
+                raise r.fail(inner_where, f'type is "{inner_kind}"; expected "SimpleItem"')
+            found.append((inner_where, inner_obj))
+        mission.notes.append(f'{where}: its {len(stored)} stored items read in its place, as QGroundControl '
+                             f'uploads them')
+    return found
+
+
 def _read_items(r: _Reader, raw_items: list, mission: Mission) -> None:
     seq_by_jump_id: dict[int, int] = {}
-    for seq, raw in enumerate(raw_items, 1):
-        where = f"item {seq}"
-        obj = r.obj(raw, where, "the item")
+    where_by_jump_id: dict[int, str] = {}
+    for seq, (where, obj) in enumerate(_simple_items(r, raw_items, mission), 1):
         if isinstance(obj.get("doJumpId"), int) and not isinstance(obj.get("doJumpId"), bool):
-            where = f"item {seq} (doJumpId {obj['doJumpId']})"
-        kind = r.field(obj, "type", where, ("a string",))
-        if kind == "ComplexItem":
-            complex_type = obj.get("complexItemType", "unknown")
-            raise r.fail(where, f'ComplexItem "{complex_type}" has no MAVLink form in a file: QGroundControl turns '
-                                f"it into waypoints only when uploading. Upload the plan from QGroundControl and "
-                                f"download it (nac-ground mission download), or replace it with SimpleItems")
-        if kind not in ("SimpleItem", "missionItem"):  # the second: QGC's first JSON format
-            raise r.fail(where, f'type is "{kind}"; expected "SimpleItem"')
+            where = f"{where} (doJumpId {obj['doJumpId']})"
         jump_id = r.integer(obj, "doJumpId", where, seq)
         if jump_id < 1:
             raise r.fail(where, f"doJumpId {jump_id} is not positive; QGC numbers items from 1")
         if jump_id in seq_by_jump_id:
-            raise r.fail(where, f"doJumpId {jump_id} is already used by item {seq_by_jump_id[jump_id]}; "
+            raise r.fail(where, f"doJumpId {jump_id} is already used by {where_by_jump_id[jump_id]}; "
                                 f"expected a unique doJumpId per item")
-        seq_by_jump_id[jump_id] = seq
+        seq_by_jump_id[jump_id], where_by_jump_id[jump_id] = seq, where.split(" (doJumpId")[0]
         command = r.integer(obj, "command", where)
         frame = r.integer(obj, "frame", where)
         params = _item_params(r, obj, where)

@@ -2,10 +2,12 @@
 
 First line `QGC WPL 110`, then one tab-separated row per item:
 INDEX CURRENT FRAME COMMAND P1 P2 P3 P4 LAT LON ALT AUTOCONTINUE. Row 0 is home (ArduPilot's convention), so
-rows 1..n are the mission items with the same sequence numbers they get on the wire. As pymavlink and MAVProxy
-read it: lines starting with `#` are comments, spaces may separate the columns, a file may hold home alone. A file
-whose first row is a fence command (5000-5004) or a rally point (5100) is a fence or rally file, as MAVProxy's
-`fence save`/`rally save` write them: every row is an item of that list, numbered from 0, with no home.
+rows 1..n are the mission items with the same sequence numbers they get on the wire. Rows count in file order:
+an INDEX out of order is renumbered (the mission's notes say so), as pymavlink's loader, MAVProxy and QGC do.
+As pymavlink and MAVProxy read it: lines starting with `#` are comments, spaces may separate the columns, a file
+may hold home alone. A file whose first row is a fence command (5000-5004) or a rally point (5100) is a fence or
+rally file, as MAVProxy's `fence save`/`rally save` write them: every row is an item of that list, numbered from 0,
+with no home.
 """
 
 from __future__ import annotations
@@ -65,6 +67,7 @@ def loads_wpl(text: str, source: str = "<waypoints>") -> Mission:
     mission = Mission()
     expected_index = 0
     kind = MissionType.MISSION
+    renumbered = ""
     for lineno, line in enumerate(lines[1:], 2):
         if not line.strip(" \t") or line.lstrip(" \t").startswith("#"):
             continue  # blank lines and comments carry nothing
@@ -74,9 +77,8 @@ def loads_wpl(text: str, source: str = "<waypoints>") -> Mission:
             raise MissionFileError(source, where, f"has {len(fields)} columns; expected {len(COLUMNS)} "
                                                   f"({' '.join(COLUMNS)}, tab-separated)")
         row = _parse_row(fields, source, where)
-        if row["INDEX"] != expected_index:
-            raise MissionFileError(source, where, f"INDEX is {row['INDEX']}; expected {expected_index} "
-                                                  f"(rows are numbered 0..n-1 in order, row 0 is home)")
+        if row["INDEX"] != expected_index and not renumbered:  # as pymavlink, MAVProxy and QGC read it
+            renumbered = f"{where} has INDEX {row['INDEX']} where {expected_index} was expected"
         if expected_index == 0:
             kind = (MissionType.FENCE if row["COMMAND"] in FENCE_COMMANDS else
                     MissionType.RALLY if row["COMMAND"] in RALLY_COMMANDS else MissionType.MISSION)
@@ -95,6 +97,9 @@ def loads_wpl(text: str, source: str = "<waypoints>") -> Mission:
             mission.items.append(item)
         mission.origins[(kind, expected_index)] = where
         expected_index += 1
+    if renumbered:
+        mission.notes.append(f"rows renumbered in file order from 0 ({renumbered}), as QGroundControl, MAVProxy "
+                             f"and pymavlink read them")
     return mission
 
 

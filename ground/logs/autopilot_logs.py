@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import math
 import os
 import sys
 import tempfile
@@ -125,29 +126,86 @@ def read_tlog(path: str | Path, wanted=("GLOBAL_POSITION_INT",)) -> TlogRead:
 
 
 def tlog_positions(path: str | Path, vehicle: str | None = None) -> tuple[list[dict], list[str]]:
-    """GLOBAL_POSITION_INT rows of a `.tlog` (one vehicle per sysid when `vehicle` is not given)."""
-    read = read_tlog(path)
-    sysids = {msg.get_srcSystem() for _, msg in read.messages}
-    rows = [{"vehicle": vehicle if vehicle and len(sysids) == 1 else f"{vehicle or ''}sysid{msg.get_srcSystem()}",
-             "source": "tlog", "t_s": t_s, "time_base": "unix",
-             "time_boot_ms": msg.time_boot_ms, "lat_deg": msg.lat / 1e7, "lon_deg": msg.lon / 1e7,
-             "alt_m": msg.alt / 1000, "rel_alt_m": msg.relative_alt / 1000}
-            for t_s, msg in read.messages]
-    rows, no_fix = with_fix(rows, path)
-    return rows, read.problems + no_fix
+    """GLOBAL_POSITION_INT rows of a `.tlog` (one vehicle per sysid when `vehicle` is not given), each with the fix
+    of the same vehicle's latest GPS_RAW_INT before it (unknown before the first)."""
+    read = read_tlog(path, wanted=("GLOBAL_POSITION_INT", "GPS_RAW_INT"))
+    positions = [(t_s, msg) for t_s, msg in read.messages if msg.get_type() == "GLOBAL_POSITION_INT"]
+    sysids = {msg.get_srcSystem() for _, msg in positions}
+    fix_of: dict[int, bool] = {}
+    rows = []
+    for t_s, msg in read.messages:
+        if msg.get_type() == "GPS_RAW_INT":
+            fix_of[msg.get_srcSystem()] = msg.fix_type >= MIN_FIX_TYPE
+            continue
+        name = vehicle if vehicle and len(sysids) == 1 else f"{vehicle or ''}sysid{msg.get_srcSystem()}"
+        rows.append({"vehicle": name, "source": "tlog", "t_s": t_s, "time_base": "unix",
+                     "time_boot_ms": msg.time_boot_ms, "lat_deg": msg.lat / 1e7, "lon_deg": msg.lon / 1e7,
+                     "alt_m": msg.alt / 1000, "rel_alt_m": msg.relative_alt / 1000,
+                     "fix": fix_of.get(msg.get_srcSystem())})
+    kept, no_fix = [], []
+    for name in sorted({r["vehicle"] for r in rows}):
+        mine, problems = with_fix([r for r in rows if r["vehicle"] == name], path)
+        kept += mine
+        no_fix += problems
+    return sorted(kept, key=lambda r: r["t_s"]), read.problems + no_fix
 
 
 UNIX_TIME_AFTER_S = 1e9  # 2001: a smaller time is seconds since boot, not a date
+#: GPS_FIX_TYPE_3D_FIX: MAVLink's GPS_RAW_INT.fix_type, PX4's fix_type and ArduPilot's GPS Status share the numbers
+MIN_FIX_TYPE = 3
+#: No vehicle NAC flies (multicopters, small fixed-wings cruising at 15-30 m/s) covers 100 m in a second; a
+#: position that asks for more is a receiver without a fix, or a glitch. Plus a few metres for a fix's own scatter.
+MAX_PLAUSIBLE_SPEED_MPS = 100.0
+FIX_SCATTER_M = 20.0
+EARTH_RADIUS_M = 6_371_000.0
 
 
 def with_fix(rows: list[dict], path: str | Path) -> tuple[list[dict], list[str]]:
-    """Rows with a position: an autopilot logs latitude = longitude = 0 (or NaN) before its GPS has a fix, and
-    such a row would put the vehicle off the coast of Africa and the map's origin with it."""
-    kept = [r for r in rows if r["lat_deg"] == r["lat_deg"] and r["lon_deg"] == r["lon_deg"]  # NaN is not kept
-            and not (r["lat_deg"] == 0.0 and r["lon_deg"] == 0.0)]
-    dropped = len(rows) - len(kept)
-    return kept, [f"{path}: {dropped} of {len(rows)} position samples without a fix (latitude = longitude = 0) "
-                  f"dropped"] if dropped else []
+    """Rows with a position, in their order: not those whose receiver had no 3D fix (their "fix" False, where the
+    log says), not latitude = longitude = 0 or NaN (what an autopilot logs before its fix), and not those that
+    would need an implausible speed from the track around the log's median position (a receiver without a fix
+    reports positions a few 1e-7 degrees from 0, 0, thousands of kilometres from where the vehicle flies)."""
+    problems = []
+    told = [r for r in rows if r.pop("fix", None) is not False]
+    if len(told) < len(rows):
+        problems.append(f"{path}: {len(rows) - len(told)} of {len(rows)} position samples taken without a 3D fix "
+                        f"(the log's GPS fix type below {MIN_FIX_TYPE}) dropped")
+    located = [r for r in told if r["lat_deg"] == r["lat_deg"] and r["lon_deg"] == r["lon_deg"]  # not NaN
+               and not (r["lat_deg"] == 0.0 and r["lon_deg"] == 0.0)]
+    if len(located) < len(told):
+        problems.append(f"{path}: {len(told) - len(located)} of {len(rows)} position samples without a fix "
+                        f"(latitude = longitude = 0) dropped")
+    kept = _plausible(located)
+    if len(kept) < len(located):
+        problems.append(f"{path}: {len(located) - len(kept)} of {len(rows)} position samples dropped: reaching "
+                        f"them would take more than {MAX_PLAUSIBLE_SPEED_MPS:g} m/s from the track around the "
+                        f"log's median position (a receiver without a fix, or a glitch)")
+    return kept, problems
+
+
+def _plausible(rows: list[dict]) -> list[dict]:
+    """The rows reachable at a plausible speed, walking out in time from the one nearest the median position."""
+    if len(rows) < 3:
+        return rows
+    lat = sorted(r["lat_deg"] for r in rows)[len(rows) // 2]
+    lon = sorted(r["lon_deg"] for r in rows)[len(rows) // 2]
+    anchor = min(range(len(rows)), key=lambda k: _distance_m(rows[k], lat, lon))
+    keep = [False] * len(rows)
+    keep[anchor] = True
+    for steps in (range(anchor + 1, len(rows)), range(anchor - 1, -1, -1)):
+        last = rows[anchor]
+        for k in steps:
+            dt_s = abs(rows[k]["t_s"] - last["t_s"])
+            if _distance_m(rows[k], last["lat_deg"], last["lon_deg"]) <= MAX_PLAUSIBLE_SPEED_MPS * dt_s + FIX_SCATTER_M:
+                keep[k], last = True, rows[k]
+    return [r for r, kept in zip(rows, keep, strict=True) if kept]
+
+
+def _distance_m(row: dict, lat_deg: float, lon_deg: float) -> float:
+    """Equirectangular: within a flight's extent the error is far below the speed bound's margin."""
+    north = math.radians(row["lat_deg"] - lat_deg)
+    east = math.radians(row["lon_deg"] - lon_deg) * math.cos(math.radians((row["lat_deg"] + lat_deg) / 2))
+    return EARTH_RADIUS_M * math.hypot(north, east)
 
 
 CHATTER_LINES = 5  # of what a reference reader printed, reported verbatim; the rest counted
@@ -186,13 +244,23 @@ def _native_output_to(file):
             os.close(fd)
 
 
+#: a DataFlash record's head (A3 95) and the FMT record's type (128): every ArduPilot log begins with the FMT that
+#: describes FMT itself; a file without one near its start (an eeprom image, a parameter file) is not a log
+FMT_OF_FMT_HEAD = b"\xa3\x95\x80"
+FMT_SEARCH_BYTES = 4096
+
+
 def dataflash_positions(path: str | Path, vehicle: str) -> tuple[list[dict], list[str]]:
     """POS rows of an ArduPilot DataFlash `.bin` (GPS rows when it has no POS; logs from before 2015 stamp them
     with TimeMS, later ones TimeUS), on pymavlink's clock: unix time from the GPS when the log has it, else
     seconds since boot (then said, and the rows' time_base is "boot"). Modern logs are walked by record length
     (ground.logs.dataflash); the rest go through pymavlink's DFReader."""
     path = Path(path)
-    fast = read_positions_fast(read_bounded(path, "autopilot log", MAX_AUTOPILOT_LOG_BYTES, FlightLogError))
+    raw = read_bounded(path, "autopilot log", MAX_AUTOPILOT_LOG_BYTES, FlightLogError)
+    if FMT_OF_FMT_HEAD not in raw[:FMT_SEARCH_BYTES]:
+        raise FlightLogError(f"{path}: not a DataFlash log: no FMT record in its first {FMT_SEARCH_BYTES} bytes "
+                             f"(an ArduPilot .bin log starts with one: bytes A3 95 80)")
+    fast = read_positions_fast(raw)
     if fast is None:
         return _dataflash_positions_dfreader(path, vehicle)
     pos, gps = fast.columns.get("POS"), fast.columns.get("GPS")
@@ -201,11 +269,14 @@ def dataflash_positions(path: str | Path, vehicle: str) -> tuple[list[dict], lis
     if columns:
         time_us = columns["TimeUS"]
         rel_alt = columns["RelHomeAlt"].tolist() if "RelHomeAlt" in columns else [None] * len(time_us)
+        # the GPS's own rows say whether it had a fix (Status, MAVLink's fix types); POS is the estimator's
+        fixed = ((columns["Status"] >= MIN_FIX_TYPE).tolist() if columns is gps and "Status" in columns
+                 else [None] * len(time_us))
         rows = [{"vehicle": vehicle, "source": "dataflash", "t_s": t_s, "time_boot_ms": boot_ms, "lat_deg": lat,
-                 "lon_deg": lon, "alt_m": alt, "rel_alt_m": rel}
-                for t_s, boot_ms, lat, lon, alt, rel in zip(
+                 "lon_deg": lon, "alt_m": alt, "rel_alt_m": rel, "fix": fix}
+                for t_s, boot_ms, lat, lon, alt, rel, fix in zip(
                     (fast.timebase_s + time_us * 0.000001).tolist(), (time_us / 1000).tolist(),
-                    columns["Lat"].tolist(), columns["Lng"].tolist(), columns["Alt"].tolist(), rel_alt,
+                    columns["Lat"].tolist(), columns["Lng"].tolist(), columns["Alt"].tolist(), rel_alt, fixed,
                     strict=True)]
     problems = [f"{path}: {fast.tail_problem}"] if fast.tail_problem else []
     return _on_clock(rows, path, "unix" if fast.unix else "boot", problems)
@@ -251,7 +322,8 @@ def _dataflash_positions_dfreader(path: Path, vehicle: str) -> tuple[list[dict],
             rows[msg.get_type()].append({
                 "vehicle": vehicle, "source": "dataflash", "t_s": msg._timestamp, "time_boot_ms": boot_ms,
                 "lat_deg": msg.Lat, "lon_deg": msg.Lng, "alt_m": msg.Alt,
-                "rel_alt_m": getattr(msg, "RelHomeAlt", None)})
+                "rel_alt_m": getattr(msg, "RelHomeAlt", None),
+                "fix": msg.Status >= MIN_FIX_TYPE if hasattr(msg, "Status") else None})
     problems += [f"{path}: {kind} records without the columns {', '.join(sorted(POSITION_COLUMNS))} (as their FMT "
                  f"record describes them): not read as positions" for kind in sorted(unusable)]
     chosen = rows["POS"] or rows["GPS"]
@@ -311,10 +383,13 @@ def _ulog_rows(data: dict, vehicle: str, offset_us: int) -> list[dict] | None:
             lat, lon, alt = d["lat"] / 1e7, d["lon"] / 1e7, d["alt"] / 1e3
         else:
             continue
+        # the receiver's topics say whether it had a fix (fix_type, MAVLink's numbers); the estimator's do not
+        fixed = ([int(f) >= MIN_FIX_TYPE for f in d["fix_type"]] if topic != "vehicle_global_position"
+                 and "fix_type" in d else [None] * len(d["timestamp"]))
         return [{"vehicle": vehicle, "source": "ulog", "t_s": (int(ts) + offset_us) / 1e6,
                  "time_boot_ms": int(ts) / 1000, "lat_deg": float(la), "lon_deg": float(lo), "alt_m": float(al),
-                 "rel_alt_m": None}
-                for ts, la, lo, al in zip(d["timestamp"], lat, lon, alt, strict=True)]
+                 "rel_alt_m": None, "fix": fix}
+                for ts, la, lo, al, fix in zip(d["timestamp"], lat, lon, alt, fixed, strict=True)]
     return None
 
 

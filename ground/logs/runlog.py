@@ -171,11 +171,9 @@ def _read_vehicle(run: RunLog, vehicle_dir: Path) -> None:
             if rows:
                 break
     for path in iperf3_files:
-        probe, problem = _iperf3_probe(path, vehicle)
-        if problem:
-            _warn(run, [problem])
-        else:
-            run.probes.append(probe)
+        probes, problems = iperf3_probes(path, vehicle)
+        _warn(run, problems)
+        run.probes += probes
     throughput_log = vehicle_dir / kinds.THROUGHPUT_LOG.name
     if throughput_log.exists():
         read = read_jsonl(throughput_log)
@@ -186,21 +184,53 @@ def _read_vehicle(run: RunLog, vehicle_dir: Path) -> None:
 IPERF3_GLOB = kinds.IPERF3_GLOB
 
 
-def _iperf3_probe(path: Path, client: str) -> tuple[dict | None, str | None]:
-    """A probe record from iperf3's own JSON output (the run's time from start.timestamp; its distance comes
-    later from the two vehicles' positions)."""
+def _json_documents(text: str) -> tuple[list, str | None]:
+    """Every JSON value in the text, one after another (iperf3 --json >> file appends one per test), up to the
+    first that does not parse, and what is wrong with that one."""
+    decoder, found, at = json.JSONDecoder(), [], 0
+    while True:
+        while at < len(text) and text[at] in " \t\r\n":
+            at += 1
+        if at == len(text):
+            return found, None
+        try:
+            value, at = decoder.raw_decode(text, at)
+        except (ValueError, RecursionError) as err:
+            return found, f"result {len(found) + 1}: {err}"
+        found.append(value)
+
+
+def iperf3_probes(path: Path, client: str) -> tuple[list[dict], list[str]]:
+    """Probe records from iperf3's own JSON output, one per test the file holds (a flight script's `>>` appends
+    them; the run's time from each start.timestamp, the distance later from the two vehicles' positions), and the
+    problems of what is skipped: a damaged result ends the file, the ones before it are kept."""
     server = path.name[len("iperf3-"):].split(".")[0]
+    expected = "expected the output of `iperf3 --client PEER --json`"
     try:
-        data = json.loads(read_bounded_text(path, "iperf3 JSON", MAX_LOG_BYTES))
-    except (BadInput, ValueError, RecursionError) as err:
-        return None, f"{path}: not iperf3 JSON (expected the output of `iperf3 --client PEER --json`): {err}"
+        documents, damaged = _json_documents(read_bounded_text(path, "iperf3 JSON", MAX_LOG_BYTES))
+    except BadInput as err:
+        return [], [f"{path}: not iperf3 JSON ({expected}): {err}"]
+    probes, problems = [], []
+    for k, data in enumerate(documents, 1):
+        where = f"{path}" if len(documents) == 1 and not damaged else f"{path}: result {k}"
+        probe, problem = _iperf3_probe(data, where, client, server)
+        if problem:
+            problems.append(problem)
+        else:
+            probes.append(probe)
+    if damaged or not documents:
+        problems.append(f"{path}: not iperf3 JSON ({expected}): {damaged or 'empty'}")
+    return probes, problems
+
+
+def _iperf3_probe(data, where: str, client: str, server: str) -> tuple[dict | None, str | None]:
     start = data.get("start") if isinstance(data, dict) else None
     timesecs = (start or {}).get("timestamp", {}).get("timesecs") if isinstance(start, dict) else None
     if not isinstance(timesecs, (int, float)) or not server:
-        return None, (f"{path}: iperf3 JSON without start.timestamp.timesecs (a test that never connected?) or "
+        return None, (f"{where}: iperf3 JSON without start.timestamp.timesecs (a test that never connected?) or "
                       "without a peer in its name (iperf3-PEER.json): skipped")
     record = {"kind": kinds.THROUGHPUT.name, "t_s": float(timesecs), "client": client, "server": server,
-              "start": start, "end": data.get("end") or {}, "source": str(path)}
+              "start": start, "end": data.get("end") or {}, "source": where}
     received = (record["end"].get("sum_received") or {}).get("bits_per_second") if isinstance(
         record["end"], dict) else None
     if data.get("error") or not isinstance(received, (int, float)):

@@ -90,8 +90,11 @@ def _upload_list(client: MavlinkClient, items, mission_type: int, label: str) ->
 
 
 def mission_upload(client: MavlinkClient, mission: Mission, out) -> None:
-    """Upload mission, fence and rally points (an empty fence or rally list is left as it is on the vehicle)."""
-    _upload_list(client, mission.to_wire(), MissionType.MISSION, "mission")
+    """Upload mission, fence and rally points. An empty fence or rally list is left as it is on the vehicle, and so
+    is the mission when the file holds only a fence or rally points (QGC saves such plans); a file of home alone
+    clears it."""
+    if mission.items or not (mission.fence or mission.rally):
+        _upload_list(client, mission.to_wire(), MissionType.MISSION, "mission")
     for items, mission_type, label in ((mission.fence, MissionType.FENCE, "fence"),
                                        (mission.rally, MissionType.RALLY, "rally points")):
         if items:
@@ -126,8 +129,15 @@ def load_for_flight(path: str, firmware: Firmware | None = ARDUCOPTER) -> Missio
     return load_mission(path, catalogue=mission_catalogue(), firmware=firmware)
 
 
+def print_notes(path: str, mission: Mission, out) -> None:
+    """What the reader did that the file did not say outright (a survey's stored items, rows renumbered), once."""
+    for note in mission.notes:
+        print(f"{path}: note: {note}", file=out)
+
+
 def mission_validate(path: str, out, firmware: Firmware | None = ARDUCOPTER) -> Mission:
     mission = load_for_flight(path, firmware)
+    print_notes(path, mission, out)
     print(f"{path}: valid{f' for {firmware.name}' if firmware else ''}, {len(mission.items)} mission items, "
           f"{len(mission.fence)} fence items, {len(mission.rally)} rally points", file=out)
     return mission
@@ -135,6 +145,7 @@ def mission_validate(path: str, out, firmware: Firmware | None = ARDUCOPTER) -> 
 
 def mission_convert(source: str, target: str, out) -> None:
     mission = convert_mission(source, target)
+    print_notes(source, mission, out)
     print(f"{source} -> {target}: {len(mission.items)} items", file=out)
 
 

@@ -9,6 +9,7 @@ os.environ.setdefault("MAVLINK20", "1")  # before pymavlink is imported: it defa
 from pymavlink import mavutil  # noqa: E402
 
 from missions.dialect import CommandCatalogue, DialectCommand  # noqa: E402
+from nac_onboard.mavlink.command_table import COMMANDS  # noqa: E402
 
 M = mavutil.mavlink
 COPTER_MODES = {name: number for number, name in mavutil.mode_mapping_acm.items()}
@@ -22,8 +23,12 @@ def enum_name(enum: str, value: int) -> str:
 
 @functools.cache
 def mission_catalogue() -> CommandCatalogue:
-    """Every MAV_CMD of the dialect, for mission validation (missions imports no pymavlink): pass it as
-    `load_mission(path, catalogue=mission_catalogue())` or `validate(mission, source, catalogue=...)`."""
-    return CommandCatalogue({number: DialectCommand(entry.name.removeprefix("MAV_CMD_"),
-                                                    bool(getattr(entry, "has_location", False)))
-                             for number, entry in M.enums["MAV_CMD"].items() if not entry.name.endswith("_ENUM_END")})
+    """Every MAV_CMD of MAVLink's dialects, for mission validation (missions imports no pymavlink): pass it as
+    `load_mission(path, catalogue=mission_catalogue())` or `validate(mission, source, catalogue=...)`. The
+    definitions' own table (command_table.py) and the installed pymavlink's enum together: a mission may hold a
+    command newer than the pymavlink release, and pymavlink may carry one the table's definitions have dropped."""
+    commands = {number: DialectCommand(name, located) for number, (name, located) in COMMANDS.items()}
+    commands.update({number: DialectCommand(entry.name.removeprefix("MAV_CMD_"),
+                                            bool(getattr(entry, "has_location", False)))
+                     for number, entry in M.enums["MAV_CMD"].items() if not entry.name.endswith("_ENUM_END")})
+    return CommandCatalogue(commands)

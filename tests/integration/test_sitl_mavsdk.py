@@ -12,7 +12,7 @@ from mavsdk.plugins.action import Action, ActionResult  # noqa: E402
 from mavsdk.plugins.mission_raw import MissionItem, MissionRaw, MissionRawResult  # noqa: E402
 from mavsdk.plugins.telemetry import LandedState, Telemetry  # noqa: E402
 
-from missions.geo import enu_to_lla, lla_to_enu  # noqa: E402
+from missions.geo import Home, enu_to_lla, lla_to_enu  # noqa: E402
 
 
 def call(start_async, timeout_s: float):
@@ -216,3 +216,71 @@ def test_mavsdk_offboard_velocity_and_position_then_a_mission_with_loiter_time(s
     assert max(np.linalg.norm(pos_m - delay[0][1]) for _, pos_m in delay) < 0.5, "where it was"
     _until(lambda: np.hypot(*(sim.truth(0)["pos_m"][:2] - [15.0, 15.0])) < 2.0, 40.0, "at the second item")
     _until(lambda: mission.is_mission_finished(), 60.0, "the mission finished")
+
+
+def test_a_qgc_survey_read_by_nac_flies_its_stored_transects_in_order_and_reads_as_mavsdk_imports_it(
+        start_sitl, mavsdk_client, tmp_path):
+    """MAVSDK's own test plan with a survey (realworld/plan, QGC 4 format): NAC reads the survey's 12 stored items in
+    its place, the items MAVSDK's import_qgroundcontrol_mission makes of the file. Uploaded by `nac-ground` (less
+    PX4's SET_CAMERA_MODE, which ArduCopter refuses at upload), the copter passes every stored transect waypoint in
+    order, and MAVSDK's download after the upload returns the items NAC uploaded."""
+    import dataclasses
+
+    from ground import cli
+    from missions import load_mission, save_mission
+    from missions.model import Frame, MavCmd, PlannedHome
+    from missions.model import MissionItem as NacItem
+    from tests.conftest import SHARED_DATA
+
+    source = SHARED_DATA / "realworld" / "plan" / "mavsdk__qgroundcontrol_sample_with_survey.plan"
+    if not source.exists():
+        pytest.skip(f"{source} is absent (see the developers' guide)")
+    ours = load_mission(source, flight=False)
+    sim = start_sitl(speedup=20.0, home=Home(ours.home.lat_deg, ours.home.lon_deg, ours.home.alt_m))
+    assert mavsdk_client.add_any_connection(f"udpin://0.0.0.0:{sim.config.companion_base_port}") == \
+        ConnectionResult.SUCCESS
+    system = wait_for_system(mavsdk_client, 1, 10.0)
+    assert system is not None
+    mission_raw = MissionRaw(system)
+    imported = mission_raw.import_qgroundcontrol_mission(str(source)).mission_items
+
+    def wire(deg: float) -> int:  # MISSION_ITEM_INT's 1e-7 degrees; a null (NaN) position goes as 0
+        return 0 if deg != deg else round(deg * 1e7)
+
+    assert (imported[0].x, imported[0].y) == (wire(ours.home.lat_deg), wire(ours.home.lon_deg)), "its home slot"
+    assert [(i.command, i.frame, i.x, i.y) for i in imported[1:]] == \
+        [(it.command, it.frame, wire(it.lat_deg), wire(it.lon_deg)) for it in ours.items], \
+        "the items MAVSDK imports, in the same order"
+
+    # ArduCopter leaves the ground in AUTO only by a NAV_TAKEOFF, which this PX4 plan leaves to PX4: one to the
+    # survey's height goes first
+    takeoff = NacItem(1, MavCmd.NAV_TAKEOFF, Frame.GLOBAL_RELATIVE_ALT, alt_m=ours.items[1].alt_m)
+    flown = [dataclasses.replace(it, seq=k) for k, it in
+             enumerate([takeoff, *(it for it in ours.items if it.command != 530)], 1)]
+    plan = tmp_path / "survey.waypoints"
+    home = sim.homes[0]
+    save_mission(dataclasses.replace(ours, items=flown, item_info={},
+                                     home=PlannedHome(home.lat_deg, home.lon_deg, home.alt_m)), plan)
+    link = f"udpin:127.0.0.1:{sim.config.gcs_base_port}"
+    assert cli.main(["--connect", link, "mission", "upload", str(plan)]) == 0
+    done, box = threading.Event(), {}
+    mission_raw.download_mission_async(lambda result, items, _ud: (box.update(result=result, items=items),
+                                                                   done.set()))
+    assert done.wait(20.0) and box["result"] == MissionRawResult.SUCCESS, box
+    downloaded = box["items"]
+    for command in (["arm"], ["mission", "start"]):
+        assert cli.main(["--connect", link, *command]) == 0, command
+    assert [(i.command, i.x, i.y) for i in downloaded[1:]] == \
+        [(it.command, wire(it.lat_deg), wire(it.lon_deg)) for it in flown]
+
+    transects = [it for it in flown if it.command == MavCmd.NAV_WAYPOINT]
+    targets = [lla_to_enu(it.lat_deg, it.lon_deg, home.alt_m, home)[:2] for it in transects]
+    passed: list[int] = []
+
+    def watch(t_s, state):
+        k = len(passed)
+        if k < len(targets) and np.hypot(*(state.pos_m[0, :2] - targets[k])) < 2.0:
+            passed.append(k)
+
+    sim.world.step_observers.append(watch)
+    _until(lambda: len(passed) == len(targets), 60.0, f"passed {len(passed)} of {len(targets)} waypoints")

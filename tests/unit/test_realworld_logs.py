@@ -26,9 +26,9 @@ OUTCOMES = {
     "bin/pymavlink__test.BIN": (23, "unix", []),
     "bin/rustdf__demo-flight.bin": (0, None, ["unpack requires a buffer", "bad header"]),
     "bin/yladzislay__dataflash-sample-2.bin": (520, "boot", ["cut short", "no GPS time in the log"]),
-    "tlog/dronekitpy__flight.tlog": (2684, "unix", ["cut short", "149 of 2833 position samples without a fix"]),
-    "tlog/dronekitpy__test.tlog": (0, None, ["cut short", "11 of 11 position samples without a fix"]),
-    "tlog/mavlinklog__tlog_data_0.tlog": (0, None, ["36 of 36 position samples without a fix"]),
+    "tlog/dronekitpy__flight.tlog": (2684, "unix", ["cut short", "149 of 2833 position samples taken without a 3D"]),
+    "tlog/dronekitpy__test.tlog": (0, None, ["cut short", "11 of 11 position samples taken without a 3D fix"]),
+    "tlog/mavlinklog__tlog_data_0.tlog": (0, None, ["36 of 36 position samples taken without a 3D fix"]),
     "tlog/uavlogviewer__vtol.tlog": (807, "unix", []),
     "ulg/px4ulogrs__6ba1abc7-b433-4029-b8f5-3b2bb12d3b6c.ulg": (129, "boot", ["no GPS UTC time"]),
     "ulg/px4ulogrs__corrupt_actuator_armed_wrong_size.ulg": (0, None, ["no GPS UTC time", "no positions"]),
@@ -51,7 +51,7 @@ def test_a_real_log_reads_as_the_reference_reader_with_its_problems_said(name, c
     assert capfd.readouterr() == ("", ""), "nothing printed: the readers' complaints are problems of the file"
     assert len(rows) == count and {r["time_base"] for r in rows} <= {base}
     assert len(problems) >= len(words) and all(w in p for w, p in zip(words, problems, strict=False)), problems
-    reference = [r for r in _reference(path) if not (r[1] == 0 and r[2] == 0)]
+    reference = [r[:3] for r in _reference(path) if not (r[1] == 0 and r[2] == 0) and r[3] is not False]
     assert len(reference) == len(rows)
     for row, (t_s, lat, lon) in zip(rows, reference, strict=True):
         assert (row["lat_deg"], row["lon_deg"]) == pytest.approx((lat, lon), abs=1e-9)
@@ -60,15 +60,19 @@ def test_a_real_log_reads_as_the_reference_reader_with_its_problems_said(name, c
 
 
 def _reference(path: Path) -> list[tuple]:
-    """(t_s or None, lat, lon) of every position sample, as pymavlink or pyulog read the file."""
+    """(t_s or None, lat, lon, 3D fix or None where the sample does not say) of every position sample, as pymavlink
+    or pyulog read the file: a tlog's GLOBAL_POSITION_INT has the fix of its vehicle's GPS_RAW_INT before it."""
     suffix = path.suffix.lower()
     if suffix == ".tlog":
         from pymavlink import mavutil
 
         conn = mavutil.mavlink_connection(str(path), robust_parsing=True)
-        out = []
-        while (msg := conn.recv_match(type="GLOBAL_POSITION_INT")) is not None:
-            out.append((msg._timestamp, msg.lat / 1e7, msg.lon / 1e7))
+        out, fix = [], {}
+        while (msg := conn.recv_match(type=["GLOBAL_POSITION_INT", "GPS_RAW_INT"])) is not None:
+            if msg.get_type() == "GPS_RAW_INT":
+                fix[msg.get_srcSystem()] = msg.fix_type >= 3
+            else:
+                out.append((msg._timestamp, msg.lat / 1e7, msg.lon / 1e7, fix.get(msg.get_srcSystem())))
         return out
     if suffix == ".bin":
         import contextlib
@@ -81,7 +85,8 @@ def _reference(path: Path) -> list[tuple]:
             try:
                 reader = DFReader.DFReader_binary(str(path), zero_time_base=False)
                 while (msg := reader.recv_match(type=["POS", "GPS"])) is not None:
-                    rows[msg.get_type()].append((msg._timestamp, msg.Lat, msg.Lng))
+                    rows[msg.get_type()].append((msg._timestamp, msg.Lat, msg.Lng,
+                                                 msg.Status >= 3 if msg.get_type() == "GPS" else None))
             except Exception:  # the damaged file: what was read before
                 pass
         return rows["POS"] or rows["GPS"]
@@ -91,10 +96,10 @@ def _reference(path: Path) -> list[tuple]:
     data = {d.name: d.data for d in ulog.data_list}
     if "vehicle_global_position" in data:
         d = data["vehicle_global_position"]
-        return [(None, float(a), float(b)) for a, b in zip(d["lat"], d["lon"], strict=True)]
+        return [(None, float(a), float(b), None) for a, b in zip(d["lat"], d["lon"], strict=True)]
     if "vehicle_gps_position" in data:
         d = data["vehicle_gps_position"]
-        return [(None, a / 1e7, b / 1e7) for a, b in zip(d["lat"], d["lon"], strict=True)]
+        return [(None, a / 1e7, b / 1e7, f >= 3) for a, b, f in zip(d["lat"], d["lon"], d["fix_type"], strict=True)]
     return []
 
 
@@ -147,17 +152,35 @@ def test_every_iperf3_file_in_the_folder_has_a_documented_outcome():
 
 @pytest.mark.parametrize("name", sorted(IPERF3_OUTCOMES))
 def test_a_real_iperf3_file_is_a_probe_at_its_received_rate_or_skipped_with_the_reason(name, tmp_path):
-    from ground.logs.runlog import _iperf3_probe
+    from ground.logs.runlog import iperf3_probes
 
     saved = tmp_path / "iperf3-w1.json"
     shutil.copy(REALWORLD / name, saved)
-    probe, problem = _iperf3_probe(saved, "master")
+    probes, problems = iperf3_probes(saved, "master")
     rate_mbps, words = IPERF3_OUTCOMES[name]
     if rate_mbps is None:
-        assert probe is None and words in problem and str(saved) in problem
+        assert probes == [] and len(problems) == 1 and words in problems[0] and str(saved) in problems[0]
     else:
-        assert problem is None and "error" not in probe and (probe["client"], probe["server"]) == ("master", "w1")
+        [probe] = probes
+        assert problems == [] and "error" not in probe and (probe["client"], probe["server"]) == ("master", "w1")
         assert probe["end"]["sum_received"]["bits_per_second"] / 1e6 == pytest.approx(rate_mbps, abs=1e-3)
+
+
+def test_iperf3_results_appended_to_one_file_are_each_a_probe(tmp_path):
+    """A flight script's `iperf3 --json >> file`: the three real results one after another, each read (the one
+    that never connected skipped with its number); a damaged result is named by its number, those before it kept."""
+    from ground.logs.runlog import iperf3_probes
+
+    texts = [(REALWORLD / name).read_text() for name in sorted(IPERF3_OUTCOMES)]
+    saved = tmp_path / "iperf3-w1.json"
+    saved.write_text("".join(texts))
+    probes, problems = iperf3_probes(saved, "master")
+    assert [round(p["end"]["sum_received"]["bits_per_second"] / 1e6, 3) for p in probes] == [89.148, 464.786]
+    assert len(problems) == 1 and "result 2:" in problems[0] and "never connected" in problems[0]
+    saved.write_text(texts[0] + texts[2][:500])
+    probes, problems = iperf3_probes(saved, "master")
+    assert len(probes) == 1, "the result before the damage is kept"
+    assert len(problems) == 1 and "not iperf3 JSON" in problems[0] and "result 2:" in problems[0]
 
 
 MODERN_DATAFLASH = REALWORLD / "bin" / "yladzislay__dataflash-sample-2.bin"
@@ -215,3 +238,15 @@ def test_a_damaged_dataflash_log_gives_the_rows_dfreader_gives(flips, tmp_path):
         raw[at % len(raw)] = value
     fast, slow = _both_readers(bytes(raw), tmp_path)
     assert fast == slow
+
+
+def test_a_file_that_is_not_a_dataflash_log_is_said_in_one_sentence(tmp_path):
+    """An SITL eeprom image named like a log: one sentence, not DFReader's thousands of "bad header" lines."""
+    from ground.logs.autopilot_logs import FlightLogError, dataflash_positions
+
+    path = tmp_path / "eeprom.bin"
+    path.write_bytes(bytes(range(256)) * 256)
+    with pytest.raises(FlightLogError) as refused:
+        dataflash_positions(path, "uav1")
+    assert str(refused.value) == (f"{path}: not a DataFlash log: no FMT record in its first 4096 bytes (an "
+                                  f"ArduPilot .bin log starts with one: bytes A3 95 80)")
