@@ -20,7 +20,8 @@ from nac_onboard.mavlink.mission_transfer import MissionError
 class TransferProgress:
     """A transfer progress bar on stderr: redrawn in place on a terminal, one closing line otherwise."""
 
-    def __init__(self, label: str, stream=sys.stderr, width: int = 30):
+    def __init__(self, label: str, stream=None, width: int = 30):
+        stream = sys.stderr if stream is None else stream  # the stderr of now, not of import time
         self.label, self.stream, self.width = label, stream, width
         self.tty = hasattr(stream, "isatty") and stream.isatty()
 

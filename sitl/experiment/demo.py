@@ -21,8 +21,9 @@ from sitl.experiment.scenario import ScenarioError, load_scenario
 SCENARIOS = ("paper-flight-moving", "paper-flight-static")
 
 
-def run_demo(out: Path, speedup: float, base_port: int, stream=sys.stdout,
+def run_demo(out: Path, speedup: float, base_port: int, stream=None,
              stop: threading.Event | None = None) -> int:
+    stream = sys.stdout if stream is None else stream  # the stdout of now, not of import time
     scenarios = [load_scenario(name) for name in SCENARIOS]
     speedup = min([speedup, *(s.max_speedup for s in scenarios)])
     results = []

@@ -74,12 +74,12 @@ def segments_of(header: bytes, ip_bytes: int) -> int:
 
 class DelayLine:
     def __init__(self, namespaces: list[str], addresses: list[str], queue_packets: int, retry_limit: int,
-                 seed: int, out=sys.stdout):
+                 seed: int, out=None):
         self.clock = from_env()
         self.medium = Medium(len(namespaces), MacTiming(), queue_packets, retry_limit, seed)
         self.index = {socket.inet_aton(a): k for k, a in enumerate(addresses)}
         self.fds = [open_tun(ns) for ns in namespaces]
-        self.out = out
+        self.out = sys.stdout if out is None else out  # the stdout of now, not of import time
         self.counters = {"packets_in": 0, "not_ipv4": 0, "unknown_destination": 0, "late": 0, "max_late_s": 0.0,
                          "updates": 0, "bad_updates": 0}
         self.queue_s: list[float] = []  # since the last counters line

@@ -210,3 +210,17 @@ def test_truncated_or_flipped_new_formats_are_read_or_refused_never_a_traceback(
             validate(loads_mission(text, "fuzz"), "fuzz", catalogue=mission_catalogue())
         except MissionFileError as err:
             assert str(err).startswith("fuzz: ")
+
+
+def test_the_upload_progress_goes_to_the_stderr_of_the_call_not_of_import_time(monkeypatch):
+    """Under pytest-xdist, a stderr bound when the module was imported had been closed by a later upload (a CI
+    run's survey upload failed on it)."""
+    import io
+    import sys
+
+    from ground.operator.commands import TransferProgress
+
+    now = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", now)
+    TransferProgress("mission")(3, 3)
+    assert now.getvalue() == "\rmission [" + "#" * 30 + "] 3/3\n"
