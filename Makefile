@@ -36,11 +36,11 @@ demo: $(STAMP)
 # three keep both cores busy, 274 s against 319 s with two), then the tests that measure rates and times against a
 # bound, or look at the host's namespaces, on a quiet machine (marked `exclusive`). They leave one core idle most of
 # the time (104 % of one core over their 250 s, measured): the long tests that judge nothing against a clock and
-# touch nothing outside namespaces of their own (marked `niced`: the offline install, 50 s of CPU) run beside them
-# in the kernel's idle class (SCHED_IDLE: any other task that wakes takes the core at once; at nice 19 alone, they
-# slowed the exclusive tests by 30 s in all) and idle I/O class, taking only what the exclusive tests leave. A test
-# that waits on a simulated clock is not for this: starved, the documented commands' copter disarmed between two
-# commands. Their output follows the exclusive tests'.
+# touch nothing outside namespaces of their own (marked `niced`: the offline install and five unit modules that
+# only compute, 104 s of CPU) run beside them in the kernel's idle class (SCHED_IDLE: any other task that wakes
+# takes the core at once; at nice 19 alone, they slowed the exclusive tests by 30 s in all) and idle I/O class,
+# taking only what the exclusive tests leave. A test that waits on a simulated clock is not for this: starved, the
+# documented commands' copter disarmed between two commands. Their output follows the exclusive tests'.
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -m "not exclusive and not niced" -n 3 --dist worksteal --durations=20

@@ -11,6 +11,9 @@ from sitl.vehicle.flight import CopterMode, Event, Result
 from tests.unit.test_flight import HOME, run, wp
 from tests.unit.test_guided import ONLY_POS, airborne, local
 
+# computation only, no clock, no network: make test runs it beside the exclusive tests
+pytestmark = pytest.mark.niced
+
 
 def square(half_m: float, command=MavCmd.NAV_FENCE_POLYGON_VERTEX_INCLUSION) -> list[MissionItem]:
     corners = [(-half_m, -half_m), (half_m, -half_m), (half_m, half_m), (-half_m, half_m)]

@@ -11,6 +11,9 @@ from sitl.vehicle.flight import Autopilots, CopterMode, Phase
 from sitl.vehicle.guided import ACC_IGNORE, POS_IGNORE, VEL_IGNORE, YAW_IGNORE, YAW_RATE_IGNORE
 from tests.unit.test_flight import HOME, make, run
 
+# computation only, no clock, no network: make test runs it beside the exclusive tests
+pytestmark = pytest.mark.niced
+
 ONLY_POS = VEL_IGNORE | ACC_IGNORE | YAW_IGNORE | YAW_RATE_IGNORE
 ONLY_VEL = POS_IGNORE | ACC_IGNORE | YAW_IGNORE | YAW_RATE_IGNORE
 ONLY_ACC = POS_IGNORE | VEL_IGNORE | YAW_IGNORE | YAW_RATE_IGNORE

@@ -26,6 +26,9 @@ from nac_onboard.radio.channel import PRESETS
 from tests.conftest import SHARED_DATA
 from tests.logfiles import write_dataflash, write_ulog
 
+# computation only, no clock, no network: make test runs it beside the exclusive tests
+pytestmark = pytest.mark.niced
+
 GOLDEN = Path(__file__).parents[1] / "data" / "golden-run"
 
 

@@ -12,6 +12,9 @@ from sitl.vehicle import mission_items as items_
 from sitl.vehicle.flight import Event, MissionState, Phase
 from tests.unit.test_flight import make, run, wp
 
+# computation only, no clock, no network: make test runs it beside the exclusive tests
+pytestmark = pytest.mark.niced
+
 
 def fly(mission, seconds, until=None):
     fleet, state, params = make()

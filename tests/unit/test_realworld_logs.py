@@ -18,7 +18,9 @@ from nac_onboard.errors import BadInput
 from tests.conftest import SHARED_DATA
 
 REALWORLD = SHARED_DATA / "realworld"
-pytestmark = pytest.mark.skipif(not REALWORLD.is_dir(), reason=f"{REALWORLD} is absent (see the developers' guide)")
+# reading files, no clock: make test runs it beside the exclusive tests
+pytestmark = [pytest.mark.skipif(not REALWORLD.is_dir(), reason=f"{REALWORLD} is absent (see the developers' guide)"),
+              pytest.mark.niced]
 
 #: file -> (positions, time base, words every listed problem must include, in order)
 OUTCOMES = {
