@@ -255,16 +255,17 @@ def _simple_items(r: _Reader, raw_items: list, mission: Mission) -> list[tuple[s
 def _read_items(r: _Reader, raw_items: list, mission: Mission) -> None:
     seq_by_jump_id: dict[int, int] = {}
     where_by_jump_id: dict[int, str] = {}
-    for seq, (where, obj) in enumerate(_simple_items(r, raw_items, mission), 1):
+    for seq, (place, obj) in enumerate(_simple_items(r, raw_items, mission), 1):
+        where = place
         if isinstance(obj.get("doJumpId"), int) and not isinstance(obj.get("doJumpId"), bool):
-            where = f"{where} (doJumpId {obj['doJumpId']})"
+            where = f"{place} (doJumpId {obj['doJumpId']})"
         jump_id = r.integer(obj, "doJumpId", where, seq)
         if jump_id < 1:
             raise r.fail(where, f"doJumpId {jump_id} is not positive; QGC numbers items from 1")
         if jump_id in seq_by_jump_id:
             raise r.fail(where, f"doJumpId {jump_id} is already used by {where_by_jump_id[jump_id]}; "
                                 f"expected a unique doJumpId per item")
-        seq_by_jump_id[jump_id], where_by_jump_id[jump_id] = seq, where.split(" (doJumpId")[0]
+        seq_by_jump_id[jump_id], where_by_jump_id[jump_id] = seq, place
         command = r.integer(obj, "command", where)
         frame = r.integer(obj, "frame", where)
         params = _item_params(r, obj, where)
