@@ -20,7 +20,7 @@ from pathlib import Path
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
-from ground.logs.dataflash import read_positions_fast  # noqa: E402
+from ground.logs.dataflash import QUIET_TAIL_BYTES, read_positions_fast  # noqa: E402
 from nac_onboard.errors import BadInput
 from nac_onboard.inputs import MAX_AUTOPILOT_LOG_BYTES, check_regular_file, read_bounded
 from nac_onboard.mavlink.frames import TLOG_STAMP, frame_length, msgid_at  # noqa: E402
@@ -278,7 +278,12 @@ def dataflash_positions(path: str | Path, vehicle: str) -> tuple[list[dict], lis
                     (fast.timebase_s + time_us * 0.000001).tolist(), (time_us / 1000).tolist(),
                     columns["Lat"].tolist(), columns["Lng"].tolist(), columns["Alt"].tolist(), rel_alt, fixed,
                     strict=True)]
-    problems = [f"{path}: {fast.tail_problem}"] if fast.tail_problem else []
+    problems = [f"{path}: {skip_bytes} bytes at offset {offset} are not records (damage); skipped to the next "
+                f"record" for offset, skip_bytes in fast.skipped[:CHATTER_LINES]]
+    if len(fast.skipped) > CHATTER_LINES:
+        problems.append(f"{path}: {len(fast.skipped) - CHATTER_LINES} more damaged places skipped "
+                        f"({sum(b for _, b in fast.skipped[CHATTER_LINES:])} bytes)")
+    problems += [f"{path}: {fast.tail_problem}"] if fast.tail_problem else []
     return _on_clock(rows, path, "unix" if fast.unix else "boot", problems)
 
 
@@ -306,9 +311,14 @@ def _dataflash_positions_dfreader(path: Path, vehicle: str) -> tuple[list[dict],
             raise FlightLogError(f"{path}: not a DataFlash log ({err})") from None
         rows: dict[str, list[dict]] = {"POS": [], "GPS": []}
         unusable: set[str] = set()  # a type whose FMT (damaged, or not ArduPilot's) lacks a position column
+        # DFReader's index of record offsets stops at a header of a type no FMT defined, and a read by type
+        # then misses the rest: read every record instead
+        indexed = _indexed_to_end(reader)
         while True:
             try:
-                msg = reader.recv_match(type=["POS", "GPS"])
+                msg = reader.recv_match(type=["POS", "GPS"]) if indexed else reader.recv_msg()
+                while msg is not None and msg.get_type() not in rows:
+                    msg = reader.recv_msg()
             except Exception as err:  # a damaged record: keep what was read before it
                 problems.append(f"{path}: a damaged record after {len(rows['POS']) + len(rows['GPS'])} positions "
                                 f"({type(err).__name__}: {err}); the rest of the log is not read")
@@ -328,6 +338,13 @@ def _dataflash_positions_dfreader(path: Path, vehicle: str) -> tuple[list[dict],
                  f"record describes them): not read as positions" for kind in sorted(unusable)]
     chosen = rows["POS"] or rows["GPS"]
     return _on_clock(chosen, path, "unix" if chosen and chosen[0]["t_s"] > UNIX_TIME_AFTER_S else "boot", problems)
+
+
+def _indexed_to_end(reader) -> bool:
+    """Whether DFReader's index (its offsets per type) reaches the end of the file, bar a padded last page."""
+    ends = [offsets[-1] + reader.formats[kind].len for kind, offsets in enumerate(reader.offsets)
+            if offsets and kind in reader.formats]
+    return bool(ends) and reader.data_len - max(ends) < QUIET_TAIL_BYTES
 
 
 def ulog_positions(path: str | Path, vehicle: str) -> tuple[list[dict], list[str]]:

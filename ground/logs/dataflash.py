@@ -6,9 +6,14 @@ record, each candidate points at the one its length says comes next, and the rec
 from offset 0 (found by pointer doubling, log2(n) array steps). Header bytes that happen to sit inside a payload
 are candidates no chain from 0 reaches.
 
+Damage (bytes that are not a record, a header of a type no FMT defined) ends a chain; the walk goes on at the next
+candidate whose length leads to another record, as DFReader's sequential read skips bad bytes, and says how many
+bytes it skipped where. Requiring the record after it (DFReader takes the first known header) keeps header bytes in
+a damaged payload from being read as a record.
+
 This path takes the logs ArduPilot has written since 2015 (every record stamped with TimeUS, GPS time as
-GWk/GMS). Anything else (older TimeMS logs, bytes between records that are not a record, a type no FMT defined,
-an FMT defined twice) returns None, and the caller reads the file with DFReader: same rows, only slower.
+GWk/GMS). Anything else (older TimeMS logs, an FMT defined twice or off the chain) returns None, and the caller
+reads the file with DFReader: same rows, only slower.
 """
 
 from __future__ import annotations
@@ -54,6 +59,7 @@ class Format:
 class FastRead:
     columns: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)  # POS and GPS columns, in file order
     tail_problem: str | None = None  # what was skipped at the end, said as a sentence
+    skipped: list[tuple[int, int]] = field(default_factory=list)  # (offset, bytes) of damage walked over
     timebase_s: float = 0.0
     unix: bool = False  # the timebase came from GPS time (else seconds since boot)
 
@@ -122,22 +128,34 @@ def read_positions_fast(raw: bytes, wanted=("POS", "GPS")) -> FastRead | None:
     for kind, fmt in formats.items():
         lengths[kind] = fmt.length
     kinds = data[starts + 2]
-    ends = starts + lengths[kinds]
+    record_lengths = lengths[kinds]
+    ends = starts + record_lengths
     sink = len(starts)
     nxt = np.searchsorted(starts, ends)
-    nxt[(nxt >= sink) | (starts[np.minimum(nxt, sink - 1)] != ends) | (lengths[kinds] == 0)] = sink
+    known = record_lengths > 0
+    linked = known & (nxt < sink) & (starts[np.minimum(nxt, sink - 1)] == ends)
+    last = known & (ends == n)
+    following = np.minimum(nxt, sink - 1)
+    # where a chain may go on after damage: a record whose length leads to another record (or ends the file)
+    good = np.flatnonzero(linked & (linked[following] | last[following]))
+    dead = np.flatnonzero(~linked & ~last)
+    damage_from = np.where(known[dead], ends[dead], starts[dead])  # after a whole record, or at a header of no type
+    pick = np.searchsorted(starts[good], damage_from)
+    nxt[~linked] = sink
+    nxt[dead] = np.where(pick < len(good), good[np.minimum(pick, len(good) - 1)], sink) if len(good) else sink
     on = _chain(np.append(nxt, sink))[:sink]
-    records, record_kinds = starts[on], kinds[on]
-    last = len(records) - 1
-    tail_problem = _tail(n, int(records[last]), int(lengths[record_kinds[last]]))
-    if tail_problem == "":
-        return None
-    if tail_problem and "cut short" in tail_problem:
-        records, record_kinds = records[:last], record_kinds[:last]
+    chain = np.flatnonzero(on)
+    final = int(chain[-1])
+    resumed = chain[:-1][~linked[chain[:-1]]]  # chain nodes whose next record is past damage
+    skipped = [(int(ends[k] if known[k] else starts[k]), int(starts[nxt[k]] - (ends[k] if known[k] else starts[k])))
+               for k in resumed.tolist()]
+    keep = chain[known[chain] & (ends[chain] <= n)]
+    records, record_kinds = starts[keep], kinds[keep]
+    tail_problem = _tail(n, int(ends[final] if known[final] else starts[final]))
     on_chain = set(records[record_kinds == FMT_TYPE].tolist())
     if not fmt_offsets <= on_chain or len(on_chain) != len(fmt_offsets):
         return None  # an FMT that is not a record, or a record FMT that did not parse
-    out = FastRead(tail_problem=tail_problem)
+    out = FastRead(tail_problem=tail_problem, skipped=skipped)
     by_name = {f.name: (kind, f) for kind, f in formats.items()}
     for name in wanted:
         if name not in by_name:
@@ -149,19 +167,16 @@ def read_positions_fast(raw: bytes, wanted=("POS", "GPS")) -> FastRead | None:
     return out if _set_clock(out, by_name.get("GPS", (0, None))[1]) else None
 
 
-def _tail(n: int, last_start: int, last_length: int) -> str | None:
-    """What ends the walk: None for the end of the file, a sentence for a cut record or a short tail of bytes
-    that are not records (DFReader skips both quietly), "" for anything DFReader must resynchronise over."""
-    if last_length == 0:
-        return ""  # a type no FMT defined
-    end = last_start + last_length
+def _tail(n: int, end: int) -> str | None:
+    """What ends the walk at `end` (the last record's end, or the header of no known type that ended it): None for
+    the end of the file, else a sentence (DFReader skips a cut record and a short tail quietly)."""
     if end == n:
         return None
     if end > n:
         return "the last record is cut short (the writer stopped mid-record); skipped"
     if n - end < QUIET_TAIL_BYTES:
         return f"{n - end} bytes after the last record are not a record; skipped"
-    return ""
+    return f"{n - end} bytes from offset {end} to the end are not records (damage); skipped"
 
 
 def _set_clock(read: FastRead, gps: Format | None) -> bool:

@@ -3,7 +3,10 @@ the reference readers' (pymavlink, pyulog) row for row once samples without a fi
 each file allows (unix from GPS time, else seconds since boot, said), whatever the readers print goes into the
 problems, and a run folder of such logs (uppercase extensions included) is analysed."""
 
+import contextlib
+import io
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -204,7 +207,7 @@ def _both_readers(raw: bytes, tmp_path: Path) -> tuple[list | str, list | str]:
 
 
 @pytest.mark.skipif(not MODERN_DATAFLASH.is_file(), reason=f"{MODERN_DATAFLASH} is absent")
-def test_the_fast_dataflash_walk_ignores_header_bytes_inside_payloads_and_hands_damage_to_dfreader(tmp_path):
+def test_the_fast_dataflash_walk_ignores_header_bytes_inside_payloads_and_walks_over_damage(tmp_path):
     from ground.logs.dataflash import read_positions_fast
 
     raw = bytearray(MODERN_DATAFLASH.read_bytes())
@@ -216,9 +219,10 @@ def test_the_fast_dataflash_walk_ignores_header_bytes_inside_payloads_and_hands_
     raw[payload_at + 1:payload_at + 4] = b"\xa3\x95\x80"
     fast, slow = _both_readers(bytes(raw), tmp_path)
     assert read_positions_fast(bytes(raw)) is not None and fast == slow and len(fast) == 520
-    # bytes that are not a record in the middle: DFReader resynchronises, the fast walk steps aside
+    # bytes that are not a record in the middle: both readers go on at the next record, the fast walk says where
     raw[payload_at - 3:payload_at - 3] = bytes(range(256)) * 4
-    assert read_positions_fast(bytes(raw)) is None
+    walked = read_positions_fast(bytes(raw))
+    assert walked is not None and walked.skipped == [(payload_at - 3, 1024)]
     fast, slow = _both_readers(bytes(raw), tmp_path)
     assert fast == slow and len(fast) == 520
     # an FMT that gives POS no longitude: no positions from POS, said, no crash
@@ -229,6 +233,38 @@ def test_the_fast_dataflash_walk_ignores_header_bytes_inside_payloads_and_hands_
     (tmp_path / "no-lng.bin").write_bytes(bytes(raw))
     rows, problems = dataflash_positions(tmp_path / "no-lng.bin", "uav1")
     assert rows == [] and any("POS records without the columns Alt, Lat, Lng" in p for p in problems), problems
+
+
+@pytest.mark.skipif(not MODERN_DATAFLASH.is_file(), reason=f"{MODERN_DATAFLASH} is absent")
+def test_a_header_of_no_known_type_mid_log_is_skipped_and_every_position_after_it_read(tmp_path):
+    """The damaged ArduCopter log of issue 31: a header whose type no FMT defines, then garbage. DFReader's index
+    stops there, so a read by type (ours once, the fast walk's and the fallback's) lost every position after it,
+    where DFReader's record-by-record read finds them all."""
+    from pymavlink import DFReader
+
+    from ground.logs.autopilot_logs import dataflash_positions
+
+    raw = bytearray(MODERN_DATAFLASH.read_bytes())
+    with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
+        reader = DFReader.DFReader_binary(str(MODERN_DATAFLASH), zero_time_base=False)
+    pos_type = reader.name_to_id["POS"]
+    at = next(o for o in reader.offsets[pos_type] if o > len(raw) // 3)  # a POS record's start
+    unknown = max(set(range(256)) - set(reader.formats))
+    raw[at:at] = bytes([0xA3, 0x95, unknown]) + bytes(range(40, 80))
+    path = tmp_path / "damaged.bin"
+    path.write_bytes(bytes(raw))
+    with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
+        reader, every = DFReader.DFReader_binary(str(path), zero_time_base=False), 0
+        while (msg := reader.recv_msg()) is not None:
+            every += msg.get_type() == "POS"
+    rows, problems = dataflash_positions(path, "uav1")
+    assert len(rows) == every == 520
+    skips = [re.fullmatch(rf"{re.escape(str(path))}: (\d+) bytes at offset (\d+) are not records \(damage\); "
+                          r"skipped to the next record", p) for p in problems]
+    (skip_bytes, offset), = [(int(m[1]), int(m[2])) for m in skips if m]
+    assert (offset, skip_bytes) == (at, 43), "the skip names the inserted bytes and their place"
+    fast, slow = _both_readers(bytes(raw), tmp_path)
+    assert fast == slow == rows
 
 
 @pytest.mark.skipif(not MODERN_DATAFLASH.is_file(), reason=f"{MODERN_DATAFLASH} is absent")
