@@ -94,15 +94,18 @@ def mission_upload(client: MavlinkClient, mission: Mission, out) -> None:
     """Upload mission, fence and rally points. An empty fence or rally list is left as it is on the vehicle, and so
     is the mission when the file holds only a fence or rally points (QGC saves such plans); a file of home alone
     clears it."""
-    if mission.items or not (mission.fence or mission.rally):
+    with_mission = bool(mission.items or not (mission.fence or mission.rally))
+    if with_mission:
         _upload_list(client, mission.to_wire(), MissionType.MISSION, "mission")
     for items, mission_type, label in ((mission.fence, MissionType.FENCE, "fence"),
                                        (mission.rally, MissionType.RALLY, "rally points")):
         if items:
             _upload_list(client, items, mission_type, label)
-    print(f"vehicle {client.sysid}: mission of {len(mission.items)} items accepted"
-          + (f", fence of {len(mission.fence)} items" if mission.fence else "")
-          + (f", {len(mission.rally)} rally points" if mission.rally else ""), file=out)
+    parts = ([f"mission of {len(mission.items)} items"] if with_mission else []) \
+        + ([f"fence of {len(mission.fence)} items"] if mission.fence else []) \
+        + ([f"{len(mission.rally)} rally points"] if mission.rally else [])
+    print(f"vehicle {client.sysid}: {', '.join(parts)} accepted"
+          + ("" if with_mission else " (its mission left as it was)"), file=out)
 
 
 def mission_download(client: MavlinkClient, path: str, out) -> Mission:

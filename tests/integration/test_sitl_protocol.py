@@ -91,6 +91,33 @@ def test_fence_and_rally_lists_are_stored_separately(start_sitl, gcs_for):
     assert gcs.upload([MissionItem(0, 16, mission_type=1)], mission_type=1) == M.MAV_MISSION_UNSUPPORTED
 
 
+def test_a_fence_file_uploaded_by_nac_ground_leaves_the_vehicles_mission_as_it_was(start_sitl, tmp_path, capsys):
+    """MAVProxy's old fence file (public, tests/data/public): `fence load` touches only the fence, and so does
+    `nac-ground mission upload`; the vehicle keeps the mission it had and holds the file's fence."""
+    from pathlib import Path
+
+    from ground import cli
+    from missions import load_mission, save_mission
+    from missions.model import Mission, PlannedHome
+
+    sim = start_sitl(speedup=5.0)
+    home = sim.homes[0]
+    link = ["--connect", f"udpin:127.0.0.1:{sim.config.gcs_base_port}"]
+    flown = tmp_path / "flown.waypoints"
+    save_mission(Mission(items=long_mission(sim, 6)[1:], home=PlannedHome(home.lat_deg, home.lon_deg, home.alt_m)),
+                 flown)
+    assert cli.main([*link, "mission", "upload", str(flown)]) == 0
+    mission_before = sim.protocols[0].download_items(0)
+    fence_file = Path(__file__).resolve().parents[1] / "data" / "public" / "mavproxy_fence_old" / "CMAC-fence.txt"
+    capsys.readouterr()
+    assert cli.main([*link, "mission", "upload", str(fence_file)]) == 0
+    assert "vehicle 1: fence of 5 items accepted (its mission left as it was)" in capsys.readouterr().out
+    assert sim.protocols[0].download_items(0) == mission_before and len(mission_before) == 6
+    fence = sim.protocols[0].download_items(1)
+    assert [(it.command, it.lat_deg, it.lon_deg) for it in fence] == \
+        [(it.command, it.lat_deg, it.lon_deg) for it in load_mission(fence_file).fence]
+
+
 def test_legacy_mission_request_is_answered_with_mission_item_int(start_sitl, gcs_for):
     sim = start_sitl(speedup=5.0)
     gcs = gcs_for(sim)
