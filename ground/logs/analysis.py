@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from ground.logs import iteration_pace
 from ground.logs.runlog import RunLog
 from missions.geo import Home, ecef_to_enu, lla_to_ecef
 from nac_onboard.clock import PACE_LIMIT
@@ -44,11 +45,16 @@ class RunTables:
     summary: dict
     problems: list[str] = field(default_factory=list)
     missing: list[str] = field(default_factory=list)
+    # time per 10 iterations: blocks of 10 with a worker present throughout, and by that worker's distance
+    time_per_10: pd.DataFrame = field(default_factory=lambda: pd.DataFrame(columns=iteration_pace.BLOCK_COLUMNS))
+    time_per_10_by_distance: pd.DataFrame = field(
+        default_factory=lambda: pd.DataFrame(columns=iteration_pace.BIN_COLUMNS))
 
     def csv_tables(self) -> dict[str, pd.DataFrame]:
         return {"trajectories": self.trajectories, "distances": self.distances, "throughput": self.throughput,
                 "throughput_by_distance": self.throughput_by_distance, "iterations": self.iterations,
-                "iteration_workers": self.iteration_workers, "training_cost": self.training_cost}
+                "iteration_workers": self.iteration_workers, "training_cost": self.training_cost,
+                "time_per_10": self.time_per_10, "time_per_10_by_distance": self.time_per_10_by_distance}
 
 
 def sample_times(positions: pd.DataFrame) -> pd.Series:
@@ -324,8 +330,12 @@ def analyze(run: RunLog, master: str | None = None, bin_m: float = DEFAULT_BIN_M
     if master is None:
         missing.append(f"master: no vehicle logged role 'master' and no probes tell (give --master ID; vehicles: "
                        f"{', '.join(sorted(run.vehicles)) or 'none'}): no distances")
+    per_10 = iteration_pace.blocks(its, workers, dist)
+    rho = iteration_pace.spearman(per_10)
+    if rho:
+        summary["time_per_10_spearman"] = rho
     return RunTables(run.name, master, t0_s, traj, dist, probes, bins, its, workers, training_cost(its), summary,
-                     problems, missing)
+                     problems, missing, per_10, iteration_pace.by_distance(per_10, bin_m))
 
 
 MACHINE_ITERATION_COST_S = 0.0024  # a linreg iteration with 2 workers at 1x, kernel network (docs/benchmarks.md)

@@ -73,6 +73,19 @@ def iteration_time(ax, t: RunTables) -> None:
     ax.legend(fontsize="small")
 
 
+def time_per_10_vs_distance(ax, t: RunTables) -> None:
+    ax.set(title="Time per 10 iterations", xlabel="master-worker distance (m)", ylabel="time per 10 iterations (s)")
+    if t.time_per_10.empty:
+        return _empty(ax, "blocks of 10 iterations with a worker present")
+    for worker, blocks in t.time_per_10.groupby("worker"):
+        dots = ax.plot(blocks["distance_m"], blocks["time_per_10_s"], ".", markersize=3, alpha=0.5)
+        bins = t.time_per_10_by_distance[t.time_per_10_by_distance["worker"] == worker]
+        middle = (bins["distance_from_m"] + bins["distance_to_m"]) / 2
+        ax.plot(middle, bins["median_s"], "-o", color=dots[0].get_color(), markersize=4, label=f"{worker}: median")
+    ax.set_ylim(bottom=0)
+    ax.legend(fontsize="small")
+
+
 def training_cost(ax, t: RunTables) -> None:
     ax.set(title="Training cost", xlabel="iteration", ylabel="cost (mean squared error / 2)")
     if t.training_cost.empty:
@@ -82,7 +95,7 @@ def training_cost(ax, t: RunTables) -> None:
 
 FIGURES = {"trajectories": trajectories, "distances": distances, "throughput_over_time": throughput_over_time,
            "throughput_vs_distance": throughput_vs_distance, "iteration_time": iteration_time,
-           "training_cost": training_cost}
+           "time_per_10_vs_distance": time_per_10_vs_distance, "training_cost": training_cost}
 
 
 def draw(name: str, runs: list[RunTables], path: Path) -> Path:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ground.logs import iteration_pace
 from ground.logs.analysis import RunTables
 
 
@@ -103,6 +104,22 @@ def _ratio(nac: float | None, paper: float) -> str:
     return f"{nac / paper:.3g}" if nac is not None else "-"
 
 
+def _time_per_10_row(moving: RunTables) -> list[tuple[str, str, str, str]]:
+    """The worker that flew farthest: its time per 10 iterations nearest and farthest (bins of enough blocks)."""
+    rho = moving.summary.get("time_per_10_spearman") or {}
+    reach = moving.summary.get("max_distance_m") or {}
+    flown = max((w for w in rho if w in reach), key=lambda w: reach[w], default=None)
+    if flown is None:
+        return []
+    bins = moving.time_per_10_by_distance
+    bins = bins[(bins["worker"] == flown) & (bins["blocks"] >= iteration_pace.MIN_BLOCKS_PER_BIN)]
+    near, far = bins.iloc[0], bins.iloc[-1]
+    return [(f"time per 10 iterations against {flown}'s distance ({moving.name})", "rises (its Fig. 14(b))",
+             f"Spearman rho {rho[flown]:.2f}; median {near['median_s']:.3g} s at {near['distance_from_m']:g}-"
+             f"{near['distance_to_m']:g} m, {far['median_s']:.3g} s at {far['distance_from_m']:g}-"
+             f"{far['distance_to_m']:g} m", "-")]
+
+
 def beside_the_research(moving: RunTables, static: RunTables) -> list[str]:
     """NAC's numbers beside the research's testbed, each with the ratio NAC / research (a markdown table). The
     research's figures are its published ones; nothing in NAC is fitted to them."""
@@ -129,6 +146,7 @@ def beside_the_research(moving: RunTables, static: RunTables) -> list[str]:
                      f"{PAPER_MOVING_ITERATIONS}", f"{before}", _ratio(before, PAPER_MOVING_ITERATIONS)))
         rows.append((f"iterations after {PAPER_MOVING_LOSS_S:g} s", "0 (training ended)",
                      f"{len(since) - before}", "-"))
+    rows += _time_per_10_row(moving)
     reach = moving.summary.get("range_above_threshold_m")
     rows.append((f"range: throughput above {moving.summary.get('threshold_mbps', '?')} Mbit/s up to (m)",
                  f"about {PAPER_RANGE_M:g}", f"{reach:g}" if reach is not None else "-",

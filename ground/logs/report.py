@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from ground.logs import figures
+from ground.logs import figures, iteration_pace
 from ground.logs.analysis import DEFAULT_BIN_M, DEFAULT_THRESHOLD_MBPS, RunTables, analyze
 from ground.logs.calibration import CalibrationError, fit_channel, fitted_model
 from ground.logs.runlog import read_run
@@ -22,6 +22,7 @@ SUMMARY_LABELS = {
     "vehicles": "vehicles", "master": "master", "iterations": "iterations done",
     "complete_iterations": "complete iterations", "mean_iteration_s": "mean iteration time (s)",
     "p95_iteration_s": "p95 iteration time (s)", "iterations_per_min": "iterations per minute",
+    "time_per_10_spearman": "time per 10 iterations vs the worker's distance: Spearman rho",
     "compute_span_s": "compute time (s)", "first_cost": "first training cost", "final_cost": "final training cost",
     "absent_iterations": "absent iterations per worker", "absence_reasons": "absence reasons",
     "device": "companions' CPU (device profile)", "late_cpu_segments": "work segments slower here than on it",
@@ -135,10 +136,24 @@ def analyze_run(run_dir: str | Path, out: str | Path | None = None, master: str 
     for name, path in pictures.items():
         report += [f"![{name.replace('_', ' ')}]({_relative(path, report_path.parent)})", ""]
     report += ["## Throughput vs distance", "", markdown_table(tables.throughput_by_distance), "",
+               *_time_per_10_section(tables),
                "## Iterations", "", markdown_table(tables.iterations.drop(columns=["t_s"]), TABLE_ROWS_SHOWN), "",
                "## Master-worker distance", "", markdown_table(_every(tables.distances, 10.0), TABLE_ROWS_SHOWN), ""]
     report_path.write_text("\n".join(report))
     return tables
+
+
+def _time_per_10_section(t: RunTables) -> list[str]:
+    """The research's Fig. 14(b) as a table: time per 10 iterations by each worker's distance, with Spearman's rho."""
+    if t.time_per_10_by_distance.empty:
+        return []
+    rho = t.summary.get("time_per_10_spearman", {})
+    said = "; ".join(f"{w}: {r:.2f} over {int((t.time_per_10['worker'] == w).sum())} blocks" for w, r in rho.items())
+    return ["## Time per 10 iterations vs distance", "",
+            f"Blocks of 10 consecutive iterations with the worker present in all ten (simulated seconds), by that "
+            f"worker's mean distance from the master; bins of fewer than {iteration_pace.MIN_BLOCKS_PER_BIN} blocks "
+            f"say little. Spearman's rank correlation of time with distance: {said or 'too few blocks'}.", "",
+            markdown_table(t.time_per_10_by_distance), ""]
 
 
 def _every(table: pd.DataFrame, step_s: float) -> pd.DataFrame:

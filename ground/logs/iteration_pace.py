@@ -1,0 +1,63 @@
+"""Time per 10 iterations against each worker's distance from the master, as the research plots it (its Fig.
+14(b)): the run's iterations cut into consecutive blocks of 10, a worker's block kept while that worker took part
+in all ten (in range), the block's time the sum of its iterations' (simulated) durations, its distance the worker's
+mean distance at the ten starts. Pure: DataFrames in, DataFrames out."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+BLOCK_ITERATIONS = 10
+MIN_BLOCKS_PER_BIN = 3  # a bin's median from fewer blocks is shown but not judged (the report says so)
+MIN_BLOCKS_FOR_RHO = 8  # Spearman's rho from fewer blocks says little
+
+BLOCK_COLUMNS = ["worker", "first_iteration", "t_rel_s", "distance_m", "time_per_10_s"]
+BIN_COLUMNS = ["worker", "distance_from_m", "distance_to_m", "median_s", "p25_s", "p75_s", "blocks"]
+
+
+def blocks(its: pd.DataFrame, workers: pd.DataFrame, dist: pd.DataFrame) -> pd.DataFrame:
+    """One row per worker and block of 10 consecutive iterations in which that worker was present in all ten."""
+    if its.empty or workers.empty or dist.empty or "present" not in workers:
+        return pd.DataFrame(columns=BLOCK_COLUMNS)
+    its = its.sort_values("iteration").reset_index(drop=True)
+    block = np.arange(len(its)) // BLOCK_ITERATIONS
+    whole = pd.Series(block).map(pd.Series(block).value_counts()) == BLOCK_ITERATIONS  # the last may be short
+    rows = []
+    for worker, track in dist.sort_values("t_s").groupby("worker"):
+        mine = workers[workers["vehicle"] == worker].set_index("iteration")["present"].astype(bool)
+        present = its["iteration"].map(mine).fillna(False).astype(bool)
+        distance = np.interp(its["t_s"].astype(float), track["t_s"].astype(float), track["distance_m"].astype(float))
+        table = pd.DataFrame({"block": block, "present": present & whole, "distance": distance,
+                              "duration": its["duration_s"].astype(float), "iteration": its["iteration"],
+                              "t_rel_s": its["t_rel_s"]})
+        for _, b in table.groupby("block"):
+            if b["present"].all():
+                rows.append({"worker": worker, "first_iteration": int(b["iteration"].iloc[0]),
+                             "t_rel_s": float(b["t_rel_s"].iloc[0]), "distance_m": float(b["distance"].mean()),
+                             "time_per_10_s": float(b["duration"].sum())})
+    return pd.DataFrame(rows, columns=BLOCK_COLUMNS)
+
+
+def by_distance(table: pd.DataFrame, bin_m: float) -> pd.DataFrame:
+    """Median and quartiles of the time per 10 iterations per worker and distance bin, with the blocks counted."""
+    if table.empty:
+        return pd.DataFrame(columns=BIN_COLUMNS)
+    lower = np.floor(table["distance_m"] / bin_m) * bin_m
+    grouped = table.groupby(["worker", lower])["time_per_10_s"]
+    out = pd.DataFrame({"median_s": grouped.median(), "p25_s": grouped.quantile(0.25),
+                        "p75_s": grouped.quantile(0.75), "blocks": grouped.count()}).reset_index()
+    out = out.rename(columns={"distance_m": "distance_from_m"})
+    out["distance_to_m"] = out["distance_from_m"] + bin_m
+    return out[BIN_COLUMNS]
+
+
+def spearman(table: pd.DataFrame) -> dict[str, float]:
+    """Spearman's rank correlation of each worker's time per 10 iterations with its distance (workers with at
+    least MIN_BLOCKS_FOR_RHO blocks over more than one distance)."""
+    out = {}
+    for worker, b in table.groupby("worker"):
+        if len(b) >= MIN_BLOCKS_FOR_RHO and b["distance_m"].nunique() > 1 and b["time_per_10_s"].nunique() > 1:
+            ranks = b[["distance_m", "time_per_10_s"]].rank()
+            out[str(worker)] = float(np.corrcoef(ranks["distance_m"], ranks["time_per_10_s"])[0, 1])
+    return out

@@ -1,0 +1,51 @@
+"""Time per 10 iterations against a worker's distance (ground.logs.iteration_pace), on tables made by hand."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from ground.logs import iteration_pace
+
+
+def _run(n_iterations: int, absent_w1: set[int]):
+    """w1 flies from 6 m to 26 m at a steady pace, w2 hovers at 10 m; an iteration lasts 10 ms per metre of w1's
+    distance while w1 takes part, 5 ms otherwise."""
+    t_s = np.arange(n_iterations) * 0.5
+    w1_m = 6.0 + 20.0 * t_s / t_s[-1]
+    its = pd.DataFrame({"iteration": np.arange(n_iterations), "t_s": 1000.0 + t_s, "t_rel_s": t_s,
+                        "duration_s": [0.005 if k in absent_w1 else 0.01 * d for k, d in enumerate(w1_m)]})
+    workers = pd.DataFrame([{"iteration": k, "vehicle": v, "present": not (v == "w1" and k in absent_w1)}
+                            for k in range(n_iterations) for v in ("w1", "w2")])
+    dist = pd.concat([pd.DataFrame({"t_s": 1000.0 + t_s, "worker": "w1", "distance_m": w1_m}),
+                      pd.DataFrame({"t_s": 1000.0 + t_s, "worker": "w2", "distance_m": 10.0})])
+    return its, workers, dist
+
+
+def test_blocks_keep_ten_iterations_with_the_worker_present_throughout():
+    its, workers, dist = _run(205, absent_w1={33, 150, 151})
+    blocks = iteration_pace.blocks(its, workers, dist)
+    w1, w2 = blocks[blocks["worker"] == "w1"], blocks[blocks["worker"] == "w2"]
+    assert len(w2) == 20, "the last, short block (200-204) is no block"
+    assert list(w1["first_iteration"]) == [k * 10 for k in range(20) if k not in (3, 15)]
+    first = w1.iloc[0]
+    assert first["time_per_10_s"] == pytest.approx(its["duration_s"][:10].sum())
+    assert first["distance_m"] == pytest.approx(dist[dist["worker"] == "w1"]["distance_m"][:10].mean())
+
+
+def test_a_time_that_grows_with_distance_has_rho_one_and_rising_bin_medians():
+    its, workers, dist = _run(400, absent_w1=set())
+    blocks = iteration_pace.blocks(its, workers, dist)
+    rho = iteration_pace.spearman(blocks)
+    assert rho["w1"] == pytest.approx(1.0)
+    assert "w2" not in rho, "one distance: no correlation to state"
+    bins = iteration_pace.by_distance(blocks, 2.0)
+    w1 = bins[bins["worker"] == "w1"]
+    assert list(w1["distance_from_m"]) == [float(d) for d in range(6, 26, 2)]
+    assert w1["median_s"].is_monotonic_increasing and w1["blocks"].sum() == 40
+
+
+def test_too_few_blocks_or_no_iterations_give_nothing_to_judge():
+    its, workers, dist = _run(70, absent_w1=set())
+    assert iteration_pace.spearman(iteration_pace.blocks(its, workers, dist)) == {}
+    empty = iteration_pace.blocks(its.iloc[:0], workers.iloc[:0], dist)
+    assert empty.empty and iteration_pace.by_distance(empty, 2.0).empty
