@@ -215,7 +215,7 @@ def test_analysis_of_the_run_matches_the_simulators_truth(short_run):
     for png in analysis.glob("*.png"):
         data = png.read_bytes()
         assert data[:8] == PNG_MAGIC and 10_000 < len(data) < 2_000_000, png.name
-    assert len(list(analysis.glob("*.png"))) == 6
+    assert len(list(analysis.glob("*.png"))) == 7
 
     # the truth: every vehicle's ECEF position after each simulator step, by wall-clock time
     homes = [v.home for v in scenario.vehicles]

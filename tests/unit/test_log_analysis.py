@@ -70,7 +70,7 @@ def test_analyze_writes_tables_figures_and_a_report(tmp_path):
         assert (out / f"{name}.csv").stat().st_size > 0
     report = (out / "report.md").read_text()
     for figure in ("trajectories", "distances", "throughput_over_time", "throughput_vs_distance", "iteration_time",
-                   "training_cost"):
+                   "time_per_10_vs_distance", "training_cost"):
         png = (out / f"{figure}.png").read_bytes()
         assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
         assert f"]({figure}.png)" in report
