@@ -4,7 +4,7 @@ network with the mechanisms added one at a time, each run's pace beside the rese
     python benchmarks/mechanisms.py [--duration-s 60] [--speedup 1] [--smoke]
 
 Variants, each a whole run (simulator, agents, MPI job, probes):
-  htb             a rate class per pair, probes in classes of their own (the default air)
+  htb             a rate class per pair, probes in classes of their own (the kernel network's default air)
   medium          every frame through the 802.11 medium: one FIFO queue per station, channel access, retries
   medium-probes   the same, with the probes back to back (iperf3-style, continuous) in the stations' queues
   medium-probes-device  the same, with every rank's work 100 times this host's CPU time (an illustrative
@@ -41,16 +41,19 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 VARIANTS = ("htb", "medium", "medium-probes", "medium-probes-device")  # each adds one mechanism to the one before
 SMOKE = {"duration_s": 4.0, "speedup": 4.0, "variants": ["medium-probes"]}
 ILLUSTRATIVE_SLOWDOWN = 100.0
+ISOLATED_PROBE_S = 0.5  # the probes apart: 0.5 s every 2 s, the flight scenarios' schedule before issue 28
 
 
 def variant(name: str, folder: Path, duration_s: float):
+    """The shipped scenario (the medium, probes back to back) with the mechanisms the variant lacks taken out."""
     scenario = load_scenario("paper-flight-static")
     scenario = dataclasses.replace(scenario, duration_s=duration_s)
-    if name != "htb":
-        scenario = dataclasses.replace(scenario, network=dataclasses.replace(scenario.network, air="medium"))
-    if name.startswith("medium-probes"):
-        probes = scenario.throughput
-        scenario = dataclasses.replace(scenario, throughput=dataclasses.replace(probes, duration_s=probes.period_s))
+    air = "htb" if name == "htb" else "medium"
+    scenario = dataclasses.replace(scenario, network=dataclasses.replace(scenario.network, air=air))
+    probes = scenario.throughput
+    back_to_back = name.startswith("medium-probes")
+    scenario = dataclasses.replace(scenario, throughput=dataclasses.replace(
+        probes, duration_s=probes.period_s if back_to_back else ISOLATED_PROBE_S))
     if name.endswith("-device"):
         device = folder / "illustrative.toml"
         device.write_text(f'[device]\nname = "illustrative-{ILLUSTRATIVE_SLOWDOWN:g}x"\n'
