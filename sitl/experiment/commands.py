@@ -117,9 +117,9 @@ def kernel_mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, end_at_s
             *compute_args(scenario, run_dir, ports, end_at_sim_s, kernel=True)]
 
 
-def choose_network(requested: str | None) -> tuple[str, str]:
+def choose_network(requested: str | None, air: str = "htb") -> tuple[str, str]:
     """(network, why): kernel where it can run, else sleep with the reason; a kernel network asked for and
-    impossible raises NetworkUnavailable (exit 2) before anything starts."""
+    impossible raises NetworkUnavailable (exit 2) before anything starts. `air`: the scenario's [network] air."""
     if requested == "sleep":
         return "sleep", "asked for (--network sleep): transfers sleep bits / capacity, the research's method"
     try:
@@ -128,4 +128,7 @@ def choose_network(requested: str | None) -> tuple[str, str]:
         if requested == "kernel":
             raise
         return "sleep", f"the kernel network cannot run here: {err}"
+    if air == "medium":
+        return "kernel", ("namespaces on a bridge, every frame through the 802.11 medium (a FIFO queue per station, "
+                          "channel access, retries) at the live positions' rates")
     return "kernel", "namespaces on a bridge, links shaped by tc and nftables from the live positions"

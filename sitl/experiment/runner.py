@@ -578,7 +578,7 @@ def run_scenario(scenario: Scenario, run_dir: Path | None, speedup: float, base_
     (its screenshot at the end goes into the run directory as view.png)."""
     out = out or sys.stdout
     replay = parse_links(links)
-    chosen = choose_network(network)
+    chosen = choose_network(network, scenario.network.air)
     if chosen[0] != network:
         print(f"network: {chosen[0]} ({chosen[1]})", file=out, flush=True)
     run_dir = Path(run_dir) if run_dir else default_run_dir(scenario)
