@@ -235,6 +235,8 @@ def test_the_runs_beside_the_research_with_ratios():
         in table
     assert "| iterations after 75 s | 0 (training ended) | 0 | - |" in table
     assert "| range: throughput above 1.0 Mbit/s up to (m) | about 25 | 10 | 0.4 |" in table
+    assert table[-1].startswith("The static pace is 0.5 times the testbed's, with every parameter from a source"), \
+        "the gap said as a factor, and where the mechanisms are measured"
 
 
 @pytest.mark.parametrize(("speedup", "duration_sim_s", "warned"), [(4.0, 0.008, True), (4.0, 0.4, False),
