@@ -57,6 +57,8 @@ class ComputeOptions:
     idle_timeout_s: float = 600.0
     on_missing: str = "incomplete"
     allocation: str = "equal"
+    code_k: int = 0  # matmul_mds: results that decode (0: the workers less one)
+    code_s: int = 1  # linreg_gc: stragglers tolerated
     save_results: bool = False
     checkpoint_s: float = 10.0  # results.npz rewritten (atomically) this often while the job runs; 0 = at the end
     pad_bits: float = 0.0  # zeros appended to every message: the channel's overhead as real bytes (kernel network)
@@ -122,6 +124,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="matmul: a worker's rows that did not arrive are re-assigned or the iteration is incomplete")
     p.add_argument("--allocation", choices=["equal", "capacity"], default="equal",
                    help="capacity: shard sizes proportional to each link's predicted capacity at the start")
+    p.add_argument("--code-k", type=number_arg(0, 10_000, integer=True), default=0,
+                   help="matmul_mds: how many of the workers' coded results decode A B (0: the workers less one)")
+    p.add_argument("--code-s", type=number_arg(0, 10_000, integer=True), default=1,
+                   help="linreg_gc: stragglers the gradient code tolerates (each worker holds s + 1 shards)")
     p.add_argument("--save-results", action="store_true", help="matmul: keep every B and A@B in results.npz")
     p.add_argument("--checkpoint-s", type=number_arg(0, 86400, unit="s"), default=10.0,
                    help="rewrite results.npz this often while running (0: only at the end)")
@@ -165,6 +171,7 @@ def options_from_argv(argv: list[str] | None) -> ComputeOptions:
         emulate=args.emulate, channel=load_channel(args.channel), positions=args.positions, distances=distances,
         positions_script=args.positions_script, feed=args.feed, vehicles=vehicles, timeout_s=args.timeout_s,
         idle_timeout_s=args.idle_timeout_s, on_missing=args.on_missing, allocation=args.allocation,
+        code_k=args.code_k, code_s=args.code_s,
         save_results=args.save_results, checkpoint_s=args.checkpoint_s, pad_bits=args.pad_bits,
         device=HOST if args.device == "host" else load_device_profile(args.device), clock=from_env())
     for option, path, what, limit in [("--a", options.a_path, "matrix A (.npy)", MAX_AUTOPILOT_LOG_BYTES),

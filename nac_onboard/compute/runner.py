@@ -399,11 +399,12 @@ class Master:
                 deadline: float) -> dict[int, Answer]:
         """Each waited-for worker's answer to this iteration, in arrival order, until the deadline; the others are
         absent ("timeout")."""
-        results, waited = {}, set(waiting)
-        while waiting:
+        results, waited, heard = {}, set(waiting), set()
+        while waiting and not self.task.enough(results):
             rank, buf = self.inbox.receive(deadline)
             if buf is None:
                 break
+            heard.add(rank)
             if rank in self.unresponsive:
                 self._back(rank)  # any answer (a ping's, a late result) shows it is there again
             if int(buf[RESULT_ITERATION]) != iteration or rank not in waiting:
@@ -415,9 +416,14 @@ class Master:
             self.late_by_worker[rank] = int(buf[RESULT_LATE])
             links.bytes_up[k] += buf.nbytes
             results[rank] = answer_of(buf)
+        alive = set(results)
+        if waiting and self.task.enough(results):
+            # decoded without the rest: not absent, and not missed while their late answers keep coming (a dead
+            # worker's never do: after UNRESPONSIVE_AFTER iterations unheard it is not sent to, only pinged)
+            waiting, alive = set(), alive | heard
         for rank in waiting:
             links.absent[rank - 1] = "timeout"
-        self._note_answers(iteration, waited, set(results))
+        self._note_answers(iteration, waited, alive)
         return results
 
     def run(self) -> int:
@@ -612,6 +618,11 @@ def main(argv: list[str] | None = None) -> int:
     die_with_parent()  # ranks run in sessions of their own (hydra's doing): if their proxy is killed, they go too
     if comm.Get_size() < 2:
         sys.stderr.write("nac-onboard compute: needs at least 2 ranks (mpiexec -n N+1 ...): a master and a worker\n")
+        return 2
+    try:  # every rank computes the same verdict, so every rank exits 2 and none waits for another
+        options.task_class.check_workers(options, comm.Get_size() - 1)
+    except ValueError as err:
+        sys.stderr.write(f"nac-onboard compute: --task {options.task} with {comm.Get_size() - 1} workers: {err}\n")
         return 2
     try:
         os.makedirs(options.out, exist_ok=True)

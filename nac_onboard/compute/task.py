@@ -46,6 +46,12 @@ class Task(ABC):
     def check(cls, options) -> None:
         """Refuse bad options or data before MPI starts (raise BadInput naming the file, line or option)."""
 
+    @classmethod
+    def check_workers(cls, options, workers: int) -> None:
+        """Refuse what the number of workers makes impossible (a code needing more workers than there are), on
+        every rank once MPI gives the size and before any work: raise ValueError saying why. Default: nothing."""
+        return None
+
     # ---- both sides -----------------------------------------------------------------------------------------
     @abstractmethod
     def rows(self) -> int:
@@ -85,6 +91,11 @@ class Task(ABC):
     def combine(self, iteration: int, payload: np.ndarray, answers: dict[int, Answer]) -> dict:
         """Combine the answers that arrived (by the rank whose block each covers, in arrival order); the
         iteration record's task fields, with `complete` (every row's result arrived)."""
+
+    def enough(self, answers: dict[int, Answer]) -> bool:
+        """Whether the answers so far (by rank, in arrival order) are all the iteration needs: a coded task
+        decodes from the first k and does not wait for the rest. Default: every worker's answer is needed."""
+        return False
 
     def plan_missing(self, iteration: int, payload: np.ndarray, missing: list[int],
                      answered: list[int]) -> list[Extra]:

@@ -241,10 +241,12 @@ ITERATION = Kind("iteration", COMPUTE_LOG, "one iteration; `workers` holds one l
     opt("rows_used", "integer", "", "linreg: data rows whose gradients arrived"),
     opt("reassigned", "object", "", "a task's plan for missing blocks (matmul --on-missing reassign): who computed "
                                     "whose rows"),
-), open="a task's own fields (cost and rows_used are linreg's): a new task in nac_onboard/compute/tasks/ adds its "
-        "fields from its own module")
+), open="a task's own fields (cost and rows_used are linreg's; the coded tasks' decoded_from, decode_s, condition "
+        "and decode_error, in their modules' docstrings): a new task in nac_onboard/compute/tasks/ adds its fields "
+        "from its own module")
 RUN_SUMMARY = Kind("run_summary", COMPUTE_LOG, "the job's end", (
-    req("task", "string", "", "linreg or matmul"), req("iterations", "integer", "", "iterations run"),
+    req("task", "string", "", "the task's name (linreg, matmul, or a coded one: linreg_gc, matmul_mds)"),
+    req("iterations", "integer", "", "iterations run"),
     req("complete_iterations", "integer", "", "with every worker"), req("ended_by", "string", "", "why it stopped"),
     req("elapsed_s", "number", "s", "wall time"), req("elapsed_sim_s", "number", "s", "simulated time"),
     req("mean_duration_s", "number", "s", "mean iteration time"), req("p95_duration_s", "number", "s", "95th pct"),

@@ -1,0 +1,86 @@
+"""The coded tasks under `mpiexec` (issue 30): a worker killed mid-run costs neither a correct product nor a step
+of uncoded training, and impossible codes exit 2 before any work."""
+
+import os
+import signal
+import subprocess
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from nac_onboard.compute import forestfires, kernels
+from nac_onboard.compute.tasks.matmul import matmul_inputs
+from nac_onboard.flight_log import read_jsonl
+from tests.conftest import SHARED_DATA
+from tests.integration.test_compute import ENV, iterations_logged, mpi_command, run_mpi, wait_until
+
+
+@contextmanager
+def job(ranks: int, *args: str):
+    """The job in its own session, killed with all its ranks if the test leaves it running."""
+    proc = subprocess.Popen(mpi_command(ranks, *args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV,
+                            start_new_session=True)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+
+
+def _kill_worker_midway(out: Path, proc, rank: int) -> int:
+    """SIGKILL worker `rank` once 20 iterations are logged; the iterations logged by then."""
+    wait_until(lambda: iterations_logged(out) >= 20, proc)
+    worker = read_jsonl(out / f"rank-{rank}.jsonl").of_kind("worker_started")[0]
+    os.kill(worker["pid"], signal.SIGKILL)
+    return iterations_logged(out)
+
+
+def test_mds_matmul_decodes_a_times_b_every_iteration_with_a_worker_killed(tmp_path):
+    """Three workers, any two decode: after worker 3 is killed, every iteration still gives A B exactly (each
+    saved product checked), decoded from workers 1 and 2 alone, and the dead one stops being sent to."""
+    with job(4, "--task", "matmul_mds", "--m", "12", "--n", "50", "--l", "2", "--seed", "5", "--duration-s", "2.5",
+             "--timeout-s", "3", "--save-results", "--checkpoint-s", "0.5", "--out", str(tmp_path)) as proc:
+        killed_at = _kill_worker_midway(tmp_path, proc, 3)
+        proc.wait(timeout=60)
+    read = read_jsonl(tmp_path / "compute.jsonl")
+    summary = read.of_kind("run_summary")
+    assert summary, proc.stderr.read().decode()[-2000:]
+    assert summary[0]["iterations"] == summary[0]["complete_iterations"] > killed_at + 10
+    assert summary[0]["lost_workers"] == [3] and summary[0]["code"] == "(3, 2) systematic, Cauchy parity"
+    after = [r for r in read.of_kind("iteration") if r["iteration"] > killed_at]
+    assert all(r["complete"] and 3 not in r["decoded_from"] for r in after)
+    a, _ = matmul_inputs(5, 12, 50)
+    saved = np.load(tmp_path / "results.npz")
+    for k in range(summary[0]["iterations"]):
+        expected = a @ saved[f"B_{k}"]
+        assert np.linalg.norm(saved[f"C_{k}"] - expected) <= 1e-9 * np.linalg.norm(expected), f"iteration {k}"
+
+
+def test_gradient_coded_training_with_a_worker_killed_follows_uncoded_training_with_everyone(tmp_path):
+    """Three workers, s = 1: after worker 2 is killed the master still recovers the full gradient every
+    iteration, so the cost curve and the weights are single-process gradient descent's over all the rows."""
+    with job(4, "--task", "linreg_gc", "--code-s", "1", "--duration-s", "4", "--timeout-s", "3",
+             "--checkpoint-s", "0.5", "--out", str(tmp_path)) as proc:
+        killed_at = _kill_worker_midway(tmp_path, proc, 2)
+        proc.wait(timeout=60)
+    read = read_jsonl(tmp_path / "compute.jsonl")
+    summary = read.of_kind("run_summary")
+    assert summary, proc.stderr.read().decode()[-2000:]
+    iterations = read.of_kind("iteration")
+    assert len(iterations) == summary[0]["complete_iterations"] > killed_at + 10
+    assert summary[0]["lost_workers"] == [2]
+    x, y = forestfires.load(SHARED_DATA / "forestfires.csv")
+    w, costs = kernels.gradient_descent(x, y, np.zeros(x.shape[1]), 0.05, len(iterations))
+    assert np.allclose([r["cost"] for r in iterations], costs, rtol=1e-6, atol=0)
+    assert np.allclose(np.load(tmp_path / "results.npz")["weights"], w, rtol=1e-6, atol=1e-9)
+
+
+def test_impossible_codes_exit_2_on_every_rank_before_any_work(tmp_path):
+    for args, said in ((("--task", "matmul_mds", "--code-k", "3"), "a code needs k <= the 2 workers"),
+                       (("--task", "linreg_gc", "--code-s", "2"), "tolerates 0 <= s < 2 stragglers")):
+        out = tmp_path / args[1]
+        done = run_mpi(3, *args, "--iterations", "5", "--out", str(out), timeout_s=60)
+        assert done.returncode == 2 and said in done.stderr, done.stderr[-2000:]
+        assert "Traceback" not in done.stderr and not (out / "compute.jsonl").exists()
