@@ -6,7 +6,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench bench-smoke arm64-check clean
+.PHONY: coded-demo demo test lint bench bench-smoke arm64-check clean
 
 # Python keeps what it compiles (__pycache__, not in git). A host that turns that off (PYTHONDONTWRITEBYTECODE, as
 # the development machine does) has every agent, MPI rank and command the suite starts compile NAC's modules again.
@@ -31,6 +31,12 @@ $(STAMP): pyproject.toml | $(BIN)/python
 demo: $(STAMP)
 	@test -f "$${NAC_DATA_DIR:-$(DATA_DIR)}/forestfires.csv" || $(BIN)/nac-onboard data fetch
 	NAC_DATA_DIR=$${NAC_DATA_DIR:-$(DATA_DIR)} $(BIN)/python -m sitl.experiment.demo
+
+# The same straggler flight with the uncoded and the gradient-coded linear regression, and their comparison.
+coded-demo: $(STAMP)
+	@test -f "$${NAC_DATA_DIR:-$(DATA_DIR)}/forestfires.csv" || $(BIN)/nac-onboard data fetch
+	NAC_DATA_DIR=$${NAC_DATA_DIR:-$(DATA_DIR)} $(BIN)/python -m sitl.experiment.demo --pair coded \
+	    --out runs/coded-demo-$$(date +%Y%m%dT%H%M%S)
 
 # The suite in three processes on the two cores (many of its tests wait on a simulated flight or a child process:
 # three keep both cores busy, 274 s against 319 s with two), then the tests that measure rates and times against a

@@ -93,7 +93,8 @@ def compute_args(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: 
             str(kinds.COMPUTE_LOG.at(run_dir).parent), *link,
             "--channel", str(run_channel_path(run_dir)), "--positions", "feed", "--feed", f"127.0.0.1:{ports.feed()}",
             "--vehicles", ",".join(ids), "--timeout-s", str(c.timeout_s), "--on-missing", c.on_missing,
-            "--allocation", c.allocation, "--device", c.device, *c.args]
+            "--allocation", c.allocation, "--device", c.device, "--code-k", str(c.code_k), "--code-s", str(c.code_s),
+            *c.args]
 
 
 def mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: float) -> list[str]:

@@ -1,6 +1,7 @@
-"""`make demo`: the research's flight test in SITL, moving then static, and the comparison of the two.
+"""`make demo`: the research's flight test in SITL, moving then static, and the comparison of the two; `make
+coded-demo` (`--pair coded`): the same straggler flight with the uncoded and the gradient-coded task (issue 30).
 
-    python -m sitl.experiment.demo [--speedup 1] [--out runs/demo-ID] [--base-port 14550]
+    python -m sitl.experiment.demo [--pair research|coded] [--speedup 1] [--out runs/demo-ID] [--base-port 14550]
 
 Each scenario is a full `nac-sitl experiment` (simulator, one agent per vehicle, missions, MPI job, report);
 the comparison's report.md (RUN/report.md) checks the research's findings against the two runs' numbers.
@@ -19,12 +20,13 @@ from sitl.experiment.runner import Outcome, run_scenario
 from sitl.experiment.scenario import ScenarioError, load_scenario
 
 SCENARIOS = ("paper-flight-moving", "paper-flight-static")
+PAIRS = {"research": SCENARIOS, "coded": ("uncoded-edge", "coded-edge")}  # make demo, make coded-demo
 
 
 def run_demo(out: Path, speedup: float, base_port: int, stream=None,
-             stop: threading.Event | None = None) -> int:
+             stop: threading.Event | None = None, pair: str = "research") -> int:
     stream = sys.stdout if stream is None else stream  # the stdout of now, not of import time
-    scenarios = [load_scenario(name) for name in SCENARIOS]
+    scenarios = [load_scenario(name) for name in PAIRS[pair]]
     speedup = min([speedup, *(s.max_speedup for s in scenarios)])
     results = []
     for scenario in scenarios:
@@ -34,12 +36,13 @@ def run_demo(out: Path, speedup: float, base_port: int, stream=None,
         if result.outcome is Outcome.INTERRUPTED:
             break
     if len(results) == len(scenarios) and all(r.report for r in results):
-        from ground.logs.findings import beside_the_research, research_findings
+        from ground.logs.findings import beside_the_research, coded_vs_uncoded, research_findings
         from ground.logs.report import compare_runs
 
+        findings, beside = (research_findings, beside_the_research) if pair == "research" else (coded_vs_uncoded,
+                                                                                                None)
         comparison = compare_runs(results[0].run_dir, results[1].run_dir, out / "comparison",
-                                  report_path=kinds.REPORT.at(out), findings=research_findings,
-                                  beside=beside_the_research)
+                                  report_path=kinds.REPORT.at(out), findings=findings, beside=beside)
         print(f"\ncomparison: {comparison.report_path}", file=stream)
         for line in comparison.findings:
             print(f"- {line}", file=stream)
@@ -53,9 +56,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--speedup", type=float, default=1.0, help="capped by each scenario's max_speedup")
     parser.add_argument("--out", type=Path, default=Path("runs") / f"demo-{time.strftime('%Y%m%dT%H%M%S')}")
     parser.add_argument("--base-port", type=int, default=14550)
+    parser.add_argument("--pair", choices=list(PAIRS), default="research",
+                        help="research: the flight test moving and static (make demo); coded: the same flight with "
+                             "the uncoded and the gradient-coded linear regression (make coded-demo)")
     args = parser.parse_args(argv)
     try:
-        return run_demo(args.out, args.speedup, args.base_port)
+        return run_demo(args.out, args.speedup, args.base_port, pair=args.pair)
     except ScenarioError as err:
         print(f"python -m sitl.experiment.demo: {err}", file=sys.stderr)
         return 2

@@ -7,6 +7,7 @@
                background_airtime = 0.2         # any other channel field overrides the preset's
     [compute]  task = "linreg"  iterations = 0  timeout_s = 3.0  args = []   # no [compute]: no MPI job
                device = "host"                  # or a device profile file: the companions' CPU (docs/compute.md)
+               code_k = 0  code_s = 1           # matmul_mds / linreg_gc: the code (docs/compute.md)
     [throughput]  period_s = 2.0  duration_s = 0.5  interval_s = 0.1
     [network]  period_s = 0.1  sharing = true   # the kernel network's shaper and the access point's airtime
                air = "htb"  queue_packets = 1000  # or "medium": the 802.11 medium frame by frame (issue 28)
@@ -29,6 +30,7 @@ from missions import MissionFileError, load_mission
 from missions.geo import Home
 from missions.model import Mission
 from nac_onboard.compute.device import load_device_profile
+from nac_onboard.compute.options import ComputeOptions
 from nac_onboard.compute.tasks import all_tasks
 from nac_onboard.errors import BadInput
 from nac_onboard.inputs import check_id, check_number
@@ -71,6 +73,8 @@ class ComputePlan:
     on_missing: str = "incomplete"
     allocation: str = "equal"
     device: str = "host"  # the companions' CPU: "host" or a device profile file (nac_onboard/compute/device.py)
+    code_k: int = ranged(0, 0, 10_000)  # matmul_mds: results that decode (0: the workers less one)
+    code_s: int = ranged(1, 0, 10_000)  # linreg_gc: stragglers tolerated
     args: tuple[str, ...] = ()
 
 
@@ -181,6 +185,15 @@ def load_scenario(name_or_path: str) -> Scenario:
                                             [w.id for w in scenario.workers]):
             raise ScenarioError(f"{where}: fault {k + 1}: kill_worker needs a worker of the MPI job ([compute]), "
                                 f"got {fault.vehicle!r}")
+    if scenario.compute is not None:  # a code the fleet cannot hold: refused before anything starts
+        c = scenario.compute
+        options = ComputeOptions(task=c.task, iterations=None, duration_s=None, out="", code_k=c.code_k,
+                                 code_s=c.code_s)
+        try:
+            all_tasks()[c.task].check_workers(options, len(scenario.workers))
+        except ValueError as err:
+            raise ScenarioError(f"{where}: [compute] task {c.task} with {len(scenario.workers)} workers: {err}") \
+                from None
     return scenario
 
 

@@ -239,6 +239,24 @@ def test_the_runs_beside_the_research_with_ratios():
         "the gap said as a factor, and where the mechanisms are measured"
 
 
+def test_the_coded_pair_is_judged_on_its_mean_iteration_with_the_median_and_full_gradients_beside():
+    """The golden run as the uncoded half, and a copy whose iterations took half the time and all had the full
+    gradient as the coded half (issue 30's make coded-demo)."""
+    from ground.logs.findings import coded_vs_uncoded
+
+    uncoded = analyze(read_run(GOLDEN))
+    uncoded.iterations.loc[0, "complete"] = False  # one of its 4 steps on the shards that arrived
+    coded = copy.deepcopy(uncoded)
+    coded.name = "coded"
+    coded.iterations["duration_s"] /= 2
+    coded.iterations["complete"] = True
+    lines = coded_vs_uncoded(uncoded, coded)
+    assert lines[0].startswith("Coded computing finishes its iterations faster (coded vs golden-run): **holds**; "
+                               "mean iteration") and "50% lower" in lines[0]
+    assert lines[1].startswith("Every step on the full gradient: 100% of coded's iterations vs 75% of golden-run's")
+    assert "**does not hold**" in coded_vs_uncoded(coded, uncoded)[0]
+
+
 @pytest.mark.parametrize(("speedup", "duration_sim_s", "warned"), [(4.0, 0.008, True), (4.0, 0.4, False),
                                                                   (1.0, 0.003, False)])
 def test_a_sped_up_run_of_short_iterations_is_flagged(tmp_path, speedup, duration_sim_s, warned):

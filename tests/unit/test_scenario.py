@@ -17,8 +17,8 @@ TWO = ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 
 
 
 def test_the_shipped_scenarios_load_with_the_research_geometry():
-    assert SHIPPED == ["paper-flight-moving", "paper-flight-static", "paper-sim-moving", "paper-sim-static",
-                       "range-sweep"]
+    assert SHIPPED == ["coded-edge", "paper-flight-moving", "paper-flight-static", "paper-sim-moving",
+                       "paper-sim-static", "range-sweep", "uncoded-edge"]
     scenarios = {name: load_scenario(name) for name in SHIPPED}
     for s in scenarios.values():
         assert s.master.role == "master" and s.workers
@@ -65,7 +65,7 @@ def test_the_shipped_scenarios_load_with_the_research_geometry():
      "unknown key fault.colour"),
     ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
      "role = 'worker'\nhome = [47, 8, 500]\n[compute]\ntask = 'sorting'\n",
-     "compute.task must be one of linreg, matmul"),
+     "compute.task must be one of linreg, linreg_gc, matmul, matmul_mds"),
     # the issue's examples (34): each a sentence naming the key and what was expected, never a traceback
     ("max_speedup = 'fast'\n" + TWO, "max_speedup: expected a finite number within [0.1, 1000] x real time, "
                                     "got 'fast'"),
@@ -98,6 +98,11 @@ def test_the_shipped_scenarios_load_with_the_research_geometry():
                                                                "[1, 100000], got 0"),
     (TWO + "[compute]\ntask = 'linreg'\ndevice = 'no-such-device.toml'\n",
      "[compute]: device: cannot read device profile"),
+    # codes the fleet cannot hold (issue 30): refused before anything starts
+    (TWO + "[compute]\ntask = 'linreg_gc'\ncode_s = 1\n", "[compute] task linreg_gc with 1 workers: --code-s 1: "
+                                                         "gradient coding with 1 workers tolerates 0 <= s < 1"),
+    (TWO + "[compute]\ntask = 'matmul_mds'\ncode_k = 2\n", "a code needs k <= the 1 workers"),
+    (TWO + "[compute]\ntask = 'linreg_gc'\ncode_s = -1\n", "compute.code_s: expected an integer within [0, 10000]"),
 ])
 def test_bad_scenarios_name_the_file_and_the_key(tmp_path, text, message):
     path = tmp_path / "bad.toml"
@@ -168,7 +173,7 @@ def test_the_run_writes_its_radio_once_and_the_children_are_pointed_at_that_file
 
 def test_the_cli_refuses_bad_scenarios_and_speedups_with_exit_2(tmp_path, capsys):
     assert cli.main(["experiment", str(tmp_path / "missing.toml")]) == 2
-    assert "no such scenario file, nor a shipped scenario (paper-flight-moving" in capsys.readouterr().err
+    assert "no such scenario file, nor a shipped scenario (coded-edge, paper-flight-moving" in capsys.readouterr().err
     assert cli.main(["experiment", "range-sweep", "--speedup", "5"]) == 2
     assert "--speedup 5 is outside what this scenario allows (up to 1x" in capsys.readouterr().err
 
