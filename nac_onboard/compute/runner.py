@@ -397,8 +397,8 @@ class Master:
 
     def collect(self, iteration: int, waiting: set[int], links: IterationLinks,
                 deadline: float) -> dict[int, Answer]:
-        """Each waited-for worker's answer to this iteration, in arrival order, until the deadline; the others are
-        absent ("timeout")."""
+        """Each waited-for worker's answer to this iteration, in arrival order, until the deadline or until the task
+        has enough (a coded task); the others are absent ("timeout"), unless the task had enough without them."""
         results, waited, heard = {}, set(waiting), set()
         while waiting and not self.task.enough(results):
             rank, buf = self.inbox.receive(deadline)
