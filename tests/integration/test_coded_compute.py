@@ -3,8 +3,6 @@ of uncoded training, and impossible codes exit 2 before any work."""
 
 import os
 import signal
-import subprocess
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -14,26 +12,13 @@ from nac_onboard.compute import forestfires, kernels
 from nac_onboard.compute.tasks.matmul import matmul_inputs
 from nac_onboard.flight_log import read_jsonl
 from tests.conftest import SHARED_DATA
-from tests.integration.test_compute import ENV, iterations_logged, mpi_command, run_mpi, wait_until
+from tests.integration.test_compute import iterations_logged, job, run_mpi, wait_until
 
 # The two runs with a killed worker go beside the exclusive tests, in the idle class (make test): they judge
 # results, not times, and the master's 10 s timeout only matters for a worker that is alive but starved, which the
 # decode does not wait for anyway. The exit-2 test does not: starved, hydra's mpiexec now and then dies of SIGPIPE
 # when every rank ends at once, instead of passing their 2 on (1 of 6 runs beside a busy core, measured).
 beside_the_exclusive_tests = pytest.mark.niced
-
-
-@contextmanager
-def job(ranks: int, *args: str):
-    """The job in its own session, killed with all its ranks if the test leaves it running."""
-    proc = subprocess.Popen(mpi_command(ranks, *args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV,
-                            start_new_session=True)
-    try:
-        yield proc
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
 
 
 def _kill_worker_midway(out: Path, proc, rank: int) -> int:
@@ -48,8 +33,9 @@ def _kill_worker_midway(out: Path, proc, rank: int) -> int:
 def test_mds_matmul_decodes_a_times_b_every_iteration_with_a_worker_killed(tmp_path):
     """Three workers, any two decode: after worker 3 is killed, every iteration still gives A B exactly (each
     saved product checked), decoded from workers 1 and 2 alone, and the dead one stops being sent to."""
-    with job(4, "--task", "matmul_mds", "--m", "12", "--n", "50", "--l", "2", "--seed", "5", "--duration-s", "1.5",
-             "--timeout-s", "10", "--save-results", "--checkpoint-s", "0.5", "--out", str(tmp_path)) as proc:
+    with job("--task", "matmul_mds", "--m", "12", "--n", "50", "--l", "2", "--seed", "5", "--duration-s", "1.5",
+             "--timeout-s", "10", "--save-results", "--checkpoint-s", "0.5", "--out", str(tmp_path),
+             ranks=4) as proc:
         killed_at = _kill_worker_midway(tmp_path, proc, 3)
         proc.wait(timeout=60)
     read = read_jsonl(tmp_path / "compute.jsonl")
@@ -70,8 +56,8 @@ def test_mds_matmul_decodes_a_times_b_every_iteration_with_a_worker_killed(tmp_p
 def test_gradient_coded_training_with_a_worker_killed_follows_uncoded_training_with_everyone(tmp_path):
     """Three workers, s = 1: after worker 2 is killed the master still recovers the full gradient every
     iteration, so the cost curve and the weights are single-process gradient descent's over all the rows."""
-    with job(4, "--task", "linreg_gc", "--code-s", "1", "--duration-s", "2", "--timeout-s", "10",
-             "--checkpoint-s", "0.5", "--out", str(tmp_path)) as proc:
+    with job("--task", "linreg_gc", "--code-s", "1", "--duration-s", "2", "--timeout-s", "10",
+             "--checkpoint-s", "0.5", "--out", str(tmp_path), ranks=4) as proc:
         killed_at = _kill_worker_midway(tmp_path, proc, 2)
         proc.wait(timeout=60)
     read = read_jsonl(tmp_path / "compute.jsonl")

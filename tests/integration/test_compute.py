@@ -169,9 +169,9 @@ def test_matmul_reassigns_an_absent_workers_rows(tmp_path):
 
 
 @contextmanager
-def job(*args: str):
-    """A 3-rank job in its own session, killed with all its ranks if the test leaves it running."""
-    proc = subprocess.Popen(mpi_command(3, *args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV,
+def job(*args: str, ranks: int = 3):
+    """The job (3 ranks unless told) in its own session, killed with all its ranks if the test leaves it running."""
+    proc = subprocess.Popen(mpi_command(ranks, *args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV,
                             start_new_session=True)
     try:
         yield proc
