@@ -44,13 +44,11 @@ def matmul_row(m: int, workers: int, repeats: int) -> dict:
     rng = np.random.default_rng(0)
     a, b = rng.standard_normal((m, n_cols)), rng.standard_normal((n_cols, 1))
     generator = codes.mds_generator(workers, k)
-    block_rows = -(-m // k)
-    blocks = np.zeros((k * block_rows, n_cols))
-    blocks[:m] = a
-    blocks = blocks.reshape(k, block_rows, n_cols)
-    encode_s = timed(lambda: np.tensordot(generator[-1], blocks, axes=1), repeats)  # one worker's block
+    blocks = codes.row_blocks(a, k)
+    encode_s = timed(lambda: codes.encode(generator[-1:], blocks), repeats)  # one worker's block
     used = list(range(1, workers))  # drops systematic block 0: the decode solves a system
-    results = np.stack([np.tensordot(generator[u], blocks, axes=1) @ b for u in used])
+    coded = codes.encode(generator, blocks)
+    results = np.stack([coded[u] @ b for u in used])
     decode_s = timed(lambda: codes.mds_decode(generator, used, results), repeats)
     stack_s = timed(lambda: np.vstack([results[j] for j in range(k)]), repeats)  # the uncoded master's combine
     decoded, _ = codes.mds_decode(generator, used, results)

@@ -139,19 +139,18 @@ def read_positions_fast(raw: bytes, wanted=("POS", "GPS")) -> FastRead | None:
     # where a chain may go on after damage: a record whose length leads to another record (or ends the file)
     good = np.flatnonzero(linked & (linked[following] | last[following]))
     dead = np.flatnonzero(~linked & ~last)
-    damage_from = np.where(known[dead], ends[dead], starts[dead])  # after a whole record, or at a header of no type
-    pick = np.searchsorted(starts[good], damage_from)
+    walk_end = np.where(known, ends, starts)  # where damage after a node begins: its end, or a header of no type
+    pick = np.searchsorted(starts[good], walk_end[dead])
     nxt[~linked] = sink
     nxt[dead] = np.where(pick < len(good), good[np.minimum(pick, len(good) - 1)], sink) if len(good) else sink
     on = _chain(np.append(nxt, sink))[:sink]
     chain = np.flatnonzero(on)
     final = int(chain[-1])
     resumed = chain[:-1][~linked[chain[:-1]]]  # chain nodes whose next record is past damage
-    skipped = [(int(ends[k] if known[k] else starts[k]), int(starts[nxt[k]] - (ends[k] if known[k] else starts[k])))
-               for k in resumed.tolist()]
+    skipped = [(int(walk_end[k]), int(starts[nxt[k]] - walk_end[k])) for k in resumed.tolist()]
     keep = chain[known[chain] & (ends[chain] <= n)]
     records, record_kinds = starts[keep], kinds[keep]
-    tail_problem = _tail(n, int(ends[final] if known[final] else starts[final]))
+    tail_problem = _tail(n, int(walk_end[final]))
     on_chain = set(records[record_kinds == FMT_TYPE].tolist())
     if not fmt_offsets <= on_chain or len(on_chain) != len(fmt_offsets):
         return None  # an FMT that is not a record, or a record FMT that did not parse

@@ -58,6 +58,14 @@ def worst_condition(generator: np.ndarray, seed: int = 0) -> float:
     return max(float(np.linalg.cond(generator[list(s)])) for s in subsets)
 
 
+def row_blocks(a: np.ndarray, k: int) -> np.ndarray:
+    """A's rows as k equal blocks (k x ceil(m / k) x n), the last padded with zero rows."""
+    rows = -(-len(a) // k)
+    padded = np.zeros((k * rows, a.shape[1]))
+    padded[:len(a)] = a
+    return padded.reshape(k, rows, a.shape[1])
+
+
 def encode(generator: np.ndarray, blocks: np.ndarray) -> np.ndarray:
     """Coded blocks (n x rows x cols) from the k data blocks (k x rows x cols)."""
     return np.tensordot(generator, blocks, axes=1)
@@ -93,7 +101,7 @@ def gradient_code(n: int, s: int, seed: int = 0) -> np.ndarray:
     h[:, -1] = -h[:, :-1].sum(axis=1)  # H 1 = 0: the all-ones vector lies in null(H)
     b = np.zeros((n, n))
     for i in range(n):
-        support = [(i + j) % n for j in range(s + 1)]
+        support = shards_of(i, n, s)
         null = np.linalg.svd(h[:, support])[2][-1]  # H_S (s x (s+1)) has a one-dimensional null space
         if abs(null[0]) < 1e-12:
             raise CodeError(f"gradient code row {i} has no weight on its own shard (seed {seed}): use another seed")

@@ -27,8 +27,7 @@ class GradientCodedLinreg(Linreg):
                "recovers the full gradient from the first N - S answers")
 
     def __init__(self, options):
-        super().__init__(options)
-        self.x_all, self.y_all = self.x, self.y
+        super().__init__(options)  # every rank keeps the whole data set: a worker takes its s + 1 shards of it
         self.s = options.code_s
         self.b = np.zeros((0, 0))
         self.shards: list[tuple[int, int]] = []
@@ -54,7 +53,7 @@ class GradientCodedLinreg(Linreg):
 
     def take_block(self, rank: int) -> None:
         workers = len(self.bounds)
-        self.held = [(float(self.b[rank - 1, j]), self.x_all[start:stop], self.y_all[start:stop])
+        self.held = [(float(self.b[rank - 1, j]), self.x[start:stop], self.y[start:stop])
                      for j in codes.shards_of(rank - 1, workers, self.s) for start, stop in [self.shards[j]]]
 
     def work(self, payload: np.ndarray, extra_rows: int | None = None) -> Answer:
@@ -66,13 +65,14 @@ class GradientCodedLinreg(Linreg):
         return Answer(coded, self.total_rows, coded_sse)
 
     def enough(self, answers: dict[int, Answer]) -> bool:
-        return len(answers) >= len(self.bounds) - self.s
+        return len(answers) >= len(self.bounds) - self.s  # any N - s give the full gradient
 
     def combine(self, iteration: int, payload: np.ndarray, answers: dict[int, Answer]) -> dict:
-        used = list(answers)[:len(self.bounds) - self.s]
+        needed = len(self.bounds) - self.s
+        used = list(answers)[:needed]
         record = {"decoded_from": used, "rows_used": 0, "cost": None, "complete": False}
-        if len(used) < len(self.bounds) - self.s:
-            record["decode_error"] = f"{len(used)} answers; the full gradient needs {len(self.bounds) - self.s}"
+        if len(used) < needed:
+            record["decode_error"] = f"{len(used)} answers; the full gradient needs {needed}"
             return record
         t0 = time.perf_counter()
         try:
