@@ -73,9 +73,12 @@ def test_gradient_coded_training_with_a_worker_killed_follows_uncoded_training_w
 
 
 def test_impossible_codes_exit_2_on_every_rank_before_any_work(tmp_path):
+    """Each of the 3 ranks says why and ends with 2, and hydra passes the 2 on. Or hydra dies of SIGPIPE in its
+    own teardown after the ranks have ended (docs/benchmarks.md: it writes its closing message to a proxy already
+    gone; 1 run in 8 here, in the parallel part of the suite): then every rank's sentence is the verdict."""
     for args, said in ((("--task", "matmul_mds", "--code-k", "3"), "a code needs k <= the 2 workers"),
                        (("--task", "linreg_gc", "--code-s", "2"), "tolerates 0 <= s < 2 stragglers")):
         out = tmp_path / args[1]
         done = run_mpi(3, *args, "--iterations", "5", "--out", str(out), timeout_s=60)
-        assert done.returncode == 2 and said in done.stderr, done.stderr[-2000:]
+        assert done.returncode in (2, -signal.SIGPIPE) and done.stderr.count(said) == 3, done.stderr[-2000:]
         assert "Traceback" not in done.stderr and not (out / "compute.jsonl").exists()
