@@ -220,7 +220,7 @@ def _battery(enc: FrameEncoder, i: int, w: World, t: Telemetry) -> bytes:
     voltages = [per_cell_mv] * min(cells, 10) + [65535] * (10 - min(cells, 10))
     msg = M.MAVLink_battery_status_message(
         0, M.MAV_BATTERY_FUNCTION_ALL, M.MAV_BATTERY_TYPE_LIPO, 32767, voltages, int(s.current_a[i] * 100),
-        int(s.consumed_mah[i]), -1, int(round(s.soc[i] * 100)), 0,
+        int(s.consumed_mah[i]), int(s.consumed_wh[i] * 36), int(round(s.soc[i] * 100)), 0,  # 1 Wh = 36 hJ
         M.MAV_BATTERY_CHARGE_STATE_LOW if w.autopilots.failsafe[i] else M.MAV_BATTERY_CHARGE_STATE_OK,
         [0, 0, 0, 0], 0, 0)
     return enc.message(msg)

@@ -171,6 +171,7 @@ class FlightState:
         self.rc_until_t_s = np.full(n, -math.inf)
         self.piloted = np.zeros(n, dtype=bool)  # flying on the sticks in a pilot mode
         self.idle_since_t_s = np.full(n, math.inf)  # armed, on the ground and not taking off, since
+        self.low_volt_since_t_s = np.full(n, math.inf)  # flying with the resting voltage below BATT_LOW_VOLT, since
         self.paused: list[tuple | None] = [None] * n  # DO_PAUSE_CONTINUE: what to resume
         self.servo_pwm: list[dict[int, int]] = [{} for _ in range(n)]  # DO_SET_SERVO outputs (not simulated)
         self.t_s = 0.0

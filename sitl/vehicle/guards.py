@@ -12,6 +12,7 @@ import math
 import numpy as np
 
 from missions.model import MissionType
+from sitl.vehicle import energy
 from sitl.vehicle import fence as fence_
 from sitl.vehicle.flight_state import CopterMode, FlightState, Severity
 from sitl.vehicle.modes import Modes
@@ -31,10 +32,22 @@ class Guards:
         self._auto_disarm(state, t_s)
         self._check_fences(state)
         flying = s.armed & ~state.on_ground
-        low_batt = flying & ~s.failsafe & (state.soc * 100.0 < s.params.column("BATT_LOW_PCT"))
+        low_batt = flying & ~s.failsafe & ((state.soc * 100.0 < s.params.column("BATT_LOW_PCT"))
+                                            | self._low_voltage_for_long(state, flying, t_s))
         no_gps = flying & ~s.gps_ok & (s.mode != CopterMode.LAND)
         for i in np.flatnonzero(low_batt | no_gps):
             self._failsafe(int(i), bool(no_gps[i]))
+
+    def _low_voltage_for_long(self, state: VehicleState, flying: np.ndarray, t_s: float) -> np.ndarray:
+        """ArduPilot's voltage failsafe: the resting voltage (the terminal voltage plus the internal resistance's
+        drop, which ArduPilot estimates and the simulator knows) below BATT_LOW_VOLT for BATT_LOW_TIMER seconds."""
+        s = self.s
+        threshold_v = s.params.column("BATT_LOW_VOLT")
+        resting_v = state.voltage_v + state.current_a * s.params.column("BATT_CELLS") * energy.CELL_RESISTANCE_OHM
+        low = flying & (threshold_v > 0) & (resting_v < threshold_v)
+        s.low_volt_since_t_s[~low] = math.inf
+        s.low_volt_since_t_s[low & np.isinf(s.low_volt_since_t_s)] = t_s
+        return low & (t_s - s.low_volt_since_t_s >= s.params.column("BATT_LOW_TIMER"))
 
     def _check_fences(self, state: VehicleState) -> None:
         """FENCE_ENABLE: a flying vehicle that leaves the fence says so and takes FENCE_ACTION (0 report only,

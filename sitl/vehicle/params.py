@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from nac_onboard.errors import BadInput
+from sitl.vehicle import energy
 from sitl.vehicle.physics import PhysicsParams
 
 INT8, INT16, INT32, REAL32 = "INT8", "INT16", "INT32", "REAL32"  # MAV_PARAM_TYPE names, ArduPilot's storage
@@ -83,8 +84,13 @@ PARAM_DEFS: tuple[ParamDef, ...] = (
     ParamDef("FS_EKF_ACTION", 1, 1, 3, "EKF failsafe action (here: GPS lost lands)", INT8),
     ParamDef("BATT_CAPACITY", 5000, 100, 100000, "battery capacity (mAh)", INT32),
     ParamDef("BATT_CELLS", 4, 1, 14, "battery cells in series", INT8),
-    ParamDef("BATT_HOVER_AMPS", 15, 0, 200, "current drawn in hover (A)"),
+    ParamDef("NAC_FRAME", 0, 0, len(energy.FRAME_NAMES) - 1, "airframe whose propulsion power the battery feeds: "
+             + ", ".join(f"{i} {name}" for i, name in enumerate(energy.FRAME_NAMES)) + " (sitl/vehicle/energy.py)",
+             INT8),
     ParamDef("BATT_LOW_PCT", 20, 0, 99, "state of charge that triggers the low-battery failsafe (%)", INT8),
+    ParamDef("BATT_LOW_VOLT", 10.5, 0, 100, "resting voltage (the voltage under load plus the internal resistance's "
+             "drop) that triggers the low-battery failsafe after BATT_LOW_TIMER, 0 = off (V)"),
+    ParamDef("BATT_LOW_TIMER", 10, 0, 120, "seconds the resting voltage must stay below BATT_LOW_VOLT (s)", INT8),
     ParamDef("BATT_FS_LOW_ACT", 2, 0, 2, "low-battery action: 0 none, 1 land, 2 RTL", INT8),
     ParamDef("SIM_GPS_NOISE", 0, 0, 10, "GPS horizontal noise sigma (m); vertical is 1.5x"),
     ParamDef("SIM_GPS_DISABLE", 0, 0, 1, "fault: 1 = GPS lost (no fix, frozen position, vehicle lands)", INT8),
@@ -170,8 +176,6 @@ class ParamTable:
         return self._kept_out_of_range.get((vehicle, self.index(name)), self.get(vehicle, name))
 
     def physics(self) -> PhysicsParams:
-        n = self.values.shape[0]
-        base = PhysicsParams.defaults(n)
         return PhysicsParams(
             k_xy=self.column("NAC_KP_XY").copy(), k_z=self.column("NAC_KP_Z").copy(),
             speed_xy_max_mps=self.column("WPNAV_SPEED") / 100.0,
@@ -180,8 +184,8 @@ class ParamTable:
             land_speed_mps=self.column("LAND_SPEED") / 100.0,
             vel_tau_s=self.column("NAC_VEL_TAU").copy(),
             batt_capacity_mah=self.column("BATT_CAPACITY").copy(), batt_cells=self.column("BATT_CELLS").copy(),
-            hover_current_a=self.column("BATT_HOVER_AMPS").copy(),
-            current_per_mps_a=base.current_per_mps_a, idle_current_a=base.idle_current_a,
+            power=energy.PowerArrays.of([energy.FRAMES[energy.FRAME_NAMES[int(i)]]
+                                         for i in self.column("NAC_FRAME")]),
             research_law=self.column("NAC_NAV_LAW") == 1,
             accel_xy_mps2=self.column("WPNAV_ACCEL") / 100.0, accel_z_mps2=self.column("WPNAV_ACCEL_Z") / 100.0,
             land_speed_high_mps=np.where(self.column("LAND_SPEED_HIGH") > 0, self.column("LAND_SPEED_HIGH"),

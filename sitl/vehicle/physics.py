@@ -13,7 +13,9 @@ from functools import cached_property
 
 import numpy as np
 
-GRAVITY_MPS2 = 9.80665
+from sitl.vehicle import energy
+from sitl.vehicle.energy import GRAVITY_MPS2
+
 YAW_RATE_MAX_RPS = math.radians(90.0)  # how fast a commanded heading is turned to
 
 
@@ -40,9 +42,7 @@ class PhysicsParams:
     vel_tau_s: np.ndarray  # first-order velocity response time constant
     batt_capacity_mah: np.ndarray
     batt_cells: np.ndarray
-    hover_current_a: np.ndarray
-    current_per_mps_a: np.ndarray  # extra draw per m/s of horizontal speed
-    idle_current_a: np.ndarray  # avionics draw, armed or not
+    power: energy.PowerArrays  # each vehicle's frame, for its propulsion power
     research_law: np.ndarray | None = None  # (N,) bool: the research's proportional law, else ArduCopter's
     accel_xy_mps2: np.ndarray | None = None  # WPNAV_ACCEL, for ArduCopter's law
     accel_z_mps2: np.ndarray | None = None  # WPNAV_ACCEL_Z
@@ -71,8 +71,8 @@ class PhysicsParams:
         return PhysicsParams(
             k_xy=full(0.15), k_z=full(1.0), speed_xy_max_mps=full(5.0), speed_up_max_mps=full(2.5),
             speed_down_max_mps=full(1.5), land_speed_mps=full(0.5), vel_tau_s=full(0.3),
-            batt_capacity_mah=full(5000.0), batt_cells=full(4.0), hover_current_a=full(15.0),
-            current_per_mps_a=full(0.8), idle_current_a=full(0.3),
+            batt_capacity_mah=full(5000.0), batt_cells=full(4.0),
+            power=energy.PowerArrays.of([energy.FRAMES[energy.FRAME_NAMES[0]]] * n),
         )
 
 
@@ -87,18 +87,19 @@ class VehicleState:
     on_ground: np.ndarray  # (N,) bool
     soc: np.ndarray  # (N,) battery state of charge 0..1
     current_a: np.ndarray  # (N,)
-    voltage_v: np.ndarray  # (N,)
+    voltage_v: np.ndarray  # (N,) at the terminals, under the present load
     consumed_mah: np.ndarray  # (N,)
+    consumed_wh: np.ndarray  # (N,) energy delivered at the terminals
 
     @staticmethod
     def at_rest(n: int, params: PhysicsParams) -> VehicleState:
         zeros3 = np.zeros((n, 3))
         soc = np.ones(n)
+        current_a, voltage_v = battery_load(soc, params.power.avionics_w, params.batt_cells)
         return VehicleState(
             pos_m=zeros3.copy(), vel_mps=zeros3.copy(), accel_mps2=zeros3.copy(), yaw_rad=np.zeros(n),
-            on_ground=np.ones(n, dtype=bool), soc=soc, current_a=params.idle_current_a.copy(),
-            voltage_v=battery_voltage_v(soc, params.idle_current_a, params.batt_cells),
-            consumed_mah=np.zeros(n),
+            on_ground=np.ones(n, dtype=bool), soc=soc, current_a=current_a, voltage_v=voltage_v,
+            consumed_mah=np.zeros(n), consumed_wh=np.zeros(n),
         )
 
 
@@ -113,10 +114,20 @@ class Command:
     yaw_rate_rps: np.ndarray | None = None  # (N,) turn at this rate; NaN: no rate command
 
 
-def battery_voltage_v(soc: np.ndarray, current_a: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """LiPo pack: 3.3 V per cell empty, 4.2 V full, linear between, 10 mOhm per cell internal resistance."""
-    open_circuit_v = cells * (3.3 + 0.9 * np.minimum(np.maximum(soc, 0.0), 1.0))
-    return open_circuit_v - current_a * 0.010 * cells
+def battery_load(soc: np.ndarray, power_w: np.ndarray, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(current in A, terminal voltage in V) of each pack delivering power_w (energy.py's LiPo)."""
+    open_v = energy.open_circuit_v(soc, cells)
+    current_a = energy.pack_current_a(power_w, open_v, cells)
+    return current_a, energy.terminal_v(open_v, current_a, cells)
+
+
+def battery_power_w(vel_mps: np.ndarray, flying: np.ndarray, power: energy.PowerArrays) -> np.ndarray:
+    """What each pack delivers: the avionics always, the propulsion (Zeng's model plus climb) while flying."""
+    if not flying.any():
+        return power.avionics_w
+    speed_xy = np.hypot(vel_mps[:, 0], vel_mps[:, 1])
+    shaft_w = energy.shaft_power_w(power, speed_xy, vel_mps[:, 2])
+    return power.avionics_w + np.where(flying, shaft_w / power.drive_efficiency, 0.0)
 
 
 def desired_velocity_mps(pos_m, goal_m, params: PhysicsParams, speed_xy_mps) -> np.ndarray:
@@ -257,13 +268,14 @@ def step(state: VehicleState, cmd: Command, params: PhysicsParams, dt_s: float) 
     if cmd.yaw_target_rad is not None and not (np.isnan(cmd.yaw_target_rad).all() and np.isnan(cmd.yaw_rate_rps).all()):
         yaw = commanded_yaw_rad(yaw, state.yaw_rad, cmd.yaw_target_rad, cmd.yaw_rate_rps, dt_s)
 
-    flying = cmd.armed & ~on_ground
-    current_a = params.idle_current_a + flying * (params.hover_current_a + params.current_per_mps_a * speed_xy)
+    power_w = battery_power_w(vel, cmd.armed & ~on_ground, params.power)
+    current_a, voltage_v = battery_load(state.soc, power_w, params.batt_cells)
     used_mah = current_a * (dt_s / 3.6)
     soc = np.maximum(state.soc - used_mah / params.batt_capacity_mah, 0.0)
     return VehicleState(
         pos_m=pos, vel_mps=vel, accel_mps2=accel, yaw_rad=yaw, on_ground=on_ground, soc=soc, current_a=current_a,
-        voltage_v=battery_voltage_v(soc, current_a, params.batt_cells), consumed_mah=state.consumed_mah + used_mah,
+        voltage_v=voltage_v, consumed_mah=state.consumed_mah + used_mah,
+        consumed_wh=state.consumed_wh + voltage_v * current_a * (dt_s / 3600.0),
     )
 
 
