@@ -355,6 +355,13 @@ class Sitl:
         with self._lock:
             return self.world.truth(vehicle)
 
+    def batteries(self) -> tuple[float, list[dict]]:
+        """(simulated time, each vehicle's flight pack: consumed_wh, soc, voltage_v), taken at one step."""
+        with self._lock:
+            s = self.world.state
+            return self.world.t_s, [{"consumed_wh": float(wh), "soc": float(soc), "voltage_v": float(v)}
+                                    for wh, soc, v in zip(s.consumed_wh, s.soc, s.voltage_v, strict=True)]
+
     # ---- the loop -----------------------------------------------------------------------------------
     def step_once(self) -> None:
         """Advance the world by one step and send what falls due (call with the lock held)."""

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from ground.logs import energy as energy_
 from ground.logs import iteration_pace
 from ground.logs.runlog import RunLog
 from missions.geo import Home, ecef_to_enu, lla_to_ecef
@@ -49,12 +50,15 @@ class RunTables:
     time_per_10: pd.DataFrame = field(default_factory=lambda: pd.DataFrame(columns=iteration_pace.BLOCK_COLUMNS))
     time_per_10_by_distance: pd.DataFrame = field(
         default_factory=lambda: pd.DataFrame(columns=iteration_pace.BIN_COLUMNS))
+    energy: pd.DataFrame = field(default_factory=lambda: pd.DataFrame(columns=energy_.POWER_COLUMNS))
+    energy_by_vehicle: pd.DataFrame = field(default_factory=lambda: pd.DataFrame(columns=energy_.VEHICLE_COLUMNS))
 
     def csv_tables(self) -> dict[str, pd.DataFrame]:
         return {"trajectories": self.trajectories, "distances": self.distances, "throughput": self.throughput,
                 "throughput_by_distance": self.throughput_by_distance, "iterations": self.iterations,
                 "iteration_workers": self.iteration_workers, "training_cost": self.training_cost,
-                "time_per_10": self.time_per_10, "time_per_10_by_distance": self.time_per_10_by_distance}
+                "time_per_10": self.time_per_10, "time_per_10_by_distance": self.time_per_10_by_distance,
+                "energy": self.energy, "energy_by_vehicle": self.energy_by_vehicle}
 
 
 def sample_times(positions: pd.DataFrame) -> pd.Series:
@@ -334,8 +338,11 @@ def analyze(run: RunLog, master: str | None = None, bin_m: float = DEFAULT_BIN_M
     rho = iteration_pace.spearman(per_10)
     if rho:
         summary["time_per_10_spearman"] = rho
+    power = energy_.power(run.energy)
+    vehicles = energy_.by_vehicle(power, run.battery_empty)
+    summary.update(energy_.summarize(vehicles, summary))
     return RunTables(run.name, master, t0_s, traj, dist, probes, bins, its, workers, training_cost(its), summary,
-                     problems, missing, per_10, iteration_pace.by_distance(per_10, bin_m))
+                     problems, missing, per_10, iteration_pace.by_distance(per_10, bin_m), power, vehicles)
 
 
 MACHINE_ITERATION_COST_S = 0.0024  # a linreg iteration with 2 workers at 1x, kernel network (docs/benchmarks.md)

@@ -93,9 +93,22 @@ def training_cost(ax, t: RunTables) -> None:
     ax.plot(t.training_cost["iteration"], t.training_cost["cost"])
 
 
+def power(ax, t: RunTables) -> None:
+    """Each vehicle's flight power (solid) and companion pack's output (dashed), once a simulated second."""
+    ax.set(title="Power", xlabel="simulated time (s)", ylabel="power (W)")
+    if t.energy.empty:
+        return _empty(ax, "energy records")
+    for vehicle, rows in t.energy.groupby("vehicle", sort=False):
+        line, = ax.plot(rows["t_sim_s"], rows["flight_w"], label=f"{vehicle}: flight")
+        ax.plot(rows["t_sim_s"], rows["companion_w"], "--", color=line.get_color(), label=f"{vehicle}: companion")
+    ax.set_yscale("symlog", linthresh=10.0)
+    ax.legend(fontsize="x-small", ncol=2)
+
+
 FIGURES = {"trajectories": trajectories, "distances": distances, "throughput_over_time": throughput_over_time,
            "throughput_vs_distance": throughput_vs_distance, "iteration_time": iteration_time,
-           "time_per_10_vs_distance": time_per_10_vs_distance, "training_cost": training_cost}
+           "time_per_10_vs_distance": time_per_10_vs_distance, "training_cost": training_cost, "power": power}
+ONLY_WITH_DATA = {"power": lambda t: not t.energy.empty}  # drawn only when the run has what they show
 
 
 def draw(name: str, runs: list[RunTables], path: Path) -> Path:

@@ -36,6 +36,11 @@ SUMMARY_LABELS = {
     "air": "frame-level air: packets delivered, late (written over 1 ms after their time: the host fell behind), "
            "queue drops, retry drops, collisions, exchanges",
     "air_late_share": "share of deliveries late (their timing is this host's, not the model's)",
+    "energy_wh": "energy, every vehicle's two packs (Wh)", "companion_energy_wh": "energy, companion packs (Wh)",
+    "companion_packs_empty": "companion packs that ran out",
+    "energy_per_iteration_j": "energy per complete iteration, both packs (J)",
+    "companion_energy_per_iteration_j": "companion energy per complete iteration (J)",
+    "companion_energy_per_cost_drop_j": "companion energy per unit of training cost removed (J)",
 }
 TABLE_ROWS_SHOWN = 12
 
@@ -130,13 +135,14 @@ def analyze_run(run_dir: str | Path, out: str | Path | None = None, master: str 
     report_path = Path(report_path) if report_path else out / kinds.REPORT.name
     tables = analyze(run, master, bin_m, threshold_mbps)
     write_tables(tables, out)
-    pictures = {name: figures.draw(name, [tables], out / f"{name}.png") for name in figures.FIGURES}
+    pictures = {name: figures.draw(name, [tables], out / f"{name}.png") for name in figures.FIGURES
+                if figures.ONLY_WITH_DATA.get(name, bool)(tables)}
     report = [f"# {tables.name}: a NAC run", "", f"Analysed from `{run.path}`; tables as CSV next to this file.", "",
               *_notes([tables], run.experiment), "## Summary", "", summary_table([tables.summary], [tables.name]), ""]
     for name, path in pictures.items():
         report += [f"![{name.replace('_', ' ')}]({_relative(path, report_path.parent)})", ""]
     report += ["## Throughput vs distance", "", markdown_table(tables.throughput_by_distance), "",
-               *_time_per_10_section(tables),
+               *_time_per_10_section(tables), *_energy_section(tables, run.energy_plan),
                "## Iterations", "", markdown_table(tables.iterations.drop(columns=["t_s"]), TABLE_ROWS_SHOWN), "",
                "## Master-worker distance", "", markdown_table(_every(tables.distances, 10.0), TABLE_ROWS_SHOWN), ""]
     report_path.write_text("\n".join(report))
@@ -154,6 +160,22 @@ def _time_per_10_section(t: RunTables) -> list[str]:
             f"worker's mean distance from the master; bins of fewer than {iteration_pace.MIN_BLOCKS_PER_BIN} blocks "
             f"say little. Spearman's rank correlation of time with distance: {said or 'too few blocks'}.", "",
             markdown_table(t.time_per_10_by_distance), ""]
+
+
+def _energy_section(t: RunTables, plan: dict | None) -> list[str]:
+    """Each vehicle's energy by what used it: the integral of the power it recorded each simulated second."""
+    if t.energy_by_vehicle.empty:
+        return []
+    plan = plan or {}
+    companion, radio = plan.get("companion") or {}, plan.get("radio") or {}
+    frames = ", ".join(f"{v}: {f}" for v, f in (plan.get("frames") or {}).items())
+    radio_said = "from its station's bytes" if plan.get("radio_counted") else "idle only (no station counters here)"
+    return ["## Energy", "",
+            f"Flight power from the frame's propulsion model ({frames}); the companion's "
+            f"{companion.get('name', '?')} ({companion.get('idle_w', '?')} W idle, {companion.get('busy_w', '?')} W "
+            f"busy) from its rank's CPU time, and its radio {radio.get('name', '?')} {radio_said}, through converters "
+            f"of efficiency {plan.get('dc_dc_efficiency', '?')}; sources in sitl/vehicle/energy.py. Wh over the "
+            "scenario; state of charge at its end.", "", markdown_table(t.energy_by_vehicle), ""]
 
 
 def _every(table: pd.DataFrame, step_s: float) -> pd.DataFrame:
@@ -198,7 +220,7 @@ def compare_runs(run_a: str | Path, run_b: str | Path, out: str | Path, master: 
     if beside:
         report += ["## Beside the research", "", *beside(*tables), ""]
     report += [*_notes(tables, None), "## Summary", "", summary_table([t.summary for t in tables], names), ""]
-    for name in figures.FIGURES:
+    for name in [n for n in figures.FIGURES if any(figures.ONLY_WITH_DATA.get(n, bool)(t) for t in tables)]:
         path = figures.draw(name, tables, out / f"{name}.png")
         report += [f"![{name.replace('_', ' ')}]({_relative(path, report_path.parent)})", ""]
     for t in tables:

@@ -40,6 +40,9 @@ class RunLog:
     link_rates: list[dict] = field(default_factory=list)  # the shaper's link_rates records (SITL, kernel network)
     air_medium: list[dict] = field(default_factory=list)  # the frame-level air's counters (air = "medium")
     experiment: dict | None = None  # the runner's experiment.json, when there is one
+    energy: list[dict] = field(default_factory=list)  # the experiment's energy records, a vehicle a second
+    energy_plan: dict | None = None  # its energy models
+    battery_empty: list[dict] = field(default_factory=list)  # companion packs that ran out
     problems: list[str] = field(default_factory=list)
     missing: list[str] = field(default_factory=list)
 
@@ -93,6 +96,12 @@ def read_run(path: str | Path) -> RunLog:
         _warn(run, read.problems)
         run.link_rates = read.of_kind(kinds.LINK_RATES)
         run.air_medium = read.of_kind(kinds.AIR_MEDIUM)
+    energy = kinds.ENERGY_LOG.at(path)
+    if energy.exists():
+        read = read_jsonl(energy)
+        _warn(run, read.problems)
+        run.energy, run.battery_empty = read.of_kind(kinds.ENERGY), read.of_kind(kinds.BATTERY_EMPTY)
+        run.energy_plan = next(iter(read.of_kind(kinds.ENERGY_PLAN)), None)
     for vehicle_dir in sorted(p for p in path.iterdir() if p.is_dir()):
         _read_vehicle(run, vehicle_dir)
     for compute_log in sorted(path.rglob(kinds.COMPUTE_LOG.name)):

@@ -35,6 +35,8 @@ NETWORK_LOG = RunFile("network.jsonl", "network.jsonl", "run", "the link shaper 
                       "the kernel network's link rates over time")
 EXPERIMENT_LOG = RunFile("experiment.json", "experiment.json", "run", RUNNER_WRITER,
                          "the experiment: its settings, its faults as they happen, how it ended (JSON Lines)")
+ENERGY_LOG = RunFile("energy.jsonl", "energy.jsonl", "run", RUNNER_WRITER,
+                     "each vehicle's power (flight, compute, radio) and both its packs, once a simulated second")
 CLOCK_FILE = RunFile("clock.json", "clock.json", "run", RUNNER_WRITER,
                      "the run's one clock: simulated seconds and pace, read by every process ($NAC_SIM_CLOCK)",
                      jsonl=False)
@@ -64,7 +66,7 @@ ANALYSIS_DIR = "analysis"
 IPERF3_GLOB = "iperf3-*.json"
 
 FILES = (AGENT_LOG, THROUGHPUT_LOG, TLOG, COMPUTE_LOG, RANK_LOG, RESULTS, MPIEXEC_LOG, START_FILE, NETWORK_LOG,
-         EXPERIMENT_LOG, CLOCK_FILE, CHANNEL_FILE, REPLAY_TABLE, AGENT_CONFIG, FLEET_KEY, PEER_FRESHNESS,
+         EXPERIMENT_LOG, ENERGY_LOG, CLOCK_FILE, CHANNEL_FILE, REPLAY_TABLE, AGENT_CONFIG, FLEET_KEY, PEER_FRESHNESS,
          HOSTFILE, REPORT, SUMMARY, VIEW_PNG)
 
 
@@ -327,6 +329,32 @@ FAULT = Kind("fault", EXPERIMENT_LOG, "a scheduled fault switched on or off, as 
 EXPERIMENT_ENDED = Kind("experiment_ended", EXPERIMENT_LOG, "how the experiment ended", (
     req("outcome", "string", "", "completed, interrupted, ..."), req("detail", "string", "", "in words"),
     req("faults", "list", "", "every fault event: t_sim_s, vehicle, kind, state")))
+
+# ---- energy: energy.jsonl -----------------------------------------------------------------------------------------
+ENERGY = Kind("energy", ENERGY_LOG, "a vehicle's mean power over the last simulated interval, its packs after it", (
+    req("t_sim_s", "number", "s", "simulated time since the missions, at the interval's end"),
+    req("dt_s", "number", "s", "the interval (simulated)"), req("vehicle", "string", "", "vehicle id"),
+    req("flight_w", "number", "W", "the flight pack's output: propulsion and avionics"),
+    req("compute_w", "number", "W", "the companion computer's draw"),
+    req("radio_w", "number", "W", "the Wi-Fi radio's draw"),
+    req("companion_w", "number", "W", "the companion pack's output: (compute + radio) / the converters' efficiency"),
+    req("busy_share", "number", "", "the rank's share of the interval computing (0-1)"),
+    req("tx_share", "number", "", "the station's share of the interval sending"),
+    req("rx_share", "number", "", "the station's share of the interval receiving"),
+    req("flight_soc", "number", "", "flight pack state of charge (0-1)"),
+    req("flight_v", "number", "V", "flight pack voltage"),
+    req("companion_soc", "number", "", "companion pack state of charge (0-1)"),
+    req("companion_v", "number", "V", "companion pack voltage (0: empty)")))
+BATTERY_EMPTY = Kind("battery_empty", ENERGY_LOG, "a companion pack ran out: its computer, rank and radio stop", (
+    req("t_sim_s", "number", "s", "simulated time since the missions"), req("vehicle", "string", "", "vehicle id"),
+    req("pack", "string", "", "companion"), req("stopped", "list", "", "what stopped: agent, rank, radio")))
+ENERGY_PLAN = Kind("energy_plan", ENERGY_LOG, "the energy models of the run, at its start", (
+    req("frames", "object", "", "vehicle -> NAC_FRAME's frame name"),
+    req("companion", "object", "", "name, idle_w, busy_w, source"),
+    req("radio", "object", "", "name, idle_w, tx_w, rx_w, phy_rate_bps, source"),
+    req("companion_packs", "object", "", "vehicle -> [cells, capacity mAh]"),
+    req("dc_dc_efficiency", "number", "", "the companion's converters"),
+    req("radio_counted", "boolean", "", "station bytes counted (kernel network); false: the radio idles")))
 
 KINDS: tuple[Kind, ...] = tuple(v for v in dict(globals()).values() if isinstance(v, Kind))
 BY_NAME: dict[str, Kind] = {k.name: k for k in KINDS}

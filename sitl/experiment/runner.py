@@ -28,6 +28,7 @@ from pathlib import Path
 from missions.model import MavCmd
 from nac_onboard import clock
 from nac_onboard.child_process import AgentProcess, ChildStartError, die_with_parent_preexec
+from nac_onboard.compute.device import load_device_profile
 from nac_onboard.compute.options import options_from_argv
 from nac_onboard.errors import NacError, OperationFailed, Terminated
 from nac_onboard.flight_log import JsonlLog, read_jsonl
@@ -48,6 +49,7 @@ from sitl.experiment.commands import (
     mpi_command,
     run_channel_path,
 )
+from sitl.experiment.energy_meter import EnergyMeter, namespace_bytes, process_cpu_s
 from sitl.experiment.faults import Fault, FaultInjector, FaultKind
 from sitl.experiment.progress import VehicleProgress, follow, render_progress
 from sitl.experiment.scenario import Scenario
@@ -58,6 +60,7 @@ from sitl.network.netns import NetworkError, remove_leftovers
 from sitl.network.replay import parse_links
 from sitl.network.shaper import Shaper
 from sitl.server import Sitl, SitlConfig, SitlError
+from sitl.vehicle import energy
 
 log = logging.getLogger(__name__)
 CLIENT_ERRORS = (OSError, LinkError, CommandError, MissionError)
@@ -134,6 +137,9 @@ class Experiment:
         self.fault_log: list[dict] = []
         self.step_observers = []  # (t_s, state) callbacks handed to the simulator (tests record the truth)
         self.watchdog: Watchdog | None = None
+        self.energy: EnergyMeter | None = None
+        self.energy_log: JsonlLog | None = None
+        self.rank_pids: dict[str, int] = {}  # vehicle id -> its MPI rank's pid, once its log names it
 
     # ---- the run ---------------------------------------------------------------------------------------------
     def run(self) -> ExperimentResult:
@@ -352,6 +358,7 @@ class Experiment:
             except CLIENT_ERRORS as err:
                 raise ExperimentError(Outcome.MISSION_FAILED, f"{vehicle.id}: {err}") from None
         self.mission_start_sim_s = self.sim.t_s
+        self._start_energy()
         for i in range(len(s.vehicles)):
             pilot = threading.Thread(target=follow, args=(self.clients[i], self.progress[i], self.stop_event),
                                      name=f"follow-{s.vehicles[i].id}", daemon=True)
@@ -427,6 +434,7 @@ class Experiment:
                 active.remove(item)
                 self._inject(item[1], False)
             self._check_children()
+            self._meter()
             if self.mpi is not None and self.mpi.poll() is not None and self.scenario.compute.iterations:
                 print(f"MPI job finished its {self.scenario.compute.iterations} iterations at "
                       f"t={now:.1f} s", file=self.out, flush=True)
@@ -437,6 +445,58 @@ class Experiment:
                 next_display += 1.0
             if self.stop_event.wait(0.05):
                 raise KeyboardInterrupt
+
+    def _start_energy(self) -> None:
+        s = self.scenario
+        slowdown = 1.0
+        if s.compute is not None and s.compute.device != "host":
+            slowdown = load_device_profile(s.compute.device).slowdown
+        self.energy_log = JsonlLog(kinds.ENERGY_LOG.at(self.run_dir))
+        frames = [energy.FRAME_NAMES[int(self.sim.world.params.get(i, "NAC_FRAME"))] for i in range(len(s.vehicles))]
+        self.energy = EnergyMeter([v.id for v in s.vehicles], s.energy,
+                                  [v.companion_mah or s.energy.companion_mah for v in s.vehicles], frames,
+                                  self.energy_log, slowdown, radio_counted=self.air is not None)
+        self._meter()
+
+    def _meter(self) -> None:
+        """The energy meter's tick; a companion pack that emptied stops its agent, its rank and its radio."""
+        vehicles = self.scenario.vehicles
+        cpu_s = [process_cpu_s(self._rank_pid(v.id)) for v in vehicles]
+        net = [namespace_bytes(self.agents[i].proc.pid if self.agents[i].alive() else None) if self.air else None
+               for i in range(len(vehicles))]
+        t_s, packs = self.sim.batteries()  # the flight packs and their time, taken at one step
+        now_s = t_s - self.mission_start_sim_s
+        for i in self.energy.tick(now_s, packs, cpu_s, net, self.pace.value()):
+            self._companion_off(i, now_s)
+
+    def _rank_pid(self, vehicle_id: str) -> int | None:
+        """The vehicle's MPI rank's pid: the master's from the job's start, a worker's from its rank log."""
+        if self.scenario.compute is None:
+            return None
+        if vehicle_id == self.scenario.master.id:
+            return self.master_pid
+        if vehicle_id not in self.rank_pids:
+            path = self._rank_log(vehicle_id)
+            started = read_jsonl(path).of_kind(kinds.WORKER_STARTED) if path.exists() else []
+            if not started:
+                return None
+            self.rank_pids[vehicle_id] = int(started[-1]["pid"])
+        return self.rank_pids[vehicle_id]
+
+    def _companion_off(self, index: int, now_s: float) -> None:
+        vehicle = self.scenario.vehicles[index]
+        stopped = ["agent"]
+        self._inject(Fault(now_s, vehicle.id, FaultKind.KILL_AGENT), True)
+        if self.scenario.compute is not None and vehicle.role == "worker":
+            self._inject(Fault(now_s, vehicle.id, FaultKind.KILL_WORKER), True)
+            stopped.append("rank")
+        if self.air is not None:
+            self.air.silence(index)
+            stopped.append("radio")
+        self.energy_log.write(kinds.BATTERY_EMPTY, t_sim_s=round(now_s, 3), vehicle=vehicle.id, pack="companion",
+                              stopped=stopped)
+        print(f"energy: {vehicle.id}'s companion pack is empty at t={now_s:.1f} s: {', '.join(stopped)} stopped",
+              file=self.out, flush=True)
 
     def _check_children(self) -> None:
         if not self.sim.alive:
@@ -503,6 +563,8 @@ class Experiment:
             self.air.close()
         if self.network_log is not None:
             self.network_log.close()
+        if self.energy_log is not None:
+            self.energy_log.close()
         if self.mpi_log is not None:
             self.mpi_log.close()
 

@@ -11,7 +11,8 @@
     [throughput]  period_s = 2.0  duration_s = 0.5  interval_s = 0.1
     [network]  period_s = 0.1  sharing = true   # the kernel network's shaper and the access point's airtime
                air = "htb"  queue_packets = 1000  # or "medium": the 802.11 medium frame by frame (issue 28)
-    [[vehicle]]  id = "master"  role = "master"  mission = "paper-flight-moving/master.plan"
+    [energy]  companion = "jetson-tx2"  radio = "wifi-router"  companion_mah = 1300   # the companions' side
+    [[vehicle]]  id = "master"  role = "master"  mission = "paper-flight-moving/master.plan"  # companion_mah = 500
     [[fault]]  at_s = 60  vehicle = "w1"  kind = "link_down"  duration_s = 5
 
 A vehicle's home is its mission's planned home (so the plan and the simulator cannot disagree); a vehicle without
@@ -40,6 +41,7 @@ from nac_onboard.radio.files import load_channel
 from nac_onboard.radio.medium import DEFAULT_QUEUE_PACKETS
 from nac_onboard.tomlfile import get_value, ranged, read_toml, to_dataclass
 from sitl.experiment.faults import Fault, FaultKind
+from sitl.vehicle import energy
 from sitl.vehicle.params import PARAMS_BY_NAME
 
 SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
@@ -47,8 +49,8 @@ MAX_VEHICLES = 250  # the simulator's limit (nac-sitl run --vehicles), and 10 po
 MAX_DURATION_S = 7 * 86400.0  # simulated seconds: a week, far beyond any battery
 MAX_SPEEDUP = 1000.0  # as nac-sitl run --speedup
 TOP_KEYS = ("name", "description", "duration_s", "max_speedup", "default_speedup", "notes", "params", "channel",
-            "compute", "throughput", "network", "vehicle", "fault")
-VEHICLE_KEYS = ("id", "role", "mission", "home")
+            "compute", "throughput", "network", "energy", "vehicle", "fault")
+VEHICLE_KEYS = ("id", "role", "mission", "home", "companion_mah")
 FAULT_VALUE_RANGES = {"battery_pct": (0.0, 100.0), "packet_loss_pct": (0.0, 100.0)}
 
 
@@ -63,6 +65,7 @@ class VehiclePlan:
     home: Home
     mission: Mission | None = None
     mission_path: Path | None = None
+    companion_mah: float | None = None  # this vehicle's companion pack, if not [energy]'s
 
 
 @dataclass(frozen=True)
@@ -100,6 +103,17 @@ class NetworkPlan:
 
 
 @dataclass(frozen=True)
+class EnergyPlan:
+    """[energy]: the companions' computer, radio and pack (sitl/vehicle/energy.py); the frames are NAC_FRAME's."""
+
+    companion: str = "jetson-tx2"
+    radio: str = "wifi-router"
+    companion_cells: int = ranged(4, 1, 14)
+    companion_mah: float = ranged(1300.0, 0.0, 100_000.0, low_open=True, unit="mAh")  # assumed: a common 4S size
+    dc_dc_efficiency: float = ranged(energy.DC_DC_EFFICIENCY, 0.0, 1.0, low_open=True)
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     path: Path
@@ -115,6 +129,7 @@ class Scenario:
     default_speedup: float = 1.0
     notes: tuple[str, ...] = field(default_factory=tuple)
     params: tuple[tuple[str, float], ...] = ()  # autopilot parameters of every vehicle ([params])
+    energy: EnergyPlan = EnergyPlan()
 
     @property
     def master(self) -> VehiclePlan:
@@ -179,7 +194,8 @@ def load_scenario(name_or_path: str) -> Scenario:
         network=_network(_table(data, "network", where), f"{where}: [network]"),
         max_speedup=max_speedup, default_speedup=default_speedup,
         notes=get_value(data, "notes", "tuple[str, ...]", where, ScenarioError, ()),
-        params=_params(_table(data, "params", where), f"{where}: [params]"))
+        params=_params(_table(data, "params", where), f"{where}: [params]"),
+        energy=_energy(_table(data, "energy", where), f"{where}: [energy]"))
     for k, fault in enumerate(scenario.faults):
         if fault.kind is FaultKind.KILL_WORKER and (scenario.compute is None or fault.vehicle not in
                                             [w.id for w in scenario.workers]):
@@ -264,14 +280,21 @@ def _vehicle(table: dict, scenario_path: Path, where: str) -> VehiclePlan:
         if mission.home is None:
             raise ScenarioError(f"{where} ({vehicle_id}): {mission_path} has no plannedHomePosition")
         home = Home(mission.home.lat_deg, mission.home.lon_deg, mission.home.alt_m)
-        return VehiclePlan(vehicle_id, role, home, mission, mission_path)
+        return VehiclePlan(vehicle_id, role, home, mission, mission_path, _companion_mah(table, where, vehicle_id))
     home = table.get("home")
     if not (isinstance(home, list) and len(home) == 3):
         raise ScenarioError(f"{where} ({vehicle_id}): give mission = \"FILE.plan\" or home = [lat, lon, alt_m]")
     lat, lon, alt = (check_number(x, f"{where} ({vehicle_id}): home[{k}] ({name})", low, high, error=ScenarioError)
                      for k, (x, name, low, high) in enumerate(zip(home, ("latitude", "longitude", "altitude m"),
                                                                   (-90, -180, -500), (90, 180, 10_000), strict=True)))
-    return VehiclePlan(vehicle_id, role, Home(lat, lon, alt))
+    return VehiclePlan(vehicle_id, role, Home(lat, lon, alt), companion_mah=_companion_mah(table, where, vehicle_id))
+
+
+def _companion_mah(table: dict, where: str, vehicle_id: str) -> float | None:
+    if "companion_mah" not in table:
+        return None
+    return check_number(table["companion_mah"], f"{where} ({vehicle_id}): companion_mah", 0.0, 100_000.0,
+                        low_open=True, unit="mAh", error=ScenarioError)
 
 
 def _compute(table: dict, path: Path, where: str) -> ComputePlan:
@@ -309,6 +332,14 @@ def _network(table: dict, where: str) -> NetworkPlan:
         raise ScenarioError(f"{where}: air must be one of {', '.join(AIRS)}, got {plan.air!r}")
     if not 0.01 <= plan.period_s <= 10.0:
         raise ScenarioError(f"{where}: period_s must be within 0.01..10 simulated seconds, got {plan.period_s}")
+    return plan
+
+
+def _energy(table: dict, where: str) -> EnergyPlan:
+    plan = to_dataclass(EnergyPlan, table, where, ScenarioError, table="energy")
+    for key, known in (("companion", energy.COMPANIONS), ("radio", energy.RADIOS)):
+        if getattr(plan, key) not in known:
+            raise ScenarioError(f"{where}: {key} must be one of {', '.join(known)}, got {getattr(plan, key)!r}")
     return plan
 
 

@@ -219,3 +219,75 @@ def hover_endurance_s(frame: Frame, cells: int, capacity_mah: float, down_to_soc
         soc -= current_a * dt_s / 3.6 / capacity_mah
         t_s += dt_s
     return t_s
+
+
+# ---- the companion's side: its computer and Wi-Fi router on a second pack ----------------------------------------
+@dataclass(frozen=True)
+class CompanionPower:
+    """A companion computer: its draw idle and with the job's rank busy (W)."""
+
+    name: str
+    idle_w: float
+    busy_w: float
+    source: str
+
+
+@dataclass(frozen=True)
+class RadioPower:
+    """A Wi-Fi radio: its draw idle, and while transmitting or receiving at its PHY rate (W)."""
+
+    name: str
+    idle_w: float
+    tx_w: float
+    rx_w: float
+    phy_rate_bps: float  # air time of a byte: 8 / this (the link's own, slower rate at distance is not used yet)
+    source: str
+
+
+_BUDGET_NOTE = "busy: the module's power-mode budget (NVIDIA data sheet); idle: a third of it (assumed, not measured)"
+COMPANIONS: dict[str, CompanionPower] = {
+    "jetson-tx2": CompanionPower("jetson-tx2", 5.0, 15.0, "Jetson TX2 Max-P 15 W; " + _BUDGET_NOTE),
+    "xavier-nx": CompanionPower("xavier-nx", 6.7, 20.0, "Jetson Xavier NX 20 W mode; " + _BUDGET_NOTE),
+    "orin-nano": CompanionPower("orin-nano", 5.0, 15.0, "Jetson Orin Nano 15 W mode; " + _BUDGET_NOTE),
+    "orin-nx": CompanionPower("orin-nx", 8.3, 25.0, "Jetson Orin NX 25 W mode; " + _BUDGET_NOTE),
+}
+RADIOS: dict[str, RadioPower] = {
+    # A small 802.11n travel router: 2 W idle (assumed); transmit and receive add what Halperin et al. measured
+    # for an 802.11n NIC over idle (HotPower 2010: about 1.3-2 W sending, 0.1-0.3 W receiving), at 65 Mbit/s
+    # (MCS 7, one stream, 20 MHz).
+    "wifi-router": RadioPower("wifi-router", 2.0, 3.7, 2.2, 65e6, "Halperin et al., HotPower 2010; idle assumed"),
+}
+DC_DC_EFFICIENCY = 0.9  # assumption: the 5 V / 19 V converters between the companion pack and its loads
+
+
+def companion_power_w(profile: CompanionPower, busy_share: float) -> float:
+    """The computer's draw with its rank busy busy_share (0..1) of the time."""
+    return profile.idle_w + (profile.busy_w - profile.idle_w) * min(max(busy_share, 0.0), 1.0)
+
+
+def radio_power_w(radio: RadioPower, tx_share: float, rx_share: float) -> float:
+    """The radio's draw, transmitting tx_share and receiving rx_share of the time (their sum at most 1)."""
+    tx = min(max(tx_share, 0.0), 1.0)
+    rx = min(max(rx_share, 0.0), 1.0 - tx)
+    return radio.idle_w + (radio.tx_w - radio.idle_w) * tx + (radio.rx_w - radio.idle_w) * rx
+
+
+@dataclass
+class Pack:
+    """A LiPo pack drained step by step (the companion's: the flight pack is stepped with the physics)."""
+
+    cells: int
+    capacity_mah: float
+    soc: float = 1.0
+    delivered_wh: float = 0.0
+
+    def drain(self, power_w: float, dt_s: float) -> tuple[float, float]:
+        """Deliver power_w for dt_s: (current A, terminal voltage V). An empty pack delivers nothing."""
+        if self.soc <= 0.0:
+            return 0.0, 0.0
+        open_v = float(open_circuit_v(self.soc, self.cells))
+        current_a = float(pack_current_a(power_w, open_v, self.cells))
+        volts = float(terminal_v(open_v, current_a, self.cells))
+        self.soc = max(self.soc - current_a * dt_s / 3.6 / self.capacity_mah, 0.0)
+        self.delivered_wh += volts * current_a * dt_s / 3600.0
+        return current_a, volts

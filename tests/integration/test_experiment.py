@@ -222,7 +222,7 @@ def test_analysis_of_the_run_matches_the_simulators_truth(short_run):
     for png in analysis.glob("*.png"):
         data = png.read_bytes()
         assert data[:8] == PNG_MAGIC and 10_000 < len(data) < 2_000_000, png.name
-    assert len(list(analysis.glob("*.png"))) == 7
+    assert len(list(analysis.glob("*.png"))) == 8, "seven figures and the power the run metered"
 
     # the truth: every vehicle's ECEF position after each simulator step, by wall-clock time
     homes = [v.home for v in scenario.vehicles]
@@ -264,26 +264,27 @@ def test_calibrate_recovers_the_channel_the_run_was_made_with(short_run, tmp_pat
     assert preset.with_suffix(".png").read_bytes().startswith(PNG_MAGIC)
 
 
-def test_scheduled_faults_happen_and_the_job_trains_on_without_a_killed_worker(tmp_path):
+def test_a_scheduled_fault_happens_and_the_job_trains_on_when_a_companion_pack_runs_out(tmp_path):
+    """w2's autopilot link goes down and comes back (a scheduled fault). w1's companion pack holds 1.8 mAh, some
+    12 simulated seconds of its computer and radio: when it is empty, w1's agent and rank stop and the job trains on
+    with w2. The report's energy table gives each vehicle the integral of the power it recorded, within 1 %."""
     faults = """
 [[fault]]
 at_s = 3.0
 vehicle = "w2"
 kind = "link_down"
 duration_s = 18.0  # 4.5 s wall-clock at 4x: longer than the agent's 3 s link timeout
-[[fault]]
-at_s = 12.0
-vehicle = "w1"
-kind = "kill_worker"
 """
-    scenario = load_scenario(str(write_scenario(tmp_path / "scenario", extra=faults)))
+    path = write_scenario(tmp_path / "scenario", extra=faults)
+    path.write_text(path.read_text().replace('id = "w1"\n', 'id = "w1"\ncompanion_mah = 1.8\n'))
+    scenario = load_scenario(str(path))
     console = io.StringIO()
     experiment = Experiment(scenario, tmp_path / "run", 4.0, allocate_base_port(3, slots=5), out=console)
     result = experiment.run()
     assert result.outcome is Outcome.COMPLETED, console.getvalue()
     text = console.getvalue()
     assert "fault: link_down on for w2" in text and "fault: link_down off for w2" in text
-    assert "fault: kill_worker on for w1" in text
+    assert "w1's companion pack is empty" in text and "fault: kill_worker on for w1" in text
     w2 = read_jsonl(result.run_dir / "w2" / "agent.jsonl")
     assert w2.of_kind("link_lost") and w2.of_kind("link_restored"), "the agent saw its autopilot link go and return"
     compute = read_jsonl(result.run_dir / "compute" / "compute.jsonl")
@@ -294,8 +295,24 @@ kind = "kill_worker"
     after = [r for r in compute.of_kind("iteration") if r["start_sim_s"] > killed_at + 5.0]
     assert after and all(r["workers"]["present"][1] for r in after), "w2 kept training"
     assert (result.run_dir / "compute" / "results.npz").exists()
-    assert "ended: completed" in (result.run_dir / "report.md").read_text()
+    report = (result.run_dir / "report.md").read_text()
+    assert "ended: completed" in report and "## Energy" in report
     assert not any(agent.alive() for agent in experiment.agents) and not experiment.sim.alive
+
+    energy = read_jsonl(result.run_dir / "energy.jsonl")
+    (empty,) = energy.of_kind("battery_empty")
+    assert empty["vehicle"] == "w1" and empty["stopped"] == ["agent", "rank"]
+    assert 6.0 < empty["t_sim_s"] < 20.0, "1.8 mAh: some 12 s of an idling companion"
+    table = pd.read_csv(result.run_dir / "analysis" / "energy_by_vehicle.csv").set_index("vehicle")
+    for vehicle in ("master", "w1", "w2"):
+        records = [r for r in energy.of_kind("energy") if r["vehicle"] == vehicle]
+        assert records[-1]["t_sim_s"] > 28.0, "recorded to the scenario's end"
+        recorded_wh = sum((r["flight_w"] + r["companion_w"]) * r["dt_s"] for r in records) / 3600.0
+        assert table.loc[vehicle, "total_wh"] == pytest.approx(recorded_wh, rel=0.01)
+        assert all(r["flight_w"] > 100.0 for r in records[3:]), "flying: Zeng's rotorcraft draws 229 W in hover"
+    assert table.loc["w1", "companion_soc_end"] == 0.0 < table.loc["w2", "companion_soc_end"]
+    after_empty = [r for r in energy.of_kind("energy") if r["vehicle"] == "w1" and r["t_sim_s"] > empty["t_sim_s"]]
+    assert after_empty and all(r["companion_w"] == 0.0 for r in after_empty), "an empty pack gives nothing"
 
 
 def test_sigterm_stops_everything_within_10_s_exits_143_and_writes_a_partial_report(tmp_path):

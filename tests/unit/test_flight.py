@@ -1,12 +1,16 @@
 """Flight logic driven through the pure physics: mission items, modes and failsafes without sockets."""
 
 import numpy as np
+import pytest
 
 from missions.geo import Home, enu_to_lla
 from missions.model import Frame, MavCmd, MissionItem
 from sitl.vehicle.flight import Autopilots, Check, CopterMode, Event, MissionState, Result
 from sitl.vehicle.params import ParamTable
 from sitl.vehicle.physics import VehicleState, step
+
+# computation only, no clock, no network: make test runs it beside the exclusive tests
+pytestmark = pytest.mark.niced
 
 HOME = Home(47.397742, 8.545594, 488.0)
 

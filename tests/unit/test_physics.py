@@ -13,6 +13,9 @@ from sitl.vehicle.physics import (
     step,
 )
 
+# computation only, no clock, no network: make test runs it beside the exclusive tests
+pytestmark = pytest.mark.niced
+
 
 def command(n, motion, goal, armed=True, speed=5.0):
     return Command(motion=np.full(n, motion), goal_m=np.tile(np.asarray(goal, float), (n, 1)),

@@ -14,6 +14,9 @@ from nac_onboard.radio import air_link
 from nac_onboard.radio.channel import PRESETS, ChannelModel
 from sitl.telemetry_radio import TELEMETRY_RADIOS
 
+# computation only, no clock, no network: make test runs it beside the exclusive tests
+pytestmark = pytest.mark.niced
+
 
 def model(**fields) -> ChannelModel:
     base = dict(name="t", path_loss="log-distance", freq_mhz=2437.0, bandwidth_hz=20e6, tx_power_dbm=15.0,

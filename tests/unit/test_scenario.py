@@ -98,6 +98,13 @@ def test_the_shipped_scenarios_load_with_the_research_geometry():
                                                                "[1, 100000], got 0"),
     (TWO + "[compute]\ntask = 'linreg'\ndevice = 'no-such-device.toml'\n",
      "[compute]: device: cannot read device profile"),
+    (TWO + "[energy]\ncompanion = 'raspberry'\n", "[energy]: companion must be one of jetson-tx2, xavier-nx"),
+    (TWO + "[energy]\ncompanion_mah = -1300\n", "energy.companion_mah: expected a finite number within (0, 100000] "
+                                                  "mAh, got -1300"),
+    (TWO + "[energy]\ndc_dc_efficiency = 1.2\n", "energy.dc_dc_efficiency: expected a finite number within (0, 1]"),
+    (TWO.replace("role = 'worker'", "role = 'worker'\ncompanion_mah = 0"),
+     "vehicle 2 (b): companion_mah: expected a finite number within (0, 100000] mAh, got 0"),
+    (TWO + "[params]\nNAC_FRAME = 7\n", "NAC_FRAME"),
     # codes the fleet cannot hold (issue 30): refused before anything starts
     (TWO + "[compute]\ntask = 'linreg_gc'\ncode_s = 1\n", "[compute] task linreg_gc with 1 workers: --code-s 1: "
                                                          "gradient coding with 1 workers tolerates 0 <= s < 1"),
