@@ -6,6 +6,7 @@ the small frame the page draws (positions in local metres, probes, iterations, l
     the MPI job's records        its iterations             -> "it"
     the kernel network's log     the link model's capacities -> "cap"
     the experiment's log         the runner's faults        -> "ev"
+    the energy log               each vehicle's packs        -> "pw" (state of charge, flight and companion)
 
 (files and kinds as nac_onboard/records names them: docs/records.md)
 
@@ -54,7 +55,7 @@ MAX_FRAME_POSITIONS = 20_000  # positions in one "pos" frame: every frame, and s
 MAX_TEXT_CHARS = 200  # an event's text as the page shows it
 MAX_ID_CHARS = 64  # a vehicle id or a role from a record
 SOURCES = {kinds.AGENT_LOG.name: "agent", kinds.THROUGHPUT_LOG.name: "throughput", kinds.COMPUTE_LOG.name: "compute",
-           kinds.NETWORK_LOG.name: "network", kinds.EXPERIMENT_LOG.name: "experiment"}
+           kinds.NETWORK_LOG.name: "network", kinds.EXPERIMENT_LOG.name: "experiment", kinds.ENERGY_LOG.name: "energy"}
 TELEMETRY = kinds.TELEMETRY.name
 
 
@@ -254,7 +255,8 @@ class RunFollower:
     def _discover(self) -> None:
         if self.run_dir is None or not self.run_dir.is_dir():
             return
-        candidates = [kinds.EXPERIMENT_LOG.at(self.run_dir), kinds.NETWORK_LOG.at(self.run_dir)]
+        candidates = [kinds.EXPERIMENT_LOG.at(self.run_dir), kinds.NETWORK_LOG.at(self.run_dir),
+                      kinds.ENERGY_LOG.at(self.run_dir)]
         for sub in sorted(p for p in self.run_dir.iterdir() if p.is_dir()):
             candidates += [sub / f.name for f in (kinds.AGENT_LOG, kinds.THROUGHPUT_LOG, kinds.COMPUTE_LOG)]
         for path in candidates:
@@ -313,6 +315,11 @@ class RunFollower:
                                              and _finite(p[0]) and _finite(p[1])]
                                     for v, points in missions.items() if isinstance(points, list)}
             return None
+        if source == "energy" and kind == kinds.ENERGY.name:
+            flight, companion = _num(r.get("flight_soc")), _num(r.get("companion_soc"))
+            return {"k": "pw", "t": t_s, "v": _short(r.get("vehicle")),
+                    "fs": None if flight is None else round(100 * min(max(flight, 0.0), 1.0)),
+                    "cs": None if companion is None else round(100 * min(max(companion, 0.0), 1.0))}
         if source == "experiment" and kind == kinds.FAULT.name:
             text = f"fault: {_short(r.get('fault'))} {_short(r.get('state'))} for {_short(r.get('vehicle'))}"
             return {"k": "ev", "t": t_s, "v": _short(r.get("vehicle")), "fault": True, "text": text}

@@ -126,6 +126,15 @@ def test_the_live_page_follows_the_simulator_and_the_replay_scrubs_through_the_r
                 held = [p for p in positions(follower.records) if p["v"] == vid and p["t"] <= t0 + offset_s]
                 last = max(held, key=lambda p: p["t"])
                 assert (drawn[vid]["e"], drawn[vid]["n"]) == (last["e"], last["n"]), f"{vid} at +{offset_s} s"
+            # the companion pack: the energy meter's last record at or before the cursor
+            packs = dict(browser.execute_script("return [...document.querySelectorAll('#fleet tbody tr')].map(r => "
+                                                "[r.dataset.id, r.cells[5].textContent])"))
+            for vid in ids:
+                metered = [f for f in follower.records if f.get("k") == "pw" and f["v"] == vid
+                           and f["t"] <= t0 + offset_s]
+                said = f"{max(metered, key=lambda f: f['t'])['cs']} %" if metered else "-"
+                assert packs[vid] == said, f"{vid}'s companion pack at +{offset_s} s"
+            assert fraction < 0.8 or all(text.endswith(" %") for text in packs.values()), packs
         assert browser.execute_script("return document.getElementById('mode').textContent") == "replay"
     finally:
         replay.stop()

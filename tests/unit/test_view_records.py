@@ -97,6 +97,17 @@ def test_probes_iterations_faults_and_missions_become_frames(tmp_path):
     follower.finish()
 
 
+def test_each_vehicles_two_packs_become_frames_in_percent_and_nonsense_is_not_a_number(tmp_path):
+    (tmp_path / "master").mkdir()
+    (tmp_path / "master" / "agent.jsonl").write_text(telemetry(1.0, 0.0, 0.0))
+    (tmp_path / "energy.jsonl").write_text("".join(json.dumps(
+        {"t_s": 2.0 + k, "kind": "energy", "vehicle": vehicle, "flight_soc": flight, "companion_soc": companion})
+        + "\n" for k, (vehicle, flight, companion) in enumerate(
+            (("master", 0.974, 0.5), ("w1", 1.7, -3.0), ("w1", "full", None)))))
+    frames = [f for f in RunFollower(tmp_path).poll() if f["k"] == "pw"]
+    assert [(f["v"], f["fs"], f["cs"]) for f in frames] == [("master", 97, 50), ("w1", 100, 0), ("w1", None, None)]
+
+
 def test_positions_that_are_not_finite_numbers_on_the_globe_are_not_drawn_and_values_are_typed(tmp_path):
     """Hostile or damaged fields: a position needs finite numbers (not strings, bools, null) within the globe;
     the rest of a record is passed on only as the type the page expects."""

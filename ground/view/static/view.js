@@ -8,7 +8,8 @@ const SVGNS = "http://www.w3.org/2000/svg";
 const COLORS = ["#2471a3", "#d35400", "#27ae60", "#8e44ad", "#c0392b", "#16a085", "#b7950b", "#5d6d7e"];
 const TRAIL_S = 60, RATE_WINDOW_S = 60;
 const view = {
-  info: null, roles: new Map(), pos: new Map(), probes: new Map(), caps: [], its: [], events: [], t0: Infinity,
+  info: null, roles: new Map(), pos: new Map(), probes: new Map(), packs: new Map(), caps: [], its: [], events: [],
+  t0: Infinity,
   t1: -Infinity, cursor: 0, follow: true, playing: false, speed: 10, lastSeq: -1, bounds: null, dirty: true,
   color: new Map(), notes: [],  // notes: what the page itself had to say (a ?at= it could not take as given)
 };
@@ -68,6 +69,10 @@ function ingest(frames) {
       const key = JSON.stringify([f.a, f.b]);
       if (!view.probes.has(key)) view.probes.set(key, []);
       insertByTime(view.probes.get(key), f);
+    }
+    else if (f.k === "pw") {  // a vehicle's two packs: flight (fs) and companion (cs), state of charge in %
+      if (!view.packs.has(f.v)) view.packs.set(f.v, []);
+      insertByTime(view.packs.get(f.v), f);
     }
     else if (f.k === "cap") insertByTime(view.caps, f);
     else if (f.k === "it") insertByTime(view.its, f);
@@ -251,8 +256,11 @@ function drawPanels(t, here) {
   const rows = [...new Set([...view.roles.keys(), ...view.pos.keys()])].sort().map((vid) => {
     const p = here.get(vid) || {};
     const total = p.tot;  // MISSION_CURRENT's total, as the agent logged it
+    const packs = view.packs.has(vid) ? at(view.packs.get(vid), t) : null;  // the energy meter's, when metered
+    const companion = packs && packs.cs != null ? packs.cs + " %" : "-";
     return `<tr data-id="${esc(vid)}"><td style="color:${colorOf(vid)}">${esc(vid)}</td><td>${esc(roleOf(vid))}</td><td>${esc(p.mode || "-")}</td>` +
            `<td>${p.armed == null ? "-" : p.armed ? "armed" : "disarmed"}</td><td>${p.batt == null ? "-" : p.batt + " %"}</td>` +
+           `<td>${companion}</td>` +
            `<td>${p.seq == null ? "-" : p.seq + (total ? "/" + total : "")}</td></tr>`;
   });
   $("fleet").tBodies[0].innerHTML = rows.join("");
