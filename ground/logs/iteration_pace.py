@@ -26,6 +26,7 @@ def blocks(its: pd.DataFrame, workers: pd.DataFrame, dist: pd.DataFrame) -> pd.D
     rows = []
     for worker, track in dist.sort_values("t_s").groupby("worker"):
         mine = workers[workers["vehicle"] == worker].set_index("iteration")["present"].astype(bool)
+        mine = mine[~mine.index.duplicated(keep="last")]  # a folder holding two jobs' logs numbers iterations twice
         present = its["iteration"].map(mine).fillna(False).astype(bool)
         distance = np.interp(its["t_s"].astype(float), track["t_s"].astype(float), track["distance_m"].astype(float))
         table = pd.DataFrame({"block": block, "present": present & whole, "distance": distance,

@@ -57,6 +57,7 @@ class ComputeOptions:
     idle_timeout_s: float = 600.0
     on_missing: str = "incomplete"
     allocation: str = "equal"
+    energy_wh: tuple[float, ...] = ()  # --allocation energy: each worker's companion energy left, rank order
     code_k: int = 0  # matmul_mds: results that decode (0: the workers less one)
     code_s: int = 1  # linreg_gc: stragglers tolerated
     save_results: bool = False
@@ -122,8 +123,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a worker that hears nothing this long aborts")
     p.add_argument("--on-missing", choices=["incomplete", "reassign"], default="incomplete",
                    help="matmul: a worker's rows that did not arrive are re-assigned or the iteration is incomplete")
-    p.add_argument("--allocation", choices=["equal", "capacity"], default="equal",
-                   help="capacity: shard sizes proportional to each link's predicted capacity at the start")
+    p.add_argument("--allocation", choices=["equal", "capacity", "energy"], default="equal",
+                   help="capacity: shard sizes proportional to each link's predicted capacity at the start; "
+                        "energy: to each worker's companion energy left (--energy-wh)")
+    p.add_argument("--energy-wh", help="--allocation energy: each worker's companion energy left (Wh), in rank "
+                                       "order, comma-separated")
     p.add_argument("--code-k", type=number_arg(0, 10_000, integer=True), default=0,
                    help="matmul_mds: how many of the workers' coded results decode A B (0: the workers less one)")
     p.add_argument("--code-s", type=number_arg(0, 10_000, integer=True), default=1,
@@ -164,6 +168,10 @@ def options_from_argv(argv: list[str] | None) -> ComputeOptions:
     distances = tuple(parse_number(d, "--distances", 0, 1e6, unit="m") for d in args.distances.split(",")) \
         if args.distances else ()
     vehicles = tuple(check_id(v.strip(), "--vehicles") for v in args.vehicles.split(",")) if args.vehicles else ()
+    energy_wh = tuple(parse_number(e, "--energy-wh", 0, 1e6, low_open=True, unit="Wh")
+                      for e in args.energy_wh.split(",")) if args.energy_wh else ()
+    if (args.allocation == "energy") != bool(energy_wh):
+        raise BadInput("--allocation energy and --energy-wh W1,W2,... (one per worker) go together")
     options = ComputeOptions(
         task=args.task, iterations=iterations, duration_s=args.duration_s, end_at_s=args.end_at_s,
         start_file=args.start_file, out=args.out, seed=args.seed, m=args.m,
@@ -171,7 +179,7 @@ def options_from_argv(argv: list[str] | None) -> ComputeOptions:
         emulate=args.emulate, channel=load_channel(args.channel), positions=args.positions, distances=distances,
         positions_script=args.positions_script, feed=args.feed, vehicles=vehicles, timeout_s=args.timeout_s,
         idle_timeout_s=args.idle_timeout_s, on_missing=args.on_missing, allocation=args.allocation,
-        code_k=args.code_k, code_s=args.code_s,
+        energy_wh=energy_wh, code_k=args.code_k, code_s=args.code_s,
         save_results=args.save_results, checkpoint_s=args.checkpoint_s, pad_bits=args.pad_bits,
         device=HOST if args.device == "host" else load_device_profile(args.device), clock=from_env())
     for option, path, what, limit in [("--a", options.a_path, "matrix A (.npy)", MAX_AUTOPILOT_LOG_BYTES),

@@ -248,6 +248,8 @@ class Master:
             shares = [rate or 0.0 for rate in links.rate_bps]
             if sum(shares) <= 0:
                 shares = [1.0] * len(self.workers)
+        elif self.options.allocation == "energy":
+            shares = list(self.options.energy_wh)
         return kernels.split_rows(rows, shares)
 
     def send(self, rank: int, kind: float, iteration: int, payload: np.ndarray, links: IterationLinks,
@@ -621,6 +623,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:  # every rank computes the same verdict, so every rank exits 2 and none waits for another
         options.task_class.check_workers(options, comm.Get_size() - 1)
+        if options.energy_wh and len(options.energy_wh) != comm.Get_size() - 1:
+            raise ValueError(f"--energy-wh gives {len(options.energy_wh)} values: one per worker expected")
     except ValueError as err:
         sys.stderr.write(f"nac-onboard compute: --task {options.task} with {comm.Get_size() - 1} workers: {err}\n")
         # not `return 2`: python -m mpi4py turns a failing exit into MPI_Abort, and hydra, with every rank

@@ -16,6 +16,7 @@ from nac_onboard.tomlfile import dumps_toml
 from sitl.experiment.scenario import Scenario
 from sitl.network.air import AirNetwork
 from sitl.network.netns import NetworkUnavailable, check_kernel_network
+from sitl.vehicle import energy
 
 PORTS_PER_VEHICLE = 10  # ground, companion, peers, throughput server, (master) state feed
 
@@ -93,8 +94,16 @@ def compute_args(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: 
             str(kinds.COMPUTE_LOG.at(run_dir).parent), *link,
             "--channel", str(run_channel_path(run_dir)), "--positions", "feed", "--feed", f"127.0.0.1:{ports.feed()}",
             "--vehicles", ",".join(ids), "--timeout-s", str(c.timeout_s), "--on-missing", c.on_missing,
-            "--allocation", c.allocation, "--device", c.device, "--code-k", str(c.code_k), "--code-s", str(c.code_s),
-            *c.args]
+            "--allocation", c.allocation, *energy_args(scenario), "--device", c.device, "--code-k", str(c.code_k),
+            "--code-s", str(c.code_s), *c.args]
+
+
+def energy_args(scenario: Scenario) -> list[str]:
+    """--allocation energy: each worker's companion pack, full at the start, as the energy it holds (Wh)."""
+    if scenario.compute.allocation != "energy":
+        return []
+    held = [energy.rated_wh(scenario.energy.companion_cells, scenario.companion_mah(w)) for w in scenario.workers]
+    return ["--energy-wh", ",".join(f"{wh:.4g}" for wh in held)]
 
 
 def mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: float) -> list[str]:

@@ -454,7 +454,7 @@ class Experiment:
         self.energy_log = JsonlLog(kinds.ENERGY_LOG.at(self.run_dir))
         frames = [energy.FRAME_NAMES[int(self.sim.world.params.get(i, "NAC_FRAME"))] for i in range(len(s.vehicles))]
         self.energy = EnergyMeter([v.id for v in s.vehicles], s.energy,
-                                  [v.companion_mah or s.energy.companion_mah for v in s.vehicles], frames,
+                                  [s.companion_mah(v) for v in s.vehicles], frames,
                                   self.energy_log, slowdown, radio_counted=self.air is not None)
         self._meter()
 

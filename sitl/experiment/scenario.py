@@ -139,6 +139,10 @@ class Scenario:
     def workers(self) -> list[VehiclePlan]:
         return [v for v in self.vehicles if v.role == "worker"]
 
+    def companion_mah(self, vehicle: VehiclePlan) -> float:
+        """The vehicle's companion pack: its own, or [energy]'s."""
+        return vehicle.companion_mah or self.energy.companion_mah
+
 
 def find_scenario(name_or_path: str) -> Path:
     """A scenario by path, or by name among the shipped ones (sitl/scenarios/NAME.toml)."""
@@ -309,7 +313,7 @@ def _compute(table: dict, path: Path, where: str) -> ComputePlan:
     tasks = all_tasks()
     if plan.task not in tasks:
         raise ScenarioError(f"{where}: compute.task must be one of {', '.join(tasks)}, got {plan.task!r}")
-    choices = {"on_missing": ("incomplete", "reassign"), "allocation": ("equal", "capacity")}
+    choices = {"on_missing": ("incomplete", "reassign"), "allocation": ("equal", "capacity", "energy")}
     for key, allowed in choices.items():
         if getattr(plan, key) not in allowed:
             raise ScenarioError(f"{where}: compute.{key} must be one of {', '.join(allowed)}, "

@@ -87,9 +87,16 @@ def coded_edge() -> dict[str, Mission]:
             "coded-edge/w3.plan": route(at(0, 8), alt, [(0.0, 12.0)], v)}
 
 
+def energy_short() -> dict[str, Mission]:
+    """4 UAVs at 3.04 m for the energy pair: the workers hover 8 m east, west and north of the master."""
+    alt = FLIGHT_TEST_ALT_M
+    return {"energy-short/master.plan": hover(at(0, 0), alt), "energy-short/w1.plan": hover(at(8, 0), alt),
+            "energy-short/w2.plan": hover(at(-8, 0), alt), "energy-short/w3.plan": hover(at(0, 8), alt)}
+
+
 def write_all(out_dir: Path = HERE) -> list[Path]:
     paths = []
-    for name, mission in {**paper_flight(), **paper_sim(), **range_sweep(), **coded_edge()}.items():
+    for name, mission in {**paper_flight(), **paper_sim(), **range_sweep(), **coded_edge(), **energy_short()}.items():
         path = out_dir / name
         path.parent.mkdir(parents=True, exist_ok=True)
         save_mission(mission, path)

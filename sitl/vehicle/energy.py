@@ -272,6 +272,13 @@ def radio_power_w(radio: RadioPower, tx_share: float, rx_share: float) -> float:
     return radio.idle_w + (radio.tx_w - radio.idle_w) * tx + (radio.rx_w - radio.idle_w) * rx
 
 
+CELL_NOMINAL_V = 3.7  # a LiPo cell's nominal voltage, as packs are rated (Wh = cells x 3.7 V x Ah)
+
+
+def rated_wh(cells: int, capacity_mah: float) -> float:
+    return cells * CELL_NOMINAL_V * capacity_mah / 1000.0
+
+
 @dataclass
 class Pack:
     """A LiPo pack drained step by step (the companion's: the flight pack is stepped with the physics)."""

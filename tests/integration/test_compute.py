@@ -319,6 +319,23 @@ def test_capacity_allocation_gives_the_nearer_worker_more_rows_and_duration_limi
     assert summary["ended_by"] == "duration" and 0.9 < summary["elapsed_s"] < 2.0
 
 
+def test_energy_allocation_gives_each_worker_rows_by_its_energy_and_trains_as_the_full_gradient(tmp_path):
+    """Shards 3:1 for 15 and 5 Wh; unequal shards still add up to the full gradient, so the costs are the
+    single-process descent's. One value too few is refused on every rank before any work."""
+    result = run_mpi(3, "--task", "linreg", "--iterations", "5", "--out", str(tmp_path), "--allocation", "energy",
+                     "--energy-wh", "15,5")
+    assert result.returncode == 0, result.stderr
+    (a0, a1), (b0, b1) = records(tmp_path, "run_started")[0]["shards"]
+    assert a0 == 0 and b1 == 517 and a1 == b0 and abs(a1 - 517 * 0.75) <= 1
+    x, y = forestfires.load(SHARED_DATA / "forestfires.csv")
+    _, costs = kernels.gradient_descent(x, y, np.zeros(x.shape[1]), 0.05, 5)
+    assert np.allclose([r["cost"] for r in records(tmp_path, "iteration")], costs, rtol=1e-9)
+    refused = run_mpi(3, "--task", "linreg", "--iterations", "5", "--out", str(tmp_path / "no"), "--allocation",
+                      "energy", "--energy-wh", "15")
+    said = "--energy-wh gives 1 values: one per worker expected"
+    assert refused.returncode in (2, -signal.SIGPIPE) and refused.stderr.count(said) == 3, refused.stderr[-2000:]
+
+
 @pytest.mark.exclusive  # mpiexec's own exit asked for 0 (run_mpi forgives hydra's SIGPIPE in teardown)
 def test_the_nac_onboard_command_runs_a_rank_too(tmp_path):
     command = [str(MPIEXEC), "-n", "2", "-bind-to", "core", sys.executable, "-m", "nac_onboard.cli", "compute",

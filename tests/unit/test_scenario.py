@@ -17,8 +17,8 @@ TWO = ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 
 
 
 def test_the_shipped_scenarios_load_with_the_research_geometry():
-    assert SHIPPED == ["coded-edge", "paper-flight-moving", "paper-flight-static", "paper-sim-moving",
-                       "paper-sim-static", "range-sweep", "uncoded-edge"]
+    assert SHIPPED == ["coded-edge", "energy-aware", "energy-equal", "paper-flight-moving", "paper-flight-static",
+                       "paper-sim-moving", "paper-sim-static", "range-sweep", "uncoded-edge"]
     scenarios = {name: load_scenario(name) for name in SHIPPED}
     for s in scenarios.values():
         assert s.master.role == "master" and s.workers
@@ -180,7 +180,8 @@ def test_the_run_writes_its_radio_once_and_the_children_are_pointed_at_that_file
 
 def test_the_cli_refuses_bad_scenarios_and_speedups_with_exit_2(tmp_path, capsys):
     assert cli.main(["experiment", str(tmp_path / "missing.toml")]) == 2
-    assert "no such scenario file, nor a shipped scenario (coded-edge, paper-flight-moving" in capsys.readouterr().err
+    assert ("no such scenario file, nor a shipped scenario (coded-edge, energy-aware, energy-equal, "
+            "paper-flight-moving") in capsys.readouterr().err
     assert cli.main(["experiment", "range-sweep", "--speedup", "5"]) == 2
     assert "--speedup 5 is outside what this scenario allows (up to 1x" in capsys.readouterr().err
 
@@ -261,3 +262,19 @@ def test_a_scenarios_device_profile_is_checked_and_reaches_the_ranks(tmp_path):
     assert scenario.compute.device == str((tmp_path / "tx2.toml").resolve())
     args = compute_args(scenario, tmp_path / "run", Ports(47000), 100.0)
     assert args[args.index("--device") + 1] == scenario.compute.device
+
+
+def test_energy_allocation_hands_the_job_each_workers_companion_pack_as_rated(tmp_path):
+    from nac_onboard.compute.options import options_from_argv
+    from nac_onboard.radio.files import save_channel
+    from sitl.experiment.commands import run_channel_path
+
+    path = tmp_path / "energy.toml"
+    path.write_text(TWO.replace("role = 'worker'", "role = 'worker'\ncompanion_mah = 500")
+                    + "[[vehicle]]\nid = 'c'\nrole = 'worker'\nhome = [47, 8, 500]\n[compute]\ntask = 'linreg'\n"
+                    "allocation = 'energy'\n[energy]\ncompanion_mah = 2000\n")
+    scenario = load_scenario(str(path))
+    run_channel_path(tmp_path / "run").parent.mkdir(parents=True)
+    save_channel(scenario.channel, run_channel_path(tmp_path / "run"))  # what the runner writes for the ranks
+    options = options_from_argv(compute_args(scenario, tmp_path / "run", Ports(14550), 10.0))
+    assert options.allocation == "energy" and options.energy_wh == (4 * 3.7 * 0.5, 4 * 3.7 * 2.0)

@@ -37,7 +37,8 @@ class GradientCodedLinreg(Linreg):
     def check(cls, options) -> None:
         super().check(options)
         if options.allocation != "equal":
-            raise BadInput("--allocation capacity: gradient coding's shards are equal (each worker holds s + 1)")
+            raise BadInput(f"--allocation {options.allocation}: gradient coding's shards are equal (each worker holds "
+                           "s + 1)")
 
     @classmethod
     def check_workers(cls, options, workers: int) -> None:

@@ -36,8 +36,8 @@ class MdsMatmul(Matmul):
     def check(cls, options) -> None:
         super().check(options)
         if options.allocation != "equal" or options.on_missing != "incomplete":
-            raise BadInput("matmul_mds: every coded block is the same size and any k decode: --allocation capacity "
-                           "and --on-missing reassign are for the uncoded matmul")
+            raise BadInput("matmul_mds: every coded block is the same size and any k decode: --allocation capacity, "
+                           "energy and --on-missing reassign are for the uncoded matmul")
 
     @staticmethod
     def code_k(options, workers: int) -> int:
