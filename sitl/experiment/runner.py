@@ -30,7 +30,7 @@ from nac_onboard import clock
 from nac_onboard.child_process import AgentProcess, ChildStartError, die_with_parent_preexec
 from nac_onboard.compute.device import load_device_profile
 from nac_onboard.compute.options import options_from_argv
-from nac_onboard.errors import NacError, OperationFailed, Terminated
+from nac_onboard.errors import BadInput, NacError, OperationFailed, Terminated
 from nac_onboard.flight_log import JsonlLog, read_jsonl
 from nac_onboard.link.iperf3 import iperf3_server
 from nac_onboard.mavlink.client import CommandError, LinkError, VehicleClient
@@ -644,6 +644,9 @@ def run_scenario(scenario: Scenario, run_dir: Path | None, speedup: float, base_
     if chosen[0] != network:
         print(f"network: {chosen[0]} ({chosen[1]})", file=out, flush=True)
     run_dir = Path(run_dir) if run_dir else default_run_dir(scenario)
+    if kinds.EXPERIMENT_LOG.at(run_dir).exists():  # appended to, its logs would hold two runs the analysis mixes
+        raise BadInput(f"{run_dir}: holds a run already ({kinds.EXPERIMENT_LOG.name}): give another --out, or "
+                       "remove it")
     experiment = Experiment(scenario, run_dir, speedup, base_port, out, stop, analyze, chosen, replay)
     viewer = None
     if view:

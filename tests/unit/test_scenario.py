@@ -184,6 +184,11 @@ def test_the_cli_refuses_bad_scenarios_and_speedups_with_exit_2(tmp_path, capsys
             "paper-flight-moving") in capsys.readouterr().err
     assert cli.main(["experiment", "range-sweep", "--speedup", "5"]) == 2
     assert "--speedup 5 is outside what this scenario allows (up to 1x" in capsys.readouterr().err
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "experiment.json").write_text("{}\n")  # a run there already: appended to, logs would mix
+    assert cli.main(["experiment", "range-sweep", "--network", "sleep", "--out", str(tmp_path / "old")]) == 2
+    assert "old: holds a run already (experiment.json): give another --out" in capsys.readouterr().err
+    assert (tmp_path / "old" / "experiment.json").read_text() == "{}\n"
 
 
 def test_a_mission_that_is_not_a_regular_bounded_file_is_refused_naming_the_vehicle(tmp_path):
