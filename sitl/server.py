@@ -66,6 +66,7 @@ class SitlConfig:
     # the distance to the ground station, as over a telemetry radio; "" = a lossless link (SITL's default).
     telemetry_radio: str = ""
     ground_station: Home | None = None  # where the ground station's antenna is (None: at each vehicle's home)
+    frames: tuple = ()  # an energy.Frame per vehicle from a frame file, overriding NAC_FRAME (none: NAC_FRAME's)
 
 
 class Connection:
@@ -146,7 +147,9 @@ class Sitl:
         if config.vehicle_homes and len(config.vehicle_homes) != n:
             raise SitlError(f"vehicle_homes: {len(config.vehicle_homes)} homes for {n} vehicles")
         homes = list(config.vehicle_homes) or World.spaced_homes(config.home, n, config.spacing_m)
-        self.world = World(homes, config.params, config.seed, config.speedup)
+        if config.frames and len(config.frames) != n:
+            raise SitlError(f"frames: {len(config.frames)} frames for {n} vehicles")
+        self.world = World(homes, config.params, config.seed, config.speedup, config.frames)
         self.streams = Streams(n)
         self.telemetry = TelemetrySource(self.world, time.time())
         self.signing = SigningState(config.signing_key, config.signing_state_file) if config.signing_key else None

@@ -251,7 +251,8 @@ class Experiment:
                             vehicle_homes=tuple(v.home for v in s.vehicles), params=dict(s.params),
                             gcs_base_port=self.ports.gcs(0), companion_base_port=self.ports.companion(0),
                             tcp_base_port=0, port_step=PORTS_PER_VEHICLE,
-                            companion_netns=tuple(st.netns for st in self.air.stations) if self.air else ())
+                            companion_netns=tuple(st.netns for st in self.air.stations) if self.air else (),
+                            frames=(s.frame,) * len(s.vehicles) if s.frame else ())
         try:
             self.sim = Sitl(config)
         except (SitlError, NetworkError, OSError) as err:  # e.g. a base port already taken
@@ -452,7 +453,8 @@ class Experiment:
         if s.compute is not None and s.compute.device != "host":
             slowdown = load_device_profile(s.compute.device).slowdown
         self.energy_log = JsonlLog(kinds.ENERGY_LOG.at(self.run_dir))
-        frames = [energy.FRAME_NAMES[int(self.sim.world.params.get(i, "NAC_FRAME"))] for i in range(len(s.vehicles))]
+        frames = [s.frame.name if s.frame else energy.FRAME_NAMES[int(self.sim.world.params.get(i, "NAC_FRAME"))]
+                  for i in range(len(s.vehicles))]
         self.energy = EnergyMeter([v.id for v in s.vehicles], s.energy,
                                   [s.companion_mah(v) for v in s.vehicles], frames,
                                   self.energy_log, slowdown, radio_counted=self.air is not None)

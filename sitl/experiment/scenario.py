@@ -111,6 +111,7 @@ class EnergyPlan:
     companion_cells: int = ranged(4, 1, 14)
     companion_mah: float = ranged(1300.0, 0.0, 100_000.0, low_open=True, unit="mAh")  # assumed: a common 4S size
     dc_dc_efficiency: float = ranged(energy.DC_DC_EFFICIENCY, 0.0, 1.0, low_open=True)
+    frame: str = ""  # a frame file ([frame]: energy.Frame's fields) every vehicle flies, instead of NAC_FRAME's
 
 
 @dataclass(frozen=True)
@@ -130,6 +131,7 @@ class Scenario:
     notes: tuple[str, ...] = field(default_factory=tuple)
     params: tuple[tuple[str, float], ...] = ()  # autopilot parameters of every vehicle ([params])
     energy: EnergyPlan = EnergyPlan()
+    frame: energy.Frame | None = None  # [energy] frame's, loaded
 
     @property
     def master(self) -> VehiclePlan:
@@ -200,6 +202,8 @@ def load_scenario(name_or_path: str) -> Scenario:
         notes=get_value(data, "notes", "tuple[str, ...]", where, ScenarioError, ()),
         params=_params(_table(data, "params", where), f"{where}: [params]"),
         energy=_energy(_table(data, "energy", where), f"{where}: [energy]"))
+    if scenario.energy.frame:
+        scenario = dataclasses.replace(scenario, frame=load_frame(path.parent / scenario.energy.frame))
     for k, fault in enumerate(scenario.faults):
         if fault.kind is FaultKind.KILL_WORKER and (scenario.compute is None or fault.vehicle not in
                                             [w.id for w in scenario.workers]):
@@ -345,6 +349,16 @@ def _energy(table: dict, where: str) -> EnergyPlan:
         if getattr(plan, key) not in known:
             raise ScenarioError(f"{where}: {key} must be one of {', '.join(known)}, got {getattr(plan, key)!r}")
     return plan
+
+
+def load_frame(path: Path) -> energy.Frame:
+    """A frame file's [frame] table (energy.Frame's fields, each with its physical range): ScenarioError naming
+    the file, the field and the range."""
+    data = read_toml(path, "frame", ScenarioError)
+    try:
+        return energy.frame_from_table(data.get("frame"))
+    except ValueError as err:
+        raise ScenarioError(f"{path}: [frame] {err}") from None
 
 
 def _fault(table: dict, ids: list[str], duration_s: float, where: str) -> Fault:

@@ -149,6 +149,29 @@ FRAMES: dict[str, Frame] = {
                        "DJI F550 spec (frame, props, takeoff weight); drag estimated (energy.py)"),
 }
 FRAME_NAMES = tuple(FRAMES)  # NAC_FRAME's values index this
+FRAME_FIELDS = tuple(f.name for f in fields(Frame))
+
+
+def frame_from_table(table: dict) -> Frame:
+    """A [frame] table of a frame file as a Frame: every field given, numbers in RANGES, a name and a source;
+    ValueError naming the field and what was expected."""
+    if not isinstance(table, dict):
+        raise ValueError("expected a [frame] table")
+    unknown = sorted(set(table) - set(FRAME_FIELDS))
+    if unknown:
+        raise ValueError(f"unknown field {unknown[0]!r} (fields: {', '.join(FRAME_FIELDS)})")
+    missing = [name for name in FRAME_FIELDS if name not in table]
+    if missing:
+        raise ValueError(f"{missing[0]}: missing (every field is needed: {', '.join(FRAME_FIELDS)})")
+    for name in ("name", "source"):
+        if not isinstance(table[name], str) or not table[name].strip():
+            raise ValueError(f"{name}: expected a non-empty string, got {table[name]!r:.60}")
+    for name, value in table.items():
+        if name not in ("name", "source") and (isinstance(value, bool) or not isinstance(value, (int, float))):
+            raise ValueError(f"{name} = {value!r:.60}: expected a number in {RANGES[name][0]:g}..{RANGES[name][1]:g}")
+    if not float(table["rotors"]).is_integer():
+        raise ValueError(f"rotors = {table['rotors']!r}: expected a whole number")
+    return Frame(**{**table, "rotors": int(table["rotors"])})
 
 
 def level_power_w(frame, speed_mps):

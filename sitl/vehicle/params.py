@@ -175,7 +175,9 @@ class ParamTable:
         """The value a ground station reads: as it was sent, even outside the range the vehicle acts on."""
         return self._kept_out_of_range.get((vehicle, self.index(name)), self.get(vehicle, name))
 
-    def physics(self) -> PhysicsParams:
+    def physics(self, frames: list | None = None) -> PhysicsParams:
+        """The physics' arrays; frames: a Frame per vehicle that overrides NAC_FRAME's (None: NAC_FRAME's)."""
+        frames = frames or [None] * self.values.shape[0]
         return PhysicsParams(
             k_xy=self.column("NAC_KP_XY").copy(), k_z=self.column("NAC_KP_Z").copy(),
             speed_xy_max_mps=self.column("WPNAV_SPEED") / 100.0,
@@ -184,8 +186,8 @@ class ParamTable:
             land_speed_mps=self.column("LAND_SPEED") / 100.0,
             vel_tau_s=self.column("NAC_VEL_TAU").copy(),
             batt_capacity_mah=self.column("BATT_CAPACITY").copy(), batt_cells=self.column("BATT_CELLS").copy(),
-            power=energy.PowerArrays.of([energy.FRAMES[energy.FRAME_NAMES[int(i)]]
-                                         for i in self.column("NAC_FRAME")]),
+            power=energy.PowerArrays.of([own or energy.FRAMES[energy.FRAME_NAMES[int(i)]]
+                                         for own, i in zip(frames, self.column("NAC_FRAME"), strict=True)]),
             research_law=self.column("NAC_NAV_LAW") == 1,
             accel_xy_mps2=self.column("WPNAV_ACCEL") / 100.0, accel_z_mps2=self.column("WPNAV_ACCEL_Z") / 100.0,
             land_speed_high_mps=np.where(self.column("LAND_SPEED_HIGH") > 0, self.column("LAND_SPEED_HIGH"),

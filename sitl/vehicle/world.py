@@ -38,7 +38,7 @@ class GpsFix:
 
 class World:
     def __init__(self, homes: list[Home], params: dict[str, float] | None = None, seed: int = 0,
-                 speedup: float = 1.0):
+                 speedup: float = 1.0, frames: tuple = ()):
         n = len(homes)
         if n < 1:
             raise ValueError("need at least one vehicle")
@@ -52,7 +52,8 @@ class World:
         for name, value in (params or {}).items():
             for i in range(n):
                 self.params.set(i, name, float(value))
-        self.physics = self.params.physics()
+        self.frames = list(frames) or [None] * n  # airframes given as files, else NAC_FRAME's (energy.py)
+        self.physics = self.params.physics(self.frames)
         self.state = VehicleState.at_rest(n, self.physics)
         self.autopilots = Autopilots(self.homes, self.params)
         self.autopilots.state = self.state
@@ -94,7 +95,7 @@ class World:
 
     def _apply_params(self) -> None:
         p = self.params
-        self.physics = p.physics()
+        self.physics = p.physics(self.frames)
         self.autopilots.gps_ok = p.column("SIM_GPS_DISABLE") < 0.5
         self.autopilots.on_params_changed()
         batt = p.column("SIM_BATT_PCT")

@@ -1,5 +1,6 @@
 """Scenario files: the shipped ones load and agree with their missions; bad ones are refused by name and key."""
 
+import json
 import os
 import re
 
@@ -283,3 +284,44 @@ def test_energy_allocation_hands_the_job_each_workers_companion_pack_as_rated(tm
     save_channel(scenario.channel, run_channel_path(tmp_path / "run"))  # what the runner writes for the ranks
     options = options_from_argv(compute_args(scenario, tmp_path / "run", Ports(14550), 10.0))
     assert options.allocation == "energy" and options.energy_wh == (4 * 3.7 * 0.5, 4 * 3.7 * 2.0)
+
+
+GOOD_FRAME = {"name": "my-quad", "mass_kg": 1.6, "rotors": 4, "rotor_radius_m": 0.127, "blade_solidity": 0.1,
+              "tip_speed_mps": 110.0, "profile_drag_coefficient": 0.012, "induced_correction": 0.1,
+              "drag_area_m2": 0.012, "drive_efficiency": 0.8, "avionics_w": 4.0, "source": "our bench, 2026-11"}
+
+
+def frame_file(path, **changes) -> str:
+    fields = {**GOOD_FRAME, **changes}
+    path.write_text("[frame]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in fields.items() if v is not None))
+    return path.name
+
+
+@pytest.mark.parametrize(("changes", "said"), [
+    ({"mass_kg": -2.5}, "[frame] mass_kg = -2.5: expected 0.05..100"),
+    ({"drive_efficiency": 1.2}, "[frame] drive_efficiency = 1.2: expected 0.05..1"),
+    ({"rotors": 2.5}, "[frame] rotors = 2.5: expected a whole number"),
+    ({"tip_speed_mps": "fast"}, "[frame] tip_speed_mps = 'fast': expected a number in 1..340"),
+    ({"avionics_w": None}, "[frame] avionics_w: missing (every field is needed"),
+    ({"colour": "red"}, "[frame] unknown field 'colour'"),
+    ({"source": ""}, "[frame] source: expected a non-empty string"),
+])
+def test_a_frame_file_out_of_physical_range_is_refused_naming_file_field_and_range(tmp_path, changes, said):
+    name = frame_file(tmp_path / "quad.toml", **changes)
+    (tmp_path / "s.toml").write_text(TWO + f"[energy]\nframe = '{name}'\n")
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(str(tmp_path / "s.toml"))
+    assert str(err.value).startswith(f"{tmp_path / 'quad.toml'}: {said}"), str(err.value)
+
+
+def test_a_frame_file_flies_every_vehicle_of_the_scenario(tmp_path):
+    from sitl.vehicle import energy
+    from sitl.vehicle.world import World
+
+    (tmp_path / "s.toml").write_text(TWO + f"[energy]\nframe = '{frame_file(tmp_path / 'quad.toml')}'\n")
+    scenario = load_scenario(str(tmp_path / "s.toml"))
+    assert scenario.frame == energy.Frame(**GOOD_FRAME)
+    world = World([v.home for v in scenario.vehicles], frames=(scenario.frame,) * 2)
+    hover_w = float(energy.level_power_w(scenario.frame, 0.0))
+    assert world.physics.power.induced_power_w[1] == pytest.approx(scenario.frame.induced_power_w)
+    assert float(energy.level_power_w(world.physics.power, 0.0)[0]) == pytest.approx(hover_w)
