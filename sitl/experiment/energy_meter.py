@@ -69,6 +69,10 @@ class EnergyMeter:
                   companion_packs={v: [p.cells, p.capacity_mah] for v, p in zip(vehicle_ids, self.packs, strict=True)},
                   dc_dc_efficiency=self.efficiency, radio_counted=radio_counted)
 
+    def due(self, t_sim_s: float) -> bool:
+        """Whether tick would record: the first call, or TICK_S after the last record."""
+        return self._t_s is None or t_sim_s - self._t_s >= TICK_S
+
     def tick(self, t_sim_s: float, flight: list[dict], cpu_s: list[float | None],
              net_bytes: list[tuple[int, int] | None], speedup: float) -> list[int]:
         """Records for the interval since the last tick, once TICK_S has passed; the vehicles whose companion pack

@@ -11,6 +11,7 @@ ranks) and removes its network namespaces (watchdog.py).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import enum
 import json
@@ -463,11 +464,13 @@ class Experiment:
     def _meter(self) -> None:
         """The energy meter's tick; a companion pack that emptied stops its agent, its rank and its radio."""
         vehicles = self.scenario.vehicles
+        t_s, packs = self.sim.batteries()  # the flight packs and their time, taken at one step
+        now_s = t_s - self.mission_start_sim_s
+        if not self.energy.due(now_s):
+            return
         cpu_s = [process_cpu_s(self._rank_pid(v.id)) for v in vehicles]
         net = [namespace_bytes(self.agents[i].proc.pid if self.agents[i].alive() else None) if self.air else None
                for i in range(len(vehicles))]
-        t_s, packs = self.sim.batteries()  # the flight packs and their time, taken at one step
-        now_s = t_s - self.mission_start_sim_s
         for i in self.energy.tick(now_s, packs, cpu_s, net, self.pace.value()):
             self._companion_off(i, now_s)
 
@@ -492,6 +495,10 @@ class Experiment:
         if self.scenario.compute is not None and vehicle.role == "worker":
             self._inject(Fault(now_s, vehicle.id, FaultKind.KILL_WORKER), True)
             stopped.append("rank")
+        elif self.scenario.compute is not None and self.master_pid:  # the job's master: the job ends with it
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.master_pid, signal.SIGKILL)
+            stopped.append("rank")
         if self.air is not None:
             self.air.silence(index)
             stopped.append("radio")
@@ -499,6 +506,9 @@ class Experiment:
                               stopped=stopped)
         print(f"energy: {vehicle.id}'s companion pack is empty at t={now_s:.1f} s: {', '.join(stopped)} stopped",
               file=self.out, flush=True)
+        if vehicle.role == "master" and self.scenario.compute is not None:
+            raise ExperimentError(Outcome.COMPUTE_FAILED, f"the master's companion pack ran out at t={now_s:.1f} s: "
+                                                          "the MPI job lost its master")
 
     def _check_children(self) -> None:
         if not self.sim.alive:
