@@ -306,8 +306,9 @@ CLI_CASES = [  # (main, argv before the value, option, invalid values, fragment)
     (sitl_cli.main, ["run"], "--vehicles", bad_arg(1, 250, integer=True), "--vehicles"),
     (sitl_cli.main, ["run"], "--seed", bad_arg(0, 2**32 - 1, integer=True), "--seed"),
     (sitl_cli.main, ["run"], "--gcs-base-port", bad_arg(1, 65535, integer=True), "--gcs-base-port"),
-    (sitl_cli.main, ["run"], "--home", bad_number(-90, 90).map(lambda v: f"{arg_text(v)},8.5,400"), "--home"),
-    (sitl_cli.main, ["run"], "--home", bad_number(-500, 10_000).map(lambda v: f"47,8.5,{arg_text(v)}"), "--home"),
+    # bad_arg: a drawn text that reads as a number in range ("0") would make a valid home
+    (sitl_cli.main, ["run"], "--home", bad_arg(-90, 90).map(lambda v: f"{v},8.5,400"), "--home"),
+    (sitl_cli.main, ["run"], "--home", bad_arg(-500, 10_000).map(lambda v: f"47,8.5,{v}"), "--home"),
     (sitl_cli.main, ["experiment", "paper-sim-static"], "--speedup", bad_arg(0.1, 1000), "--speedup"),
     (sitl_cli.main, ["experiment", "paper-sim-static"], "--base-port", bad_arg(1024, 65535, integer=True),
      "--base-port"),
