@@ -57,7 +57,7 @@ def test_current_follows_speed_and_climb_as_the_model_says_and_the_voltage_fails
     the model at the truth's state of charge within 2 % (SYS_STATUS carries 10 mA steps; the state of charge moves
     0.1 % a second), MAVSDK's battery telemetry says the same, and BATT_LOW_VOLT set just under the resting voltage
     fires after BATT_LOW_TIMER, not before."""
-    sim = start_sitl(speedup=5.0)
+    sim = start_sitl(speedup=10.0)
     gcs = gcs_for(sim)
     assert mavsdk_client.add_any_connection(f"udpin://0.0.0.0:{sim.config.companion_base_port}") \
         == ConnectionResult.SUCCESS
