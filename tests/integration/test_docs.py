@@ -22,6 +22,8 @@ ROOT = Path(__file__).resolve().parents[2]
 DOCS = sorted([ROOT / "README.md", *(ROOT / "docs").glob("*.md"), ROOT / "deploy" / "README.md"])
 BIN = Path(sys.executable).parent
 PROGRAMS = ("nac-sitl", "nac-onboard", "nac-ground")
+# files and `--help` processes only, no clock, no network: make test runs it beside the exclusive tests
+pytestmark = pytest.mark.niced
 
 FENCE = re.compile(r"^(`{3,}|~{3,})\s*([\w-]*)")
 LINK = re.compile(r"!?\[(?:[^\[\]]|\[[^\]]*\])*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
