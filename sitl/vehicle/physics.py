@@ -7,7 +7,7 @@ logic above it decides goals and motions, the MAVLink layer only reads the resul
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import IntEnum
 from functools import cached_property
 
@@ -16,6 +16,7 @@ import numpy as np
 from sitl.vehicle import energy
 from sitl.vehicle.energy import GRAVITY_MPS2
 
+BATTERY_PERIOD_S = 0.1  # how often the packs are stepped: ArduPilot's battery monitor reads at 10 Hz
 YAW_RATE_MAX_RPS = math.radians(90.0)  # how fast a commanded heading is turned to
 
 
@@ -268,15 +269,23 @@ def step(state: VehicleState, cmd: Command, params: PhysicsParams, dt_s: float) 
     if cmd.yaw_target_rad is not None and not (np.isnan(cmd.yaw_target_rad).all() and np.isnan(cmd.yaw_rate_rps).all()):
         yaw = commanded_yaw_rad(yaw, state.yaw_rad, cmd.yaw_target_rad, cmd.yaw_rate_rps, dt_s)
 
-    power_w = battery_power_w(vel, cmd.armed & ~on_ground, params.power)
+    return VehicleState(
+        pos_m=pos, vel_mps=vel, accel_mps2=accel, yaw_rad=yaw, on_ground=on_ground, soc=state.soc,
+        current_a=state.current_a, voltage_v=state.voltage_v, consumed_mah=state.consumed_mah,
+        consumed_wh=state.consumed_wh,
+    )
+
+
+def drain(state: VehicleState, params: PhysicsParams, armed: np.ndarray, dt_s: float) -> VehicleState:
+    """The packs over the last dt_s: each delivers its vehicle's power at the present speed and climb (the world
+    calls this at BATTERY_PERIOD_S, as ArduPilot's battery monitor reads its sensor at 10 Hz; the kinematics step
+    at 100 Hz would spend a third of its time here)."""
+    power_w = battery_power_w(state.vel_mps, armed & ~state.on_ground, params.power)
     current_a, voltage_v = battery_load(state.soc, power_w, params.batt_cells)
     used_mah = current_a * (dt_s / 3.6)
-    soc = np.maximum(state.soc - used_mah / params.batt_capacity_mah, 0.0)
-    return VehicleState(
-        pos_m=pos, vel_mps=vel, accel_mps2=accel, yaw_rad=yaw, on_ground=on_ground, soc=soc, current_a=current_a,
-        voltage_v=voltage_v, consumed_mah=state.consumed_mah + used_mah,
-        consumed_wh=state.consumed_wh + voltage_v * current_a * (dt_s / 3600.0),
-    )
+    return replace(state, soc=np.maximum(state.soc - used_mah / params.batt_capacity_mah, 0.0), current_a=current_a,
+                   voltage_v=voltage_v, consumed_mah=state.consumed_mah + used_mah,
+                   consumed_wh=state.consumed_wh + voltage_v * current_a * (dt_s / 3600.0))
 
 
 def attitude_rad(state: VehicleState) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

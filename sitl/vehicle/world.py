@@ -17,7 +17,7 @@ import numpy as np
 from missions.geo import Home, enu_to_lla, enu_to_lla_many, lla_to_ecef, lla_to_enu, offset_home
 from sitl.vehicle.flight import Autopilots, CopterMode, Event
 from sitl.vehicle.params import ParamTable
-from sitl.vehicle.physics import VehicleState, gps_noise_m, step
+from sitl.vehicle.physics import BATTERY_PERIOD_S, VehicleState, drain, gps_noise_m, step
 
 GROUND, COMPANION = "ground", "companion"  # a vehicle's two MAVLink links (TELEM1, TELEM2)
 LINK_DOWN_BITS = {GROUND: 1, COMPANION: 2}  # SIM_LINK_DOWN bitmask
@@ -59,6 +59,7 @@ class World:
         self.autopilots.state = self.state
         self.rng = np.random.default_rng(seed)
         self.t_s = 0.0
+        self._since_drain_s = 0.0
         self.boot_t_s = np.zeros(n)  # when each autopilot (re)started, simulated seconds
         self._last_fix_m = self.state.pos_m.copy()
         self._home_now: dict[int, tuple[tuple, Home]] = {}  # vehicle -> (its home_m, home_of's answer)
@@ -75,6 +76,10 @@ class World:
     def step(self, dt_s: float) -> list[tuple[int, Event, object]]:
         self.state = step(self.state, self.autopilots.command(), self.physics, dt_s)
         self.t_s += dt_s
+        self._since_drain_s += dt_s
+        if self._since_drain_s >= BATTERY_PERIOD_S - 1e-9:
+            self.state = drain(self.state, self.physics, self.autopilots.armed, self._since_drain_s)
+            self._since_drain_s = 0.0
         self.autopilots.update(self.state, self.t_s)
         for observe in self.step_observers:
             observe(self.t_s, self.state)
