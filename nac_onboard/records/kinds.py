@@ -341,6 +341,7 @@ ENERGY = Kind("energy", ENERGY_LOG, "a vehicle's mean power over the last simula
     req("busy_share", "number", "", "the rank's share of the interval computing (0-1)"),
     req("tx_share", "number", "", "the station's share of the interval sending"),
     req("rx_share", "number", "", "the station's share of the interval receiving"),
+    opt("air_rate_bps", "number", "bit/s", "the rate its bytes took the air at: its link's, else the radio's PHY"),
     req("flight_soc", "number", "", "flight pack state of charge (0-1)"),
     req("flight_v", "number", "V", "flight pack voltage"),
     req("companion_soc", "number", "", "companion pack state of charge (0-1)"),

@@ -74,10 +74,13 @@ class EnergyMeter:
         return self._t_s is None or t_sim_s - self._t_s >= TICK_S
 
     def tick(self, t_sim_s: float, flight: list[dict], cpu_s: list[float | None],
-             net_bytes: list[tuple[int, int] | None], speedup: float) -> list[int]:
+             net_bytes: list[tuple[int, int] | None], speedup: float,
+             rates_bps: list[float | None] | None = None) -> list[int]:
         """Records for the interval since the last tick, once TICK_S has passed; the vehicles whose companion pack
         emptied in it. flight: each vehicle's flight pack (consumed_wh, soc, voltage_v); cpu_s: its rank's CPU seconds
-        (None: no rank or not known yet); net_bytes: its namespace's (rx, tx) bytes (None: not counted)."""
+        (None: no rank or not known yet); net_bytes: its namespace's (rx, tx) bytes (None: not counted); rates_bps:
+        the rate of each station's link now, in bits per simulated second (None: the radio's PHY rate), so a slow
+        link at distance keeps the radio on longer for the same bytes."""
         if self._t_s is None:
             self._t_s, self._flight_wh = t_sim_s, [f["consumed_wh"] for f in flight]
             self._cpu_s, self._bytes = list(cpu_s), list(net_bytes)
@@ -89,8 +92,9 @@ class EnergyMeter:
         for i, vehicle in enumerate(self.ids):
             busy = self._share(cpu_s[i], self._cpu_s[i], max(self.slowdown, speedup) / dt_s)
             rx_share = tx_share = 0.0
+            rate_bps = (rates_bps[i] if rates_bps else None) or self.radio.phy_rate_bps
             if self.radio_counted and net_bytes[i] is not None and self._bytes[i] is not None:
-                per_byte = 8.0 / (self.radio.phy_rate_bps * dt_s)
+                per_byte = 8.0 / (rate_bps * dt_s)
                 rx_share = self._share(net_bytes[i][0], self._bytes[i][0], per_byte)
                 tx_share = self._share(net_bytes[i][1], self._bytes[i][1], per_byte)
             on = not self.empty[i]
@@ -106,6 +110,7 @@ class EnergyMeter:
                            flight_w=round((flight[i]["consumed_wh"] - self._flight_wh[i]) * 3600.0 / dt_s, 4),
                            compute_w=round(compute_w, 4), radio_w=round(radio_w, 4), companion_w=round(companion_w, 4),
                            busy_share=round(busy, 4), tx_share=round(tx_share, 5), rx_share=round(rx_share, 5),
+                           air_rate_bps=round(rate_bps),
                            flight_soc=round(flight[i]["soc"], 5), flight_v=round(flight[i]["voltage_v"], 3),
                            companion_soc=round(pack.soc, 5), companion_v=round(volts, 3))
         self._t_s, self._flight_wh = t_sim_s, [f["consumed_wh"] for f in flight]

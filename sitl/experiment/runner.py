@@ -471,8 +471,23 @@ class Experiment:
         cpu_s = [process_cpu_s(self._rank_pid(v.id)) for v in vehicles]
         net = [namespace_bytes(self.agents[i].proc.pid if self.agents[i].alive() else None) if self.air else None
                for i in range(len(vehicles))]
-        for i in self.energy.tick(now_s, packs, cpu_s, net, self.pace.value()):
+        for i in self.energy.tick(now_s, packs, cpu_s, net, self.pace.value(), self._station_rates_bps()):
             self._companion_off(i, now_s)
+
+    def _station_rates_bps(self) -> list[float | None] | None:
+        """Each station's link now (the shaper's last rates, bits per simulated second): a worker's to the master,
+        the master's the harmonic mean of its links in range (its bytes take each link's time); None out of range."""
+        state = self.shaper.last if self.shaper is not None else None
+        if state is None:
+            return None
+        n, m = len(self.scenario.vehicles), self.scenario.vehicles.index(self.scenario.master)
+        rates: list[float | None] = []
+        for i in range(n):
+            links = [float(state.rate_bps[m, j]) for j in range(n) if j != m] if i == m else [
+                float(state.rate_bps[i, m])]
+            links = [r for r in links if r > 0]
+            rates.append(len(links) / sum(1.0 / r for r in links) if links else None)
+        return rates
 
     def _rank_pid(self, vehicle_id: str) -> int | None:
         """The vehicle's MPI rank's pid: the master's from the job's start, a worker's from its rank log."""

@@ -66,3 +66,15 @@ def test_proc_readers_measure_this_process_and_say_none_for_a_gone_one():
     rx_tx = namespace_bytes(os.getpid())
     assert rx_tx is not None and all(v >= 0 for v in rx_tx)
     assert namespace_bytes(2**22 + 12345) is None
+
+
+def test_a_slow_link_keeps_the_radio_on_longer_for_the_same_bytes(tmp_path):
+    """1 Mbit sent in 2 s: at the radio's 65 Mbit/s PHY rate 0.8 % of the air, on a 5 Mbit/s link 10 %."""
+    m, log = meter(tmp_path)
+    m.tick(0.0, packs([0, 0]), [None, None], [(0, 0), (0, 0)], 1.0)
+    m.tick(2.0, packs([0, 0]), [None, None], [(0, 125_000), (0, 125_000)], 1.0, [None, 5e6])
+    log.close()
+    fast, slow = read_jsonl(tmp_path / "energy.jsonl").of_kind("energy")
+    assert fast["tx_share"] == pytest.approx(1e6 / 65e6 / 2, abs=1e-5) and fast["air_rate_bps"] == 65e6
+    assert slow["tx_share"] == pytest.approx(0.1) and slow["air_rate_bps"] == 5e6
+    assert slow["radio_w"] > fast["radio_w"]
