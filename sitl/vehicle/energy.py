@@ -263,7 +263,7 @@ class RadioPower:
     idle_w: float
     tx_w: float
     rx_w: float
-    phy_rate_bps: float  # air time of a byte: 8 / this (the link's own, slower rate at distance is not used yet)
+    phy_rate_bps: float  # air time of a byte when its link's rate is not known: 8 / this
     source: str
 
 
