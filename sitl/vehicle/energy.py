@@ -231,19 +231,6 @@ def terminal_v(open_v, current_a, cells):
     return open_v - current_a * cells * CELL_RESISTANCE_OHM
 
 
-def hover_endurance_s(frame: Frame, cells: int, capacity_mah: float, down_to_soc: float = 0.0,
-                      dt_s: float = 1.0) -> float:
-    """Seconds a full pack hovers `frame` until its state of charge reaches down_to_soc (stepped as the simulator
-    steps it: the current for the hover power at the present voltage)."""
-    power_w = float(level_power_w(frame, 0.0)) / frame.drive_efficiency + frame.avionics_w
-    soc, t_s = 1.0, 0.0
-    while soc > down_to_soc:
-        current_a = float(pack_current_a(power_w, open_circuit_v(soc, cells), cells))
-        soc -= current_a * dt_s / 3.6 / capacity_mah
-        t_s += dt_s
-    return t_s
-
-
 # ---- the companion's side: its computer and Wi-Fi router on a second pack ----------------------------------------
 @dataclass(frozen=True)
 class CompanionPower:
@@ -321,3 +308,21 @@ class Pack:
         self.soc = max(self.soc - current_a * dt_s / 3.6 / self.capacity_mah, 0.0)
         self.delivered_wh += volts * current_a * dt_s / 3600.0
         return current_a, volts
+
+
+def endurance_s(power_w: float, cells: int, capacity_mah: float, down_to_soc: float = 0.0,
+                dt_s: float = 1.0) -> float:
+    """Seconds a full pack delivers power_w until its state of charge reaches down_to_soc, drained dt_s at a time
+    (the current for that power at the present voltage, as the simulator steps its packs)."""
+    pack, t_s = Pack(cells, capacity_mah), 0.0
+    while pack.soc > down_to_soc:
+        pack.drain(power_w, dt_s)
+        t_s += dt_s
+    return t_s
+
+
+def hover_endurance_s(frame: Frame, cells: int, capacity_mah: float, down_to_soc: float = 0.0,
+                      dt_s: float = 1.0) -> float:
+    """Seconds a full pack hovers `frame` until its state of charge reaches down_to_soc."""
+    hover_w = float(level_power_w(frame, 0.0)) / frame.drive_efficiency + frame.avionics_w
+    return endurance_s(hover_w, cells, capacity_mah, down_to_soc, dt_s)
