@@ -438,7 +438,8 @@ class Agent:
         own = OwnState.of(self.own_state(), self.autopilot.up)
         with self._state_lock:
             peers = tuple(self.peers.snapshot(time.monotonic()).values())
-        return AgentSnapshot(time.time(), own, peers)
+        probes = self.scheduler.results() if self.scheduler is not None else ()
+        return AgentSnapshot(time.time(), own, peers, probes)
 
     def _answer_feed(self, now: float) -> None:
         while True:

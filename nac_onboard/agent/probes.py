@@ -23,7 +23,7 @@ import time
 from collections.abc import Callable
 
 from nac_onboard.agent.config import ThroughputSection
-from nac_onboard.agent.snapshot import AgentSnapshot, position
+from nac_onboard.agent.snapshot import AgentSnapshot, ProbeResult, position
 from nac_onboard.clock import Clock
 from nac_onboard.flight_log import JsonlLog
 from nac_onboard.link import iperf3
@@ -34,6 +34,14 @@ from nac_onboard.records import kinds
 log = logging.getLogger(__name__)
 
 
+def received_bps(result: dict) -> float:
+    """The receiver's rate in an iperf3-shaped result (ours or iperf3's); 0.0 for a probe that failed."""
+    try:
+        return float(result["end"]["sum_received"]["bits_per_second"])
+    except (KeyError, TypeError, ValueError):
+        return 0.0
+
+
 class ProbeScheduler:
     def __init__(self, settings: ThroughputSection, self_id: str, targets: Callable[[], list[tuple[str, str, int]]],
                  snapshot: Callable[[], AgentSnapshot], out: JsonlLog, stop: threading.Event,
@@ -42,6 +50,7 @@ class ProbeScheduler:
         self.targets, self.snapshot = targets, snapshot  # [(id, host, port)] to probe; where everyone is now
         self.out, self.stop_event = out, stop
         self.rounds = 0
+        self.latest: dict[str, tuple[float, float]] = {}  # peer -> (monotonic end, bits/s; 0: failed)
         self.emulation = emulation  # SITL: pace each probe at the channel model's rate for the pair's distance
         self.clock = clock or Clock()
         self._thread = threading.Thread(target=self._run, name="throughput-probes", daemon=True)
@@ -122,7 +131,13 @@ class ProbeScheduler:
         fields["positions"] = {"start": self._pair(before, peer_id), "end": self._pair(after, peer_id)}
         fields["distance_m"] = distance_m
         fields["distance_end_m"] = after.distance_m(self.self_id, peer_id)
+        self.latest[peer_id] = (time.monotonic(), received_bps(result))
         return self.out.write(kinds.THROUGHPUT, **fields, **result)
+
+    def results(self) -> tuple[ProbeResult, ...]:
+        """Each peer's latest probe, for the state feed."""
+        now = time.monotonic()
+        return tuple(ProbeResult(peer, bps, now - t) for peer, (t, bps) in sorted(self.latest.items()))
 
     def _emulated_rate_bps(self, peer_id: str, distance_m: float, cap_bps: float | None) -> float:
         link = self.emulation.link(distance_m, peer_id, (self.self_id, peer_id))

@@ -36,10 +36,20 @@ class OwnState:
 
 
 @dataclass(frozen=True)
+class ProbeResult:
+    """The latest probe from this vehicle to one peer: what the MPI master may plan its blocks by in flight."""
+
+    peer: str
+    bits_per_second: float  # 0.0: the probe failed (out of range, refused, timed out)
+    age_s: float  # wall seconds since it ended
+
+
+@dataclass(frozen=True)
 class AgentSnapshot:
     t_s: float  # unix time when it was taken
     own: OwnState  # "self" in the state feed's answer
     peers: tuple[HeardPeer, ...] = ()  # every peer in the table, lost ones included, in the table's order
+    probes: tuple[ProbeResult, ...] = ()  # this vehicle's latest throughput probe to each peer it probes
 
     def vehicle(self, vehicle_id: str) -> OwnState | PeerState | None:
         """This vehicle or a peer (its last message) by id; None if unknown."""

@@ -1,7 +1,8 @@
 """The agent's local state feed: the compute job asks, the agent answers with where everyone is.
 
 One UDP datagram each way on the companion itself (default 127.0.0.1:47200). The answer is JSON:
-{"t_s", "self": {id, role, lat_deg, lon_deg, alt_m, vel_ned_mps, link_up, ...}, "peers": {id: {..., age_s, lost}}}.
+{"t_s", "self": {id, role, lat_deg, lon_deg, alt_m, vel_ned_mps, link_up, ...}, "peers": {id: {..., age_s, lost}},
+"probes": {id: {bits_per_second, age_s}}} (probes: only on a vehicle that probes, each peer's latest).
 The agent hands a typed AgentSnapshot (nac_onboard.agent.snapshot); this module alone writes it as JSON, and
 `position_of`/`distance_between` read the JSON answer back, for the processes that ask.
 """
@@ -48,7 +49,10 @@ def answer_of(snapshot: AgentSnapshot) -> dict:
     its boot and seq: they are the peer messages' freshness, not the feed's)."""
     peers = {p.state.id: {**_without_freshness(asdict(p.state)), "age_s": p.age_s, "lost": p.lost}
              for p in snapshot.peers}
-    return {"t_s": snapshot.t_s, "self": asdict(snapshot.own), "peers": peers}
+    answer = {"t_s": snapshot.t_s, "self": asdict(snapshot.own), "peers": peers}
+    if snapshot.probes:  # only a vehicle that probes (the master) has them
+        answer["probes"] = {p.peer: {"bits_per_second": p.bits_per_second, "age_s": p.age_s} for p in snapshot.probes}
+    return answer
 
 
 def _without_freshness(fields: dict) -> dict:

@@ -16,6 +16,7 @@ BITS_PER_FLOAT = 64
 
 # master -> worker: [kind, iteration, rate_bps, extra_rows, loss | payload...] (rate and loss: the emulated link's)
 KIND_WORK, KIND_EXTRA, KIND_STOP, KIND_WARMUP = 1.0, 2.0, 3.0, 4.0  # extra: re-assigned rows of A, then B
+KIND_PLAN = 5.0  # the blocks re-planned: the payload is every worker's [start, stop), in rank order
 WORK_KIND, WORK_ITERATION, WORK_RATE_BPS, WORK_EXTRA_ROWS, WORK_LOSS = 0, 1, 2, 3, 4
 WORK_HEADER = 6
 
@@ -24,11 +25,13 @@ def work_header(kind: float, iteration: float = 0.0, rate_bps: float = 0.0, extr
                 loss: float = 0.0, phy_bps: float = 0.0) -> tuple[float, ...]:
     return (kind, iteration, rate_bps, extra_rows, loss, phy_bps)
 
-# worker -> master: [iteration, compute_s, up_s, rows, sse, late | result...] (rows, sse, result: the task's Answer;
-# late: the worker's work segments so far that its host did more slowly than its device profile, on the run's clock)
+# worker -> master: [iteration, compute_s, up_s, rows, sse, late, batch, more | result...] (rows, sse, result: the
+# task's Answer; late: the worker's work segments so far that its host did more slowly than its device profile, on the
+# run's clock; batch: the answer's place among the iteration's batches, more: whether more batches follow)
 RESULT_ITERATION, RESULT_COMPUTE_S, RESULT_UP_S, RESULT_ROWS, RESULT_SSE, RESULT_LATE = 0, 1, 2, 3, 4, 5
-RESULT_HEADER = 6
-WARMUP_ANSWER = (-1.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+RESULT_BATCH, RESULT_MORE = 6, 7
+RESULT_HEADER = 8
+WARMUP_ANSWER = (-1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 def pad_floats(pad_bits: float) -> int:

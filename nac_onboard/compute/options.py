@@ -60,10 +60,15 @@ class ComputeOptions:
     energy_wh: tuple[float, ...] = ()  # --allocation energy: each worker's companion energy left, rank order
     code_k: int = 0  # matmul_mds: results that decode (0: the workers less one)
     code_s: int = 1  # linreg_gc: stragglers tolerated
+    code_redundancy: float = 1.5  # matmul_bpcc: coded units over data blocks
+    batch_units: int = 1  # matmul_bpcc: coded units per batch sent back
+    replan_every: int = 0  # re-plan the blocks every this many iterations (0: only at the start and on absences)
+    link_rates: str = "model"  # what the allocation expects of each link: the channel model, or the latest probes
     save_results: bool = False
     checkpoint_s: float = 10.0  # results.npz rewritten (atomically) this often while the job runs; 0 = at the end
     pad_bits: float = 0.0  # zeros appended to every message: the channel's overhead as real bytes (kernel network)
     device: DeviceProfile = HOST  # the companion's CPU: each rank's work takes its time on the run's clock
+    device_of: tuple[tuple[str, DeviceProfile], ...] = ()  # (vehicle, profile): a companion other than the rest
     clock: Clock = field(default_factory=Clock)  # $NAC_SIM_CLOCK in SITL: times below are simulated seconds
 
     @property
@@ -73,8 +78,13 @@ class ComputeOptions:
     def vehicle_of(self, rank: int) -> str:
         return self.vehicles[rank] if rank < len(self.vehicles) else f"rank{rank}"
 
+    def device_for(self, rank: int) -> DeviceProfile:
+        """Rank `rank`'s companion: its own profile (--device-of), else the fleet's (--device)."""
+        return dict(self.device_of).get(self.vehicle_of(rank), self.device)
+
 
 MAX_ITERATIONS = 10_000_000
+PROBE_MAX_AGE_S = 30.0  # simulated seconds: three of the fleet config's probe periods (deploy/master.toml: 10 s)
 MAX_DURATION_S = 7 * 86400.0  # a week: far beyond any battery
 _size = number_arg(1, 10_000_000, integer=True)
 
@@ -123,15 +133,28 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a worker that hears nothing this long aborts")
     p.add_argument("--on-missing", choices=["incomplete", "reassign"], default="incomplete",
                    help="matmul: a worker's rows that did not arrive are re-assigned or the iteration is incomplete")
-    p.add_argument("--allocation", choices=["equal", "capacity", "energy"], default="equal",
-                   help="capacity: shard sizes proportional to each link's predicted capacity at the start; "
-                        "energy: to each worker's companion energy left (--energy-wh)")
+    p.add_argument("--allocation", choices=["equal", "capacity", "speed", "energy"], default="equal",
+                   help="capacity: blocks in proportion to each link's predicted capacity (the channel model at the "
+                        "positions); speed: to each worker's expected rows per second (its device's CPU per row and "
+                        "its link's time per row of result: BPCC's allocation); energy: to each worker's companion "
+                        "energy left (--energy-wh)")
+    p.add_argument("--link-rates", choices=["model", "probes"], default="model",
+                   help="what --allocation capacity|speed expects of each link: the channel model at the positions, "
+                        "or (in flight) the master's agent's latest probe to that worker, the model where none is "
+                        f"fresher than {PROBE_MAX_AGE_S:g} s (--positions feed)")
+    p.add_argument("--replan-every", type=number_arg(0, MAX_ITERATIONS, integer=True), default=0,
+                   help="re-plan the blocks from the live links every this many iterations (0: at the start only); "
+                        "with any allocation, a worker absent or unresponsive is planned out until it is back")
     p.add_argument("--energy-wh", help="--allocation energy: each worker's companion energy left (Wh), in rank "
                                        "order, comma-separated")
     p.add_argument("--code-k", type=number_arg(0, 10_000, integer=True), default=0,
                    help="matmul_mds: how many of the workers' coded results decode A B (0: the workers less one)")
     p.add_argument("--code-s", type=number_arg(0, 10_000, integer=True), default=1,
                    help="linreg_gc: stragglers the gradient code tolerates (each worker holds s + 1 shards)")
+    p.add_argument("--code-redundancy", type=number_arg(1, 10), default=1.5,
+                   help="matmul_bpcc: coded units per data block (U = ceil(r k) units, any k decode)")
+    p.add_argument("--batch-units", type=number_arg(1, 10_000, integer=True), default=1,
+                   help="matmul_bpcc: coded units a worker multiplies before sending their products back")
     p.add_argument("--save-results", action="store_true", help="matmul: keep every B and A@B in results.npz")
     p.add_argument("--checkpoint-s", type=number_arg(0, 86400, unit="s"), default=10.0,
                    help="rewrite results.npz this often while running (0: only at the end)")
@@ -140,6 +163,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="host",
                    help="the companion's CPU: 'host' (this machine's speed) or a device profile TOML ([device] name, "
                         "slowdown, source): each rank's work then takes that device's time")
+    p.add_argument("--device-of", action="append", default=[], metavar="VEHICLE=PROFILE",
+                   help="one companion's own device profile (repeatable): a slow companion among the rest")
     return p
 
 
@@ -179,7 +204,9 @@ def options_from_argv(argv: list[str] | None) -> ComputeOptions:
         emulate=args.emulate, channel=load_channel(args.channel), positions=args.positions, distances=distances,
         positions_script=args.positions_script, feed=args.feed, vehicles=vehicles, timeout_s=args.timeout_s,
         idle_timeout_s=args.idle_timeout_s, on_missing=args.on_missing, allocation=args.allocation,
-        energy_wh=energy_wh, code_k=args.code_k, code_s=args.code_s,
+        energy_wh=energy_wh, code_k=args.code_k, code_s=args.code_s, code_redundancy=args.code_redundancy,
+        batch_units=args.batch_units, replan_every=args.replan_every, link_rates=args.link_rates,
+        device_of=device_of(args.device_of),
         save_results=args.save_results, checkpoint_s=args.checkpoint_s, pad_bits=args.pad_bits,
         device=HOST if args.device == "host" else load_device_profile(args.device), clock=from_env())
     for option, path, what, limit in [("--a", options.a_path, "matrix A (.npy)", MAX_AUTOPILOT_LOG_BYTES),
@@ -188,12 +215,25 @@ def options_from_argv(argv: list[str] | None) -> ComputeOptions:
                                        MAX_CONFIG_BYTES)]:
         if path is not None:  # regular and bounded before numpy, pandas or json open it
             check_regular_file(path, f"{option} {what}", limit)
+    if options.link_rates == "probes" and options.positions != "feed":
+        raise BadInput("--link-rates probes reads the agent's probes through its state feed: --positions feed")
     if options.emulate == "sleep" and options.positions == "none":
         raise BadInput("--emulate sleep needs positions: --positions fixed|script|feed")
     task.check(options)
     if options.positions != "feed":  # the feed is asked once MPI runs, on the master only
         build_source(options)
     return options
+
+
+def device_of(values: list[str]) -> tuple[tuple[str, DeviceProfile], ...]:
+    """--device-of VEHICLE=PROFILE values, each profile loaded and checked."""
+    out = []
+    for value in values:
+        vehicle, sep, path = value.partition("=")
+        if not sep or not path:
+            raise BadInput(f"--device-of {value!r}: expected VEHICLE=PROFILE (a device profile TOML)")
+        out.append((check_id(vehicle.strip(), "--device-of"), load_device_profile(path)))
+    return tuple(out)
 
 
 def build_source(options: ComputeOptions, wait_s: float = 30.0):

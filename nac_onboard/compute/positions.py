@@ -72,15 +72,30 @@ class FeedDistances:
             raise PositionsError("--vehicles needs the master's id then one id per worker, in rank order")
         self.address, self.ids, self.timeout_s = address, vehicle_ids, timeout_s
         self.failures = 0
+        self.state: dict = {}  # the last answer
 
     def distances_m(self, iteration: int, elapsed_s: float) -> dict[int, float | None]:
         try:
-            state = fetch_state(self.address, self.timeout_s)
+            self.state = fetch_state(self.address, self.timeout_s)
         except StateFeedError:
             self.failures += 1
+            self.state = {}
             return {rank: None for rank in range(1, len(self.ids))}
-        return {rank: distance_between(state, self.ids[0], vehicle) for rank, vehicle in
+        return {rank: distance_between(self.state, self.ids[0], vehicle) for rank, vehicle in
                 enumerate(self.ids[1:], start=1)}
+
+    def measured_rates_bps(self, max_age_s: float) -> dict[int, float | None]:
+        """Each worker's rate as the master's agent last measured it (its probes in the last answer), if no older
+        than max_age_s wall seconds; None where there is none. A value that is not a finite rate is none."""
+        probes = self.state.get("probes") if isinstance(self.state, dict) else None
+        out: dict[int, float | None] = {}
+        for rank, vehicle in enumerate(self.ids[1:], start=1):
+            probe = probes.get(vehicle) if isinstance(probes, dict) else None
+            bps, age = (probe.get("bits_per_second"), probe.get("age_s")) if isinstance(probe, dict) else (None, None)
+            fresh = all(isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x) and x >= 0
+                        for x in (bps, age)) and age <= max_age_s
+            out[rank] = float(bps) if fresh else None
+        return out
 
 
 def wait_for_feed(source: FeedDistances, timeout_s: float) -> None:

@@ -34,19 +34,22 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from nac_onboard.child_process import die_with_parent
-from nac_onboard.compute import kernels
+from nac_onboard.compute.allocation import Planner
 from nac_onboard.compute.device import CpuStretch
 from nac_onboard.compute.iteration import IterationLinks
 from nac_onboard.compute.messages import (
     BITS_PER_FLOAT,
     KIND_EXTRA,
+    KIND_PLAN,
     KIND_STOP,
     KIND_WARMUP,
     KIND_WORK,
+    RESULT_BATCH,
     RESULT_COMPUTE_S,
     RESULT_HEADER,
     RESULT_ITERATION,
     RESULT_LATE,
+    RESULT_MORE,
     RESULT_ROWS,
     RESULT_SSE,
     RESULT_UP_S,
@@ -153,13 +156,17 @@ def run_worker(comm, mpi, options: ComputeOptions, log: JsonlLog) -> bool:
     task.split(bounds)
     task.take_block(rank)
     pad = pad_floats(options.pad_bits)
-    inbox = Inbox(comm, mpi, [0], TAG_WORK, WORK_HEADER + task.largest_input(), pad)
+    inbox = Inbox(comm, mpi, [0], TAG_WORK, WORK_HEADER + max(task.largest_input(), 2 * len(bounds)), pad)
     emulation = SleepEmulation(options.channel, options.clock)
-    stretch = CpuStretch(options.device.slowdown, options.clock)
+    stretch = CpuStretch(options.device_for(rank).slowdown, options.clock)
     warmup_answer = message_buffer(WARMUP_ANSWER, 0, pad)
     answers = {}  # reused answer buffers by result size: no allocation per iteration
+    early = None  # a message that came while a batched answer was still being worked on
     while True:
-        _, message = inbox.receive(time.monotonic() + options.clock.wall_s(options.idle_timeout_s))
+        if early is not None:
+            message, early = early, None
+        else:
+            _, message = inbox.receive(time.monotonic() + options.clock.wall_s(options.idle_timeout_s))
         if message is None:
             log.write(kinds.WORKER_GAVE_UP, rank=rank, idle_timeout_s=options.idle_timeout_s)
             log.close()
@@ -172,17 +179,35 @@ def run_worker(comm, mpi, options: ComputeOptions, log: JsonlLog) -> bool:
         if kind == KIND_WARMUP:
             comm.Send([warmup_answer, mpi.DOUBLE], dest=0, tag=TAG_RESULT)
             continue
-        t0 = time.perf_counter()
-        stretch.begin()
-        result, rows, sse = task.work(message[WORK_HEADER:], int(extra_rows) if kind == KIND_EXTRA else None)
-        compute_s = stretch.hold() if stretch.active else time.perf_counter() - t0
-        up_s = emulation.delay(result.size * BITS_PER_FLOAT, rate_bps, loss, phy_bps)
-        answer = answers.get(result.size)
-        if answer is None:
-            answer = answers[result.size] = message_buffer((), RESULT_HEADER + result.size, pad)
-        answer[:RESULT_HEADER] = (iteration, compute_s, up_s, rows, sse, stretch.late)
-        answer[RESULT_HEADER:RESULT_HEADER + result.size] = result
-        comm.Send([answer, mpi.DOUBLE], dest=0, tag=TAG_RESULT)
+        if kind == KIND_PLAN:
+            task.split(plan_of(message[WORK_HEADER:]))
+            task.take_block(rank)
+            continue
+        extra = int(extra_rows) if kind == KIND_EXTRA else None
+        batches = 1 if extra is not None else task.batches()
+        for batch in range(batches):
+            if batch:  # the next iteration's input already here: this one is decoded, the rest is not needed
+                early = inbox.receive(time.monotonic())[1]
+                if early is not None:
+                    break
+            t0 = time.perf_counter()
+            stretch.begin()
+            result, rows, sse = task.work(message[WORK_HEADER:], extra) if batches == 1 else \
+                task.work_batch(message[WORK_HEADER:], batch)
+            compute_s = stretch.hold() if stretch.active else time.perf_counter() - t0
+            up_s = emulation.delay(result.size * BITS_PER_FLOAT, rate_bps, loss, phy_bps)
+            answer = answers.get(result.size)
+            if answer is None:
+                answer = answers[result.size] = message_buffer((), RESULT_HEADER + result.size, pad)
+            answer[:RESULT_HEADER] = (iteration, compute_s, up_s, rows, sse, stretch.late, batch, batch < batches - 1)
+            answer[RESULT_HEADER:RESULT_HEADER + result.size] = result
+            comm.Send([answer, mpi.DOUBLE], dest=0, tag=TAG_RESULT)
+
+
+def plan_of(payload: np.ndarray) -> list[tuple[int, int]]:
+    """Every worker's [start, stop) from a KIND_PLAN payload."""
+    flat = payload.astype(int).tolist()
+    return list(zip(flat[0::2], flat[1::2], strict=True))
 
 
 # ---- master ----------------------------------------------------------------------------------------------------
@@ -205,7 +230,8 @@ class Master:
         self.pad = pad_floats(options.pad_bits)
         self.emulation = SleepEmulation(options.channel, self.clock) if options.emulate == "sleep" else None
         self.task: Task = options.task_class(options)
-        self.stretch = CpuStretch(options.device.slowdown, self.clock)
+        self.planner = Planner(options, self.workers, self.task, self.source)
+        self.stretch = CpuStretch(options.device_for(0).slowdown, self.clock)
         self.late_by_worker: dict[int, int] = {}  # rank -> its late work segments so far (its last answer's count)
         self.bounds: list[tuple[int, int]] = []
         self.stale_results = 0
@@ -241,16 +267,29 @@ class Master:
                         links.absent[k] = "out_of_range"
         return links
 
-    def allocation(self, rows: int) -> list[tuple[int, int]]:
-        shares = [1.0] * len(self.workers)
-        if self.options.allocation == "capacity":
-            links = self.link(self.source.distances_m(0, 0.0) if self.source else {})
-            shares = [rate or 0.0 for rate in links.rate_bps]
-            if sum(shares) <= 0:
-                shares = [1.0] * len(self.workers)
-        elif self.options.allocation == "energy":
-            shares = list(self.options.energy_wh)
-        return kernels.split_rows(rows, shares)
+    def replan(self, iteration: int, distances: dict, links: IterationLinks) -> None:
+        """--replan-every: new blocks every N iterations, and at once when a worker is absent or unresponsive
+        (planned out) or back; KIND_PLAN to every worker MPI has not lost, before this iteration's inputs (MPI keeps
+        a sender's order, so each worker works on the new blocks from this iteration on)."""
+        why = self.planner.why_now(iteration, links)
+        if why is None:
+            return
+        shares, bounds = self.planner.blocks(distances, self.bounds, self.planner.planned_out)
+        if bounds == self.bounds:
+            return
+        self.bounds = bounds
+        self.task.split(bounds)
+        payload = np.array([x for block in bounds for x in block], dtype=float)
+        message = message_buffer(work_header(KIND_PLAN, iteration), payload.size, self.pad)
+        message[WORK_HEADER:WORK_HEADER + payload.size] = payload
+        timeout_s = self.clock.wall_s(self.options.timeout_s)
+        for rank in self.workers:
+            if rank not in self.lost and not self._send_within(rank, message, timeout_s):
+                message = message.copy()
+            links.bytes_down[rank - 1] += message.nbytes
+        self.log.write(kinds.BLOCKS_PLANNED, iteration=iteration, why=why, shares=shares, bounds=bounds,
+                       planned_out=sorted(self.planner.planned_out), rates_bps=self.planner.rates_bps,
+                       link_rates=self.options.link_rates)
 
     def send(self, rank: int, kind: float, iteration: int, payload: np.ndarray, links: IterationLinks,
              extra_rows: int = 0, message: np.ndarray | None = None) -> np.ndarray:
@@ -369,7 +408,7 @@ class Master:
         self.write_pending()
         answers = self.collect(iteration, set(present), links, self.deadline(t_start))
         record = {}
-        missing = [r for r in self.workers if r not in answers]
+        missing = [r for r in self.workers if r not in answers and self.bounds[r - 1][0] < self.bounds[r - 1][1]]
         plan = task.plan_missing(iteration, payload, missing, [r for r in self.workers if r in answers]) \
             if missing else []
         if plan:
@@ -412,25 +451,31 @@ class Master:
             if int(buf[RESULT_ITERATION]) != iteration or rank not in waiting:
                 self.stale_results += 1  # an answer that came after its iteration was closed
                 continue
-            waiting.discard(rank)
             k = rank - 1
-            links.compute_s[k], links.up_s[k] = float(buf[RESULT_COMPUTE_S]), float(buf[RESULT_UP_S])
+            links.compute_s[k] = (links.compute_s[k] or 0.0) + float(buf[RESULT_COMPUTE_S])
+            links.up_s[k] += float(buf[RESULT_UP_S])
             self.late_by_worker[rank] = int(buf[RESULT_LATE])
             links.bytes_up[k] += buf.nbytes
-            results[rank] = answer_of(buf)
+            answer = answer_of(buf)
+            if rank in results:  # a batched task's next batch (a worker's batches come in order)
+                results[rank] = merge(results[rank], answer)
+            elif int(buf[RESULT_BATCH]) == 0:
+                results[rank] = answer
+            if buf[RESULT_MORE] == 0:
+                waiting.discard(rank)
         alive = set(results)
         if waiting and self.task.enough(results):
             # decoded without the rest: not absent, and not missed while their late answers keep coming (a dead
             # worker's never do: after UNRESPONSIVE_AFTER iterations unheard it is not sent to, only pinged)
             waiting, alive = set(), alive | heard
-        for rank in waiting:
+        for rank in waiting - set(results):  # a batched answer cut short by the deadline still counts
             links.absent[rank - 1] = "timeout"
         self._note_answers(iteration, waited, alive)
         return results
 
     def run(self) -> int:
         o, task = self.options, self.task
-        self.bounds = self.allocation(task.rows())
+        self.bounds = self.planner.blocks(self.source.distances_m(0, 0.0) if self.source else {}, self.bounds)[1]
         self.comm.bcast(self.bounds, root=0)
         task.split(self.bounds)
         self.inbox = Inbox(self.comm, self.mpi, self.workers, TAG_RESULT, RESULT_HEADER + task.largest_result(),
@@ -443,7 +488,9 @@ class Master:
                        channel_validity=o.channel.validity() if emulating else None,
                        iterations=o.iterations, duration_s=o.duration_s, timeout_s=o.timeout_s,
                        on_missing=o.on_missing, allocation=o.allocation, pid=os.getpid(), device=o.device.name,
-                       cpu_slowdown=o.device.slowdown, device_source=o.device.source)
+                       cpu_slowdown=o.device.slowdown, device_source=o.device.source,
+                       worker_devices=[o.device_for(r).name for r in self.workers], replan_every=o.replan_every,
+                       link_rates=o.link_rates)
         self.wait_for_start()
         t_run, t_run_sim = time.monotonic(), self.clock.now_s()
         iteration, ended_by, idle_s = 0, "iterations", 0.0
@@ -457,8 +504,12 @@ class Master:
                 ended_by = "end_at"
                 break
             t_start, start_unix, start_sim = time.monotonic(), time.time(), self.clock.now_s()
-            links = self.link(self.source.distances_m(iteration, start_sim - t_run_sim) if self.source else {})
-            present = [r for r in self.workers if links.present(r)]
+            distances = self.source.distances_m(iteration, start_sim - t_run_sim) if self.source else {}
+            links = self.link(distances)
+            if o.replan_every and task.replans:
+                self.replan(iteration, distances, links)
+            # a worker planned out (an empty block) is not sent work: it is not waited for either
+            present = [r for r in self.workers if links.present(r) and self.bounds[r - 1][0] < self.bounds[r - 1][1]]
             self._stalled_s = 0.0
             if self._stuck or self.inbox.failed:
                 self._reap()
@@ -587,6 +638,11 @@ class Master:
 def answer_of(buf: np.ndarray) -> Answer:
     """A worker's answer as its task's `work` returned it (the result message without its header)."""
     return Answer(buf[RESULT_HEADER:], int(buf[RESULT_ROWS]), float(buf[RESULT_SSE]))
+
+
+def merge(first: Answer, then: Answer) -> Answer:
+    """A worker's batches so far as one answer: results in batch order, rows and squared errors added."""
+    return Answer(np.concatenate([first.values, then.values]), first.rows + then.rows, first.sse + then.sse)
 
 
 def read_start_file(path: str) -> float | None:

@@ -2,14 +2,20 @@
 --task value) and touches no MPI: the runner owns sending, deadlines, absences, retries and collecting.
 
 The runner splits `rows()` into one block per worker (`split(bounds)` on every rank; worker rank r holds block
-r - 1, `take_block`). Each iteration the master sends `next_input()` to the workers present, each answers with
-`work()` on its block, and after the deadline the master asks `plan_missing()` what to send again for the blocks
-that did not arrive (by default nothing), collects those answers too, and `combine()`s everything that arrived.
+r - 1, `take_block`; the master may re-plan the blocks during the run, and every worker then splits and takes its
+block again). Each iteration the master sends `next_input()` to the workers present, each answers with
+`work()` on its block (a batched task: `work_batch()` for each of its `batches()`, each sent as it is done,
+which the master merges in order), and after the deadline the master asks `plan_missing()` what to send again for
+the blocks that did not arrive (by default nothing), collects those answers too, and `combine()`s everything that
+arrived.
 """
 
 from __future__ import annotations
 
+import math
+import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from typing import ClassVar, NamedTuple
 
 import numpy as np
@@ -36,6 +42,7 @@ class Task(ABC):
     name: ClassVar[str]  # the --task value
     default_iterations: ClassVar[int]
     summary: ClassVar[str]  # one line for --help
+    replans: ClassVar[bool] = True  # whether its blocks may be re-planned during the run (a code fixes them)
 
     def __init__(self, options):
         self.options = options  # ComputeOptions
@@ -56,6 +63,11 @@ class Task(ABC):
     @abstractmethod
     def rows(self) -> int:
         """Rows shared out among the workers."""
+
+    def row_cost(self) -> tuple[float, float]:
+        """(this host's CPU seconds, result bits) per row of `rows()`: what `--allocation speed` weighs against each
+        worker's device and link. Default: unknown (equal weight for the CPU, nothing for the link)."""
+        return 1.0, 0.0
 
     def split(self, bounds: list[tuple[int, int]]) -> None:
         """The run's blocks, one per worker (rank r: bounds[r - 1]); called once on every rank, before the rest."""
@@ -81,6 +93,15 @@ class Task(ABC):
     @abstractmethod
     def work(self, payload: np.ndarray, extra_rows: int | None = None) -> Answer:
         """The work on this worker's block for one input; with extra_rows, on an Extra's payload instead."""
+
+    def batches(self) -> int:
+        """Answers a worker sends per iteration: a batched task's worker sends each batch's result as soon as it is
+        done (`work_batch`), so the master can use a slow worker's partial work. Default: one answer, `work`'s."""
+        return 1
+
+    def work_batch(self, payload: np.ndarray, batch: int) -> Answer:
+        """Batch `batch` (0-based) of this worker's work for one input (a batched task only)."""
+        raise NotImplementedError
 
     # ---- master ---------------------------------------------------------------------------------------------
     @abstractmethod
@@ -110,3 +131,13 @@ class Task(ABC):
     def final(self) -> dict:
         """The run summary's task fields."""
         return {}
+
+
+def timed(work: Callable[[], object], repeats: int = 3) -> float:
+    """The least of `repeats` CPU-time measurements of `work()` on this host, seconds."""
+    best = math.inf
+    for _ in range(repeats):
+        t0 = time.process_time()
+        work()
+        best = min(best, time.process_time() - t0)
+    return best

@@ -221,10 +221,14 @@ RUN_STARTED = Kind("run_started", COMPUTE_LOG, "the job is set up (after one unt
     opt("channel", "string", "", "the emulated channel"), opt("channel_validity", "any", "", "its model's range"),
     opt("iterations", "integer", "", "iterations asked for"), opt("duration_s", "number", "s", "duration asked for"),
     req("timeout_s", "number", "s", "a worker's answer deadline"), req("on_missing", "string", "", "skip or reassign"),
-    req("allocation", "string", "", "rows per worker: equal or capacity"), req("pid", "integer", "", "master's pid"),
+    req("allocation", "string", "", "rows per worker: equal, capacity, speed or energy"),
+    req("pid", "integer", "", "master's pid"),
     opt("device", "string", "", "the companions' device profile (host: this machine's speed)"),
     opt("cpu_slowdown", "number", "", "the profile's CPU seconds per CPU second of this host"),
     opt("device_source", "string", "", "who measured the slowdown, on what"),
+    opt("worker_devices", "list", "", "each worker's device profile, rank order (--device-of: one unlike the rest)"),
+    opt("replan_every", "integer", "", "blocks re-planned every this many iterations and on absences (0: never)"),
+    opt("link_rates", "string", "", "what the allocation expects of the links: model or probes"),
 ))
 STARTED = Kind("started", COMPUTE_LOG, "the go arrived (--start-file)", (
     req("start_file", "string", "", "its path"), opt("end_at_s", "number", "s", "simulated time to end at")))
@@ -244,10 +248,10 @@ ITERATION = Kind("iteration", COMPUTE_LOG, "one iteration; `workers` holds one l
     opt("reassigned", "object", "", "a task's plan for missing blocks (matmul --on-missing reassign): who computed "
                                     "whose rows"),
 ), open="a task's own fields (cost and rows_used are linreg's; the coded tasks' decoded_from, decode_s, condition "
-        "and decode_error, in their modules' docstrings): a new task in nac_onboard/compute/tasks/ adds its fields "
-        "from its own module")
+        "and decode_error, and matmul_bpcc's units, in their modules' docstrings): a new task in "
+        "nac_onboard/compute/tasks/ adds its fields from its own module")
 RUN_SUMMARY = Kind("run_summary", COMPUTE_LOG, "the job's end", (
-    req("task", "string", "", "the task's name (linreg, matmul, or a coded one: linreg_gc, matmul_mds)"),
+    req("task", "string", "", "the task's name (linreg, matmul, or a coded one: linreg_gc, matmul_mds, matmul_bpcc)"),
     req("iterations", "integer", "", "iterations run"),
     req("complete_iterations", "integer", "", "with every worker"), req("ended_by", "string", "", "why it stopped"),
     req("elapsed_s", "number", "s", "wall time"), req("elapsed_sim_s", "number", "s", "simulated time"),
@@ -259,6 +263,14 @@ RUN_SUMMARY = Kind("run_summary", COMPUTE_LOG, "the job's end", (
                                             "profile on the run's clock: their timings depend on the speed-up"),
     opt("final_cost", "number", "", "linreg: the last cost"),
 ), open="a task's own fields (Task.final(); final_cost is linreg's)")
+BLOCKS_PLANNED = Kind("blocks_planned", COMPUTE_LOG, "the master re-planned the workers' blocks (--replan-every)", (
+    req("iteration", "integer", "", "the first iteration on the new blocks"),
+    req("why", "string", "", "period (every --replan-every iterations), absent or back (a worker left or rejoined)"),
+    req("shares", "list", "", "each worker's share, rank order (0: planned out)"),
+    req("bounds", "list", "", "each worker's [start, stop) of the task's rows (or coded units), rank order"),
+    req("planned_out", "list", "", "ranks absent or unresponsive, given nothing"),
+    opt("rates_bps", "list", "bit/s", "what the allocation expected of each worker's link (capacity, speed)"),
+    opt("link_rates", "string", "", "where those rates came from: model, or probes (the model where none fresh)")))
 WORKER_LOST = Kind("worker_lost", COMPUTE_LOG, "an MPI call to a worker failed: it is not sent to again", (
     req("rank", "integer", "", "MPI rank"), req("vehicle", "string", "", "its vehicle"),
     req("error", "string", "", "MPI's error")))

@@ -95,7 +95,9 @@ def compute_args(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: 
             "--channel", str(run_channel_path(run_dir)), "--positions", "feed", "--feed", f"127.0.0.1:{ports.feed()}",
             "--vehicles", ",".join(ids), "--timeout-s", str(c.timeout_s), "--on-missing", c.on_missing,
             "--allocation", c.allocation, *energy_args(scenario), "--device", c.device, "--code-k", str(c.code_k),
-            "--code-s", str(c.code_s), *c.args]
+            "--code-s", str(c.code_s), "--code-redundancy", f"{c.code_redundancy:g}", "--batch-units",
+            str(c.batch_units), "--replan-every", str(c.replan_every), "--link-rates", c.link_rates,
+            *(f"--device-of={w.id}={w.device}" for w in scenario.vehicles if w.device), *c.args]
 
 
 def energy_args(scenario: Scenario) -> list[str]:

@@ -53,8 +53,8 @@ def namespace_bytes(pid: int | None) -> tuple[int, int] | None:
 
 class EnergyMeter:
     def __init__(self, vehicle_ids: list[str], plan, companion_mah: list[float], frames: list[str], log: JsonlLog,
-                 slowdown: float, radio_counted: bool):
-        self.ids, self.log, self.slowdown = vehicle_ids, log, slowdown
+                 slowdowns: list[float], radio_counted: bool):
+        self.ids, self.log, self.slowdowns = vehicle_ids, log, slowdowns  # each companion's device profile
         self.companion, self.radio = energy.COMPANIONS[plan.companion], energy.RADIOS[plan.radio]
         self.efficiency = plan.dc_dc_efficiency
         self.packs = [energy.Pack(plan.companion_cells, mah) for mah in companion_mah]
@@ -90,7 +90,7 @@ class EnergyMeter:
             return []
         emptied = []
         for i, vehicle in enumerate(self.ids):
-            busy = self._share(cpu_s[i], self._cpu_s[i], max(self.slowdown, speedup) / dt_s)
+            busy = self._share(cpu_s[i], self._cpu_s[i], max(self.slowdowns[i], speedup) / dt_s)
             rx_share = tx_share = 0.0
             rate_bps = (rates_bps[i] if rates_bps else None) or self.radio.phy_rate_bps
             if self.radio_counted and net_bytes[i] is not None and self._bytes[i] is not None:

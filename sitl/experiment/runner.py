@@ -450,15 +450,15 @@ class Experiment:
 
     def _start_energy(self) -> None:
         s = self.scenario
-        slowdown = 1.0
-        if s.compute is not None and s.compute.device != "host":
-            slowdown = load_device_profile(s.compute.device).slowdown
+        fleet = s.compute.device if s.compute is not None else "host"
+        slowdowns = [1.0 if (v.device or fleet) == "host" else load_device_profile(v.device or fleet).slowdown
+                     for v in s.vehicles]
         self.energy_log = JsonlLog(kinds.ENERGY_LOG.at(self.run_dir))
         frames = [s.frame.name if s.frame else energy.FRAME_NAMES[int(self.sim.world.params.get(i, "NAC_FRAME"))]
                   for i in range(len(s.vehicles))]
         self.energy = EnergyMeter([v.id for v in s.vehicles], s.energy,
                                   [s.companion_mah(v) for v in s.vehicles], frames,
-                                  self.energy_log, slowdown, radio_counted=self.air is not None)
+                                  self.energy_log, slowdowns, radio_counted=self.air is not None)
         self._meter()
 
     def _meter(self) -> None:

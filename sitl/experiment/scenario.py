@@ -7,12 +7,14 @@
                background_airtime = 0.2         # any other channel field overrides the preset's
     [compute]  task = "linreg"  iterations = 0  timeout_s = 3.0  args = []   # no [compute]: no MPI job
                device = "host"                  # or a device profile file: the companions' CPU (docs/compute.md)
-               code_k = 0  code_s = 1           # matmul_mds / linreg_gc: the code (docs/compute.md)
+               code_k = 0  code_s = 1           # matmul_mds / linreg_gc / matmul_bpcc: the code (docs/compute.md)
+               allocation = "speed"  replan_every = 10   # blocks by each worker's speed, re-planned as links change
     [throughput]  period_s = 2.0  duration_s = 0.5  interval_s = 0.1
     [network]  period_s = 0.1  sharing = true   # the kernel network's shaper and the access point's airtime
                air = "htb"  queue_packets = 1000  # or "medium": the 802.11 medium frame by frame (issue 28)
     [energy]  companion = "jetson-tx2"  radio = "wifi-router"  companion_mah = 1300   # the companions' side
     [[vehicle]]  id = "master"  role = "master"  mission = "paper-flight-moving/master.plan"  # companion_mah = 500
+                 device = "slow.toml"           # this companion's own device profile (a slow one among the rest)
     [[fault]]  at_s = 60  vehicle = "w1"  kind = "link_down"  duration_s = 5
 
 A vehicle's home is its mission's planned home (so the plan and the simulator cannot disagree); a vehicle without
@@ -50,7 +52,7 @@ MAX_DURATION_S = 7 * 86400.0  # simulated seconds: a week, far beyond any batter
 MAX_SPEEDUP = 1000.0  # as nac-sitl run --speedup
 TOP_KEYS = ("name", "description", "duration_s", "max_speedup", "default_speedup", "notes", "params", "channel",
             "compute", "throughput", "network", "energy", "vehicle", "fault")
-VEHICLE_KEYS = ("id", "role", "mission", "home", "companion_mah")
+VEHICLE_KEYS = ("id", "role", "mission", "home", "companion_mah", "device")
 FAULT_VALUE_RANGES = {"battery_pct": (0.0, 100.0), "packet_loss_pct": (0.0, 100.0)}
 
 
@@ -66,6 +68,7 @@ class VehiclePlan:
     mission: Mission | None = None
     mission_path: Path | None = None
     companion_mah: float | None = None  # this vehicle's companion pack, if not [energy]'s
+    device: str | None = None  # this companion's device profile (an absolute path), if not [compute]'s
 
 
 @dataclass(frozen=True)
@@ -78,6 +81,10 @@ class ComputePlan:
     device: str = "host"  # the companions' CPU: "host" or a device profile file (nac_onboard/compute/device.py)
     code_k: int = ranged(0, 0, 10_000)  # matmul_mds: results that decode (0: the workers less one)
     code_s: int = ranged(1, 0, 10_000)  # linreg_gc: stragglers tolerated
+    code_redundancy: float = ranged(1.5, 1.0, 10.0)  # matmul_bpcc: coded units per data block
+    batch_units: int = ranged(1, 1, 10_000)  # matmul_bpcc: units per batch sent back
+    replan_every: int = ranged(0, 0, 10_000_000)  # iterations between re-plans of the blocks (0: never)
+    link_rates: str = "model"  # what the allocation expects of the links: the channel model or the master's probes
     args: tuple[str, ...] = ()
 
 
@@ -212,7 +219,7 @@ def load_scenario(name_or_path: str) -> Scenario:
     if scenario.compute is not None:  # a code the fleet cannot hold: refused before anything starts
         c = scenario.compute
         options = ComputeOptions(task=c.task, iterations=None, duration_s=None, out="", code_k=c.code_k,
-                                 code_s=c.code_s)
+                                 code_s=c.code_s, code_redundancy=c.code_redundancy, batch_units=c.batch_units)
         try:
             all_tasks()[c.task].check_workers(options, len(scenario.workers))
         except ValueError as err:
@@ -288,14 +295,16 @@ def _vehicle(table: dict, scenario_path: Path, where: str) -> VehiclePlan:
         if mission.home is None:
             raise ScenarioError(f"{where} ({vehicle_id}): {mission_path} has no plannedHomePosition")
         home = Home(mission.home.lat_deg, mission.home.lon_deg, mission.home.alt_m)
-        return VehiclePlan(vehicle_id, role, home, mission, mission_path, _companion_mah(table, where, vehicle_id))
+        return VehiclePlan(vehicle_id, role, home, mission, mission_path, _companion_mah(table, where, vehicle_id),
+                           _device(table, scenario_path, where, vehicle_id))
     home = table.get("home")
     if not (isinstance(home, list) and len(home) == 3):
         raise ScenarioError(f"{where} ({vehicle_id}): give mission = \"FILE.plan\" or home = [lat, lon, alt_m]")
     lat, lon, alt = (check_number(x, f"{where} ({vehicle_id}): home[{k}] ({name})", low, high, error=ScenarioError)
                      for k, (x, name, low, high) in enumerate(zip(home, ("latitude", "longitude", "altitude m"),
                                                                   (-90, -180, -500), (90, 180, 10_000), strict=True)))
-    return VehiclePlan(vehicle_id, role, Home(lat, lon, alt), companion_mah=_companion_mah(table, where, vehicle_id))
+    return VehiclePlan(vehicle_id, role, Home(lat, lon, alt), companion_mah=_companion_mah(table, where, vehicle_id),
+                       device=_device(table, scenario_path, where, vehicle_id))
 
 
 def _companion_mah(table: dict, where: str, vehicle_id: str) -> float | None:
@@ -305,19 +314,32 @@ def _companion_mah(table: dict, where: str, vehicle_id: str) -> float | None:
                         low_open=True, unit="mAh", error=ScenarioError)
 
 
+def _device_path(value: str, scenario_path: Path, where: str) -> str:
+    """A device profile named in a scenario: relative to it, checked now (a bad profile: exit 2 naming its field)."""
+    device_path = scenario_path.parent / value
+    try:
+        load_device_profile(device_path)
+    except BadInput as err:
+        raise ScenarioError(f"{where}: device: {err}") from None
+    return str(device_path.resolve())
+
+
+def _device(table: dict, scenario_path: Path, where: str, vehicle_id: str) -> str | None:
+    if "device" not in table:
+        return None
+    return _device_path(get_value(table, "device", "str", where, ScenarioError), scenario_path,
+                        f"{where} ({vehicle_id})")
+
+
 def _compute(table: dict, path: Path, where: str) -> ComputePlan:
     plan = to_dataclass(ComputePlan, table, where, ScenarioError, table="compute")
-    if plan.device != "host":  # relative to the scenario; checked now (a bad profile: exit 2 naming its field)
-        device_path = path.parent / plan.device
-        try:
-            load_device_profile(device_path)
-        except BadInput as err:
-            raise ScenarioError(f"{where}: device: {err}") from None
-        plan = dataclasses.replace(plan, device=str(device_path.resolve()))
+    if plan.device != "host":
+        plan = dataclasses.replace(plan, device=_device_path(plan.device, path, where))
     tasks = all_tasks()
     if plan.task not in tasks:
         raise ScenarioError(f"{where}: compute.task must be one of {', '.join(tasks)}, got {plan.task!r}")
-    choices = {"on_missing": ("incomplete", "reassign"), "allocation": ("equal", "capacity", "energy")}
+    choices = {"on_missing": ("incomplete", "reassign"), "allocation": ("equal", "capacity", "speed", "energy"),
+               "link_rates": ("model", "probes")}
     for key, allowed in choices.items():
         if getattr(plan, key) not in allowed:
             raise ScenarioError(f"{where}: compute.{key} must be one of {', '.join(allowed)}, "

@@ -45,11 +45,7 @@ def test_mds_matmul_decodes_a_times_b_every_iteration_with_a_worker_killed(tmp_p
     assert summary[0]["lost_workers"] == [3] and summary[0]["code"] == "(3, 2) systematic, Cauchy parity"
     after = [r for r in read.of_kind("iteration") if r["iteration"] > killed_at]
     assert all(r["complete"] and 3 not in r["decoded_from"] for r in after)
-    a, _ = matmul_inputs(5, 12, 50)
-    saved = np.load(tmp_path / "results.npz")
-    for k in range(summary[0]["iterations"]):
-        expected = a @ saved[f"B_{k}"]
-        assert np.linalg.norm(saved[f"C_{k}"] - expected) <= 1e-9 * np.linalg.norm(expected), f"iteration {k}"
+    _products_are_a_times_b(tmp_path, summary[0], 12, 50, 5)
 
 
 @beside_the_exclusive_tests
@@ -70,6 +66,69 @@ def test_gradient_coded_training_with_a_worker_killed_follows_uncoded_training_w
     w, costs = kernels.gradient_descent(x, y, np.zeros(x.shape[1]), 0.05, len(iterations))
     assert np.allclose([r["cost"] for r in iterations], costs, rtol=1e-6, atol=0)
     assert np.allclose(np.load(tmp_path / "results.npz")["weights"], w, rtol=1e-6, atol=1e-9)
+
+
+def _products_are_a_times_b(out: Path, summary: dict, m: int, n: int, seed: int) -> None:
+    a, _ = matmul_inputs(seed, m, n)
+    saved = np.load(out / "results.npz")
+    for k in range(summary["iterations"]):
+        expected = a @ saved[f"B_{k}"]
+        assert np.linalg.norm(saved[f"C_{k}"] - expected) <= 1e-9 * np.linalg.norm(expected), f"iteration {k}"
+
+
+@beside_the_exclusive_tests
+def test_bpcc_decodes_a_times_b_every_iteration_with_a_worker_killed(tmp_path):
+    """Three workers holding 3 of the (9, 6) code's units each: after worker 2 is killed, the 6 units of workers 1
+    and 3 still decode A B in every iteration (each saved product checked), and worker 2's units are never used."""
+    with job("--task", "matmul_bpcc", "--m", "12", "--n", "50", "--l", "2", "--seed", "5", "--duration-s", "1.5",
+             "--timeout-s", "10", "--save-results", "--checkpoint-s", "0.5", "--out", str(tmp_path),
+             ranks=4) as proc:
+        killed_at = _kill_worker_midway(tmp_path, proc, 2)
+        proc.wait(timeout=60)
+    read = read_jsonl(tmp_path / "compute.jsonl")
+    summary = read.of_kind("run_summary")
+    assert summary, proc.stderr.read().decode()[-2000:]
+    assert summary[0]["iterations"] == summary[0]["complete_iterations"] > killed_at + 10
+    assert summary[0]["lost_workers"] == [2] and summary[0]["code"].startswith("(9, 6) systematic")
+    after = [r for r in read.of_kind("iteration") if r["iteration"] > killed_at]
+    assert all(r["complete"] and r["units"][1] == 0 and sum(r["units"]) >= 6 for r in after)
+    _products_are_a_times_b(tmp_path, summary[0], 12, 50, 5)
+
+
+def _slow_run(tmp_path, name: str, slowdown: float, *args: str):
+    """30 iterations of matmul_bpcc (A 80 x 2000, k = 8) with worker 3's companion `slowdown` times slower than the
+    others (--device-of); its records."""
+    profile = tmp_path / f"{name}.toml"
+    profile.write_text(f'[device]\nname = "{name}"\nslowdown = {slowdown}\nsource = "a test"\n')
+    out = tmp_path / name
+    done = run_mpi(4, "--task", "matmul_bpcc", "--m", "80", "--n", "2000", "--l", "1", "--seed", "7", "--code-k", "8",
+                   "--device-of", f"rank3={profile}", "--iterations", "30", "--timeout-s", "10", "--save-results",
+                   "--checkpoint-s", "0", "--out", str(out), *args, timeout_s=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    read = read_jsonl(out / "compute.jsonl")
+    summary = read.of_kind("run_summary")[0]
+    assert summary["complete_iterations"] == 30
+    _products_are_a_times_b(out, summary, 80, 2000, 7)
+    return read
+
+
+@beside_the_exclusive_tests
+def test_bpcc_counts_a_slow_companions_first_batches_and_gives_it_fewer_units_by_speed(tmp_path):
+    """A (10, 8) code, equal units (3, 4, 3): workers 1 and 2 give 7 units, so every iteration needs 1 of slow
+    worker 3's 3, sent one batch at a time, and the master decodes as soon as it is in (the median iteration uses
+    exactly 1 of them, all 3 only if the fast ones were late). By `--allocation speed`, a worker 4 times
+    slower gets fewer of 12 units than the others. Every product is A B. The slowdown holds each of worker 3's
+    batches for 20 x its CPU time (process CPU time: other processes' load does not count), so its batches come
+    after the fast workers' even on a loaded machine; what is judged is units, not times."""
+    batched = _slow_run(tmp_path, "slow20", 20, "--code-redundancy", "1.25")
+    started = batched.of_kind("run_started")[0]
+    assert [stop - start for start, stop in started["shards"]] == [3, 4, 3]
+    assert started["worker_devices"] == ["host", "host", "slow20"]
+    from_slow = [r["units"][2] for r in batched.of_kind("iteration")]
+    assert min(from_slow) >= 1 and np.median(from_slow) == 1, from_slow
+    by_speed = _slow_run(tmp_path, "slow4", 4, "--allocation", "speed")
+    units = [stop - start for start, stop in by_speed.of_kind("run_started")[0]["shards"]]
+    assert sum(units) == 12 and 0 < units[2] < min(units[:2]), units
 
 
 def test_impossible_codes_exit_2_on_every_rank_before_any_work(tmp_path):

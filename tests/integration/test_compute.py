@@ -153,6 +153,34 @@ def test_worker_out_of_range_is_absent_and_rejoins_while_training_continues(tmp_
     assert records(tmp_path, "run_summary")[0]["absent_iterations"] == {"1": 0, "2": 30}
 
 
+@pytest.mark.parametrize("allocation", ["capacity", "speed"])
+def test_replanned_blocks_follow_the_links_and_plan_an_absent_worker_out(tmp_path, allocation):
+    """The same flight with --replan-every 10: worker 2 at 16 m has a slower link than worker 1 at 8 m, so it gets
+    fewer rows (capacity: in proportion to the model's rates; speed: to rows per second, here from the CPU alone,
+    as linreg's result does not grow with rows, so equal); while it is out of range, worker 1 is planned all 517
+    rows and every iteration is complete; back, the blocks are planned again with it. Each plan is a record, and
+    the training cost falls throughout."""
+    script = tmp_path / "flight.json"
+    script.write_text(json.dumps({"by": "iteration", "distances_m": {
+        "1": [[0, 8.0]], "2": [[0, 16.0], [50, 30.0], [80, 16.0]]}}))
+    result = run_mpi(3, "--task", "linreg", "--iterations", "120", "--out", str(tmp_path), "--emulate", "sleep",
+                     "--channel", wifi(tmp_path), "--positions", "script", "--positions-script", str(script),
+                     "--allocation", allocation, "--replan-every", "10")
+    assert result.returncode == 0, result.stderr
+    first = records(tmp_path, "run_started")[0]["shards"]
+    plans = records(tmp_path, "blocks_planned")
+    assert [p["why"] for p in plans] == ["absent", "back"] and [p["iteration"] for p in plans] == [50, 80]
+    assert plans[0]["bounds"] == [[0, 517], [517, 517]] and plans[0]["planned_out"] == [2]
+    assert plans[1]["planned_out"] == []
+    for bounds in (first, plans[1]["bounds"]):
+        rows = [stop - start for start, stop in bounds]
+        assert sum(rows) == 517 and (rows[0] > rows[1] > 0 if allocation == "capacity" else abs(rows[0] - rows[1]) <= 1)
+    its = records(tmp_path, "iteration")
+    assert all(r["rows_used"] == 517 and r["complete"] for r in its), "every row, with or without worker 2"
+    costs = [r["cost"] for r in its]
+    assert costs[-1] < costs[80] < costs[50] < costs[0]
+
+
 def test_matmul_reassigns_an_absent_workers_rows(tmp_path):
     result = run_mpi(4, "--task", "matmul", "--iterations", "5", "--out", str(tmp_path), "--emulate", "sleep",
                      "--channel", wifi(tmp_path), "--positions", "fixed", "--distances", "5,5,40",

@@ -129,6 +129,7 @@ def test_emulated_probes_follow_the_channel_model_at_the_live_distance(tmp_path)
         with JsonlLog(tmp_path / "throughput.jsonl") as out:
             scheduler = ProbeScheduler(settings, "m", lambda: [], positions, out, threading.Event(), emulation)
             near = scheduler.probe_once("w", "127.0.0.1", server.port)
+            (latest,) = scheduler.results()  # what the state feed hands the MPI master (--link-rates probes)
             east_m["value"] = 30.0
             far = scheduler.probe_once("w", "127.0.0.1", server.port)
             east_m["value"] = None
@@ -139,7 +140,9 @@ def test_emulated_probes_follow_the_channel_model_at_the_live_distance(tmp_path)
     assert 9.9 < near["distance_m"] < 10.1 and near["emulated_rate_bps"] == capacity
     measured = near["end"]["sum_received"]["bits_per_second"]
     assert abs(measured - capacity) / capacity < 0.05, (measured, capacity)
+    assert latest.peer == "w" and latest.bits_per_second == measured and 0 <= latest.age_s < 5
     assert far["error"].startswith("out of range: wifi-flight gives") and far["distance_m"] > 29
+    assert scheduler.results()[0].bits_per_second == 0.0, "a failed probe: nothing gets through"
     assert unknown["kind"] == "probe_skipped"
     kinds = [r["kind"] for r in read_jsonl(tmp_path / "throughput.jsonl").records]
     assert kinds == ["throughput", "throughput", "probe_skipped"]

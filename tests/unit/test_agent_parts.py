@@ -1,5 +1,6 @@
 """The agent's pure parts: config checking, peer messages and table, flight-log reading and writing, distances."""
 
+import dataclasses
 import json
 import math
 import shutil
@@ -15,9 +16,11 @@ from missions.geo import Home, distance_m, enu_to_lla
 from nac_onboard.agent.config import ConfigError, load_agent_config, parse_agent_config
 from nac_onboard.agent.daemon import TextLimiter
 from nac_onboard.agent.peers import PeerMessageError, PeerState, PeerTable, decode_peer_state, encode_peer_state
-from nac_onboard.agent.snapshot import AgentSnapshot, OwnState
+from nac_onboard.agent.snapshot import AgentSnapshot, OwnState, ProbeResult
 from nac_onboard.agent.state_feed import distance_between, encode_snapshot
 from nac_onboard.agent.systemd_notify import SystemdNotifier
+from nac_onboard.compute import positions
+from nac_onboard.compute.positions import FeedDistances
 from nac_onboard.flight_log import JsonlLog, TlogWriter, read_jsonl
 from nac_onboard.records import kinds
 
@@ -198,6 +201,25 @@ def test_the_state_feed_writes_the_snapshot_in_its_wire_format_byte_for_byte():
     assert encode_snapshot(AgentSnapshot(5.0, unknown)) == (
         b'{"t_s":5.0,"self":{"id":"m","role":"master","sysid":0,"lat_deg":null,"lon_deg":null,"alt_m":null,'
         b'"vel_ned_mps":null,"battery_pct":null,"mpi_build":"","link_up":false},"peers":{}}')
+
+
+def test_the_state_feed_hands_the_masters_probes_to_the_mpi_job(monkeypatch):
+    """A vehicle that probes adds each peer's latest rate to its answer; the MPI master (FeedDistances) takes a
+    rate no older than its bound and nothing that is not a finite, non-negative rate."""
+    snapshot = dataclasses.replace(_snapshot(), probes=(ProbeResult("w1", 12.5e6, 1.0), ProbeResult("w2", 0.0, 0.5)))
+    answer = json.loads(encode_snapshot(snapshot))
+    assert answer["probes"] == {"w1": {"bits_per_second": 12.5e6, "age_s": 1.0},
+                                "w2": {"bits_per_second": 0.0, "age_s": 0.5}}
+    assert "probes" not in json.loads(encode_snapshot(_snapshot())), "a vehicle that does not probe: no key"
+    feed = FeedDistances("127.0.0.1:1", ["m", "w1", "w2", "w3"])
+    monkeypatch.setattr(positions, "fetch_state", lambda address, timeout_s: answer)
+    assert feed.distances_m(0, 0.0)[1] is not None
+    assert feed.measured_rates_bps(max_age_s=5.0) == {1: 12.5e6, 2: 0.0, 3: None}
+    assert feed.measured_rates_bps(max_age_s=0.75) == {1: None, 2: 0.0, 3: None}, "too old: not believed"
+    for bad in ({"w1": {"bits_per_second": "fast", "age_s": 1}}, {"w1": {"bits_per_second": -1, "age_s": 1}},
+                {"w1": {"bits_per_second": 1e6, "age_s": True}}, {"w1": [1e6]}, ["w1"]):
+        feed.state = {**answer, "probes": bad}
+        assert feed.measured_rates_bps(max_age_s=5.0)[1] is None, bad
 
 
 def test_systemd_notifier_speaks_the_notify_protocol(tmp_path):

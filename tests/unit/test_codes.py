@@ -8,9 +8,12 @@ import numpy as np
 import pytest
 
 from nac_onboard.compute import codes, kernels
+from nac_onboard.compute.task import Answer
 from nac_onboard.compute.tasks.linreg import Linreg
 from nac_onboard.compute.tasks.linreg_gc import GradientCodedLinreg
+from nac_onboard.compute.tasks.matmul_bpcc import BpccMatmul
 from nac_onboard.compute.tasks.matmul_mds import MdsMatmul
+from nac_onboard.errors import BadInput
 from tests.conftest import SHARED_DATA
 
 
@@ -57,13 +60,14 @@ def test_any_n_minus_s_coded_gradients_give_the_full_gradient(n):
 
 def _options(**overrides):
     base = dict(seed=0, m=10, n=20, l=2, a_path=None, save_results=True, allocation="equal", on_missing="incomplete",
-                code_k=0, code_s=1, learning_rate=0.05, data=str(SHARED_DATA / "forestfires.csv"))
+                code_k=0, code_s=1, code_redundancy=1.5, batch_units=1, replan_every=0, learning_rate=0.05,
+                data=str(SHARED_DATA / "forestfires.csv"))
     return SimpleNamespace(**{**base, **overrides})
 
 
-def _ranks(task_class, options, workers: int):
+def _ranks(task_class, options, workers: int, shares=None):
     master, ranks = task_class(options), {}
-    bounds = kernels.split_rows(master.rows(), [1.0] * workers)
+    bounds = kernels.split_rows(master.rows(), shares or [1.0] * workers)
     master.split(bounds)
     for rank in range(1, workers + 1):
         ranks[rank] = task_class(options)
@@ -108,3 +112,47 @@ def test_gradient_coded_training_steps_as_uncoded_training_with_everyone(straggl
         assert np.allclose(master.w, reference.w, rtol=1e-10, atol=1e-13)
     short = master.combine(50, master.w, {1: ranks[1].work(master.w)})
     assert not short["complete"] and "the full gradient needs 2" in short["decode_error"]
+
+
+def _batches_in_order(task, payload):
+    """A worker's answers as the runner merges them: one per batch, in batch order."""
+    return [task.work_batch(payload, j) for j in range(task.batches())]
+
+
+@pytest.mark.parametrize("batch_units", [1, 2])
+def test_bpcc_decodes_once_any_k_units_arrived_from_whichever_batches(batch_units):
+    """A (9, 6) code over 3 workers holding 4, 3 and 2 units (unequal, as an allocation by speed makes them): every
+    way the batches can arrive (each worker's in order, interleaved, cut off anywhere) decodes A B exactly as soon as
+    6 units are in, and not before."""
+    options = _options(m=11, code_k=6, batch_units=batch_units)  # 11 rows in 6 blocks of 2: one zero row
+    master, ranks = _ranks(BpccMatmul, options, 3, shares=[4, 3, 2])
+    assert master.units == 9 and master.bounds == [(0, 4), (4, 7), (7, 9)]
+    payload = master.next_input(0)
+    expected = master.a @ payload.reshape(20, 2)
+    batches = {r: _batches_in_order(ranks[r], payload) for r in ranks}
+    decodes = 0
+    for taken in itertools.product(*(range(len(batches[r]) + 1) for r in (1, 2, 3))):
+        for order in itertools.permutations((1, 2, 3)):
+            answers = {}
+            for rank, count in zip(order, (taken[r - 1] for r in order), strict=True):
+                for answer in batches[rank][:count]:
+                    answers[rank] = answer if rank not in answers else Answer(
+                        np.concatenate([answers[rank].values, answer.values]), 0)
+            units = sum(a.values.size for a in answers.values()) // (2 * 2)
+            assert master.enough(answers) == (units >= 6)
+            record = master.combine(0, payload, answers)
+            assert record["complete"] == (units >= 6) and record["units"] == [
+                answers[r].values.size // 4 if r in answers else 0 for r in (1, 2, 3)]
+            if record["complete"]:
+                decodes += 1
+                assert np.linalg.norm(master.saved["C_0"] - expected) <= 1e-9 * np.linalg.norm(expected), taken
+    assert decodes > 0
+
+
+def test_bpcc_refuses_a_code_past_its_condition_bound_and_reassigning():
+    with pytest.raises(codes.CodeError, match="condition number"):
+        BpccMatmul.check_workers(_options(m=100, code_k=12, code_redundancy=2.0), 3)
+    with pytest.raises(codes.CodeError, match="only 5 rows"):
+        BpccMatmul.check_workers(_options(m=5, code_k=6), 3)
+    with pytest.raises(BadInput, match="reassign"):
+        BpccMatmul.check(_options(on_missing="reassign"))

@@ -16,7 +16,7 @@ pytestmark = pytest.mark.niced
 
 def meter(tmp_path, companion_mah=(1300.0, 1300.0), slowdown=1.0, radio_counted=True):
     log = JsonlLog(tmp_path / "energy.jsonl")
-    return EnergyMeter(["m", "w"], EnergyPlan(), list(companion_mah), ["zeng-2019", "tarot-650"], log, slowdown,
+    return EnergyMeter(["m", "w"], EnergyPlan(), list(companion_mah), ["zeng-2019", "tarot-650"], log, [slowdown] * 2,
                        radio_counted), log
 
 

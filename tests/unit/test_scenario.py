@@ -66,7 +66,7 @@ def test_the_shipped_scenarios_load_with_the_research_geometry():
      "unknown key fault.colour"),
     ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
      "role = 'worker'\nhome = [47, 8, 500]\n[compute]\ntask = 'sorting'\n",
-     "compute.task must be one of linreg, linreg_gc, matmul, matmul_mds"),
+     "compute.task must be one of linreg, linreg_gc, matmul, matmul_bpcc, matmul_mds"),
     # the issue's examples (34): each a sentence naming the key and what was expected, never a traceback
     ("max_speedup = 'fast'\n" + TWO, "max_speedup: expected a finite number within [0.1, 1000] x real time, "
                                     "got 'fast'"),
@@ -268,6 +268,36 @@ def test_a_scenarios_device_profile_is_checked_and_reaches_the_ranks(tmp_path):
     assert scenario.compute.device == str((tmp_path / "tx2.toml").resolve())
     args = compute_args(scenario, tmp_path / "run", Ports(47000), 100.0)
     assert args[args.index("--device") + 1] == scenario.compute.device
+
+
+def test_one_companions_own_device_and_the_allocation_keys_reach_the_ranks(tmp_path):
+    """[[vehicle]] device gives that companion its own profile (checked now, named by the vehicle), and [compute]'s
+    BPCC and re-planning keys reach the job's options: the options the ranks parse hold them all."""
+    from nac_onboard.compute.options import options_from_argv
+    from nac_onboard.radio.files import save_channel
+    from sitl.experiment.commands import run_channel_path
+
+    path = tmp_path / "s.toml"
+    (tmp_path / "slow.toml").write_text('[device]\nname = "slow"\nslowdown = 0.5\nsource = "s"\n')
+    text = TWO.replace("role = 'worker'", "role = 'worker'\ndevice = 'slow.toml'") + (
+        "[compute]\ntask = 'matmul_bpcc'\nallocation = 'speed'\nreplan_every = 5\ncode_redundancy = 2.0\n"
+        "batch_units = 2\nlink_rates = 'probes'\n")
+    path.write_text(text)
+    with pytest.raises(ScenarioError, match=r"\(b\): device: .*slow.toml: \[device\] slowdown: expected"):
+        load_scenario(str(path))
+    (tmp_path / "slow.toml").write_text('[device]\nname = "slow"\nslowdown = 20\nsource = "s"\n')
+    scenario = load_scenario(str(path))
+    assert scenario.workers[0].device == str((tmp_path / "slow.toml").resolve())
+    args = compute_args(scenario, tmp_path / "run", Ports(47000), 100.0)
+    run_channel_path(tmp_path / "run").parent.mkdir(parents=True)
+    save_channel(scenario.channel, run_channel_path(tmp_path / "run"))  # what the runner writes for the ranks
+    options = options_from_argv(args)
+    assert options.device_for(1).name == "slow" and options.device_for(0).name == "host"
+    assert (options.allocation, options.replan_every, options.code_redundancy, options.batch_units,
+            options.link_rates) == ("speed", 5, 2.0, 2, "probes")
+    path.write_text(text.replace("'probes'", "'guess'"))
+    with pytest.raises(ScenarioError, match="compute.link_rates must be one of model, probes"):
+        load_scenario(str(path))
 
 
 def test_energy_allocation_hands_the_job_each_workers_companion_pack_as_rated(tmp_path):

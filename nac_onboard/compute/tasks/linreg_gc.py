@@ -22,6 +22,7 @@ from nac_onboard.errors import BadInput
 
 class GradientCodedLinreg(Linreg):
     name = "linreg_gc"
+    replans = False  # the code fixes every worker's block
     default_iterations = 200
     summary = ("linreg with gradient coding (--code-s S stragglers): each worker holds S + 1 shards, the master "
                "recovers the full gradient from the first N - S answers")
@@ -36,9 +37,9 @@ class GradientCodedLinreg(Linreg):
     @classmethod
     def check(cls, options) -> None:
         super().check(options)
-        if options.allocation != "equal":
-            raise BadInput(f"--allocation {options.allocation}: gradient coding's shards are equal (each worker holds "
-                           "s + 1)")
+        if options.allocation != "equal" or options.replan_every:
+            raise BadInput(f"--allocation {options.allocation}, --replan-every {options.replan_every}: gradient "
+                           "coding's shards are equal and fixed (each worker holds s + 1)")
 
     @classmethod
     def check_workers(cls, options, workers: int) -> None:

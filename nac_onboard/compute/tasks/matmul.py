@@ -9,7 +9,7 @@ import os
 import numpy as np
 
 from nac_onboard.compute import kernels
-from nac_onboard.compute.task import Answer, Extra, Task
+from nac_onboard.compute.task import Answer, Extra, Task, timed
 from nac_onboard.errors import BadInput
 
 
@@ -45,11 +45,20 @@ class Matmul(Task):
     def input_floats(self) -> int:
         return self.options.n * self.options.l
 
+    def _largest_block(self) -> int:
+        """Rows in the largest block: any block may be all of A once re-planned (--replan-every)."""
+        return self.rows() if self.options.replan_every else max(stop - start for start, stop in self.bounds)
+
     def largest_input(self) -> int:
-        return max(stop - start for start, stop in self.bounds) * self.options.n + self.input_floats()
+        return self._largest_block() * self.options.n + self.input_floats()
 
     def largest_result(self) -> int:
-        return max(stop - start for start, stop in self.bounds) * self.options.l
+        return self._largest_block() * self.options.l
+
+    def row_cost(self) -> tuple[float, float]:
+        """A's product with one B, timed here, per row; each row's result is l floats."""
+        b = np.ones((self.options.n, self.options.l))
+        return timed(lambda: kernels.matmul_block(self.a, b)) / len(self.a), 64.0 * self.options.l
 
     def take_block(self, rank: int) -> None:
         start, stop = self.bounds[rank - 1]
@@ -78,8 +87,8 @@ class Matmul(Task):
         return plan
 
     def combine(self, iteration: int, payload: np.ndarray, answers: dict[int, Answer]) -> dict:
-        ranks = range(1, len(self.bounds) + 1)
-        complete = all(r in answers for r in ranks)
+        ranks = [r for r in range(1, len(self.bounds) + 1) if self.bounds[r - 1][0] < self.bounds[r - 1][1]]
+        complete = all(r in answers for r in ranks)  # every row's block (a worker planned out has none)
         if complete and self.options.save_results:
             self.saved[f"B_{iteration}"] = payload.reshape(self.options.n, self.options.l)
             self.saved[f"C_{iteration}"] = kernels.stack_blocks([answers[r].values.reshape(-1, self.options.l)

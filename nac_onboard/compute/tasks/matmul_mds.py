@@ -22,6 +22,7 @@ from nac_onboard.errors import BadInput
 
 class MdsMatmul(Matmul):
     name = "matmul_mds"
+    replans = False  # the code fixes every worker's block
     default_iterations = 40
     summary = ("matmul with A's row blocks MDS-coded (--code-k K of the N workers decode A B): the master decodes "
                "from the first K results")
@@ -35,9 +36,9 @@ class MdsMatmul(Matmul):
     @classmethod
     def check(cls, options) -> None:
         super().check(options)
-        if options.allocation != "equal" or options.on_missing != "incomplete":
+        if options.allocation != "equal" or options.on_missing != "incomplete" or options.replan_every:
             raise BadInput("matmul_mds: every coded block is the same size and any k decode: --allocation capacity, "
-                           "energy and --on-missing reassign are for the uncoded matmul")
+                           "speed, energy, --replan-every and --on-missing reassign are for the other matmuls")
 
     @staticmethod
     def code_k(options, workers: int) -> int:
