@@ -78,13 +78,14 @@ def range_sweep(step_m: float = 3.0, stops: int = 9, hold_s: float = 25.0) -> di
 
 
 def coded_edge() -> dict[str, Mission]:
-    """4 UAVs at 3.04 m for the coded-computing pair: workers 1 and 2 hover 8 m east and west of the master; worker
-    3 flies from 8 m north to 20 m north at 0.67 m/s and holds there, in range but near the edge of wifi-flight's
-    ~22-25 m range, where its rate is low and its frames fail and are retried: a straggler, not an absentee."""
+    """5 UAVs at 3.04 m for the coded-computing pair: workers 1 and 2 hover 8 m east and west of the master; worker
+    3 flies from 8 m north to 20 m north at 0.67 m/s and holds there, near the edge of wifi-flight's ~22-25 m
+    range, where its rate is low and its frames fail and are retried; worker 4 hovers 8 m south (the scenarios give
+    it a slow companion)."""
     alt, v = FLIGHT_TEST_ALT_M, FLIGHT_TEST_SPEED_MPS
     return {"coded-edge/master.plan": hover(at(0, 0), alt), "coded-edge/w1.plan": hover(at(8, 0), alt),
             "coded-edge/w2.plan": hover(at(-8, 0), alt),
-            "coded-edge/w3.plan": route(at(0, 8), alt, [(0.0, 12.0)], v)}
+            "coded-edge/w3.plan": route(at(0, 8), alt, [(0.0, 12.0)], v), "coded-edge/w4.plan": hover(at(0, -8), alt)}
 
 
 def energy_short() -> dict[str, Mission]:
