@@ -7,6 +7,8 @@ under (target: the master's decode under 10 % of an iteration at the flight scen
 Matrix multiplication: A (m x 10,000) times B (10,000 x 1), m = 100 (the research's) and 1,000, over N = 3, 4 and 8
 workers with K = N - 1; the decode timed on the worst case, a K-subset that holds a parity block. Linear regression
 (Forest Fires, 13 weights): gradient coding's decode (a B_F = 1 solved, the coded gradients combined) with S = 1.
+BPCC (matmul_bpcc): the default (9, 6) code of units over A's rows, whatever N; the decode timed on the worst case,
+the last 6 units (3 of them parity).
 The iteration times it is set against: the research's static flight (0.31 s an iteration: 640 in 200 s) and NAC's
 paper-flight-static on the frame-level air (0.040 s mean, the demo of 2026-11-27, docs/experiments.md).
 """
@@ -57,6 +59,26 @@ def matmul_row(m: int, workers: int, repeats: int) -> dict:
             "decode_ms": decode_s * 1e3, "uncoded_combine_ms": stack_s * 1e3, "relative_error": error}
 
 
+def bpcc_row(m: int, workers: int, repeats: int) -> dict:
+    """matmul_bpcc's default code: K = 6 data blocks, U = 9 units shared out among the workers."""
+    k, units, n_cols = 6, 9, 10_000
+    rng = np.random.default_rng(0)
+    a, b = rng.standard_normal((m, n_cols)), rng.standard_normal((n_cols, 1))
+    generator = codes.mds_generator(units, k)
+    blocks = codes.row_blocks(a, k)
+    share = -(-units // workers)
+    encode_s = timed(lambda: codes.encode(generator[-share:], blocks), repeats)  # one worker's units
+    used = list(range(units - k, units))
+    coded = codes.encode(generator, blocks)
+    results = np.stack([coded[u] @ b for u in used])
+    decode_s = timed(lambda: codes.mds_decode(generator, used, results), repeats)
+    stack_s = timed(lambda: np.vstack([results[j] for j in range(k)]), repeats)
+    decoded, _ = codes.mds_decode(generator, used, results)
+    error = float(np.linalg.norm(decoded.reshape(-1, 1)[:m] - a @ b) / np.linalg.norm(a @ b))
+    return {"task": f"bpcc A {m}x{n_cols} (9, 6)", "workers": workers, "k": k, "encode_ms": encode_s * 1e3,
+            "decode_ms": decode_s * 1e3, "uncoded_combine_ms": stack_s * 1e3, "relative_error": error}
+
+
 def linreg_row(workers: int, repeats: int) -> dict:
     b = codes.gradient_code(workers, 1)
     coded = np.random.default_rng(1).standard_normal((workers, 13))
@@ -78,6 +100,7 @@ def main() -> int:
     parser.add_argument("--workers", type=int, nargs="+", default=[3, 4, 8])
     args = _common.parse_args(parser, SMOKE)
     rows = [matmul_row(m, w, args.repeats) for m in args.rows for w in args.workers]
+    rows += [bpcc_row(m, w, args.repeats) for m in args.rows for w in args.workers]
     rows += [linreg_row(w, args.repeats) for w in args.workers]
     print(f"{'task':<26}{'N':>3}{'K':>3}{'encode ms':>11}{'decode ms':>11}{'uncoded ms':>12}{'rel. error':>12}"
           f"{'of 0.31 s':>11}{'of 0.040 s':>12}")
