@@ -153,8 +153,7 @@ def run_worker(comm, mpi, options: ComputeOptions, log: JsonlLog) -> bool:
     rank = comm.Get_rank()
     bounds = comm.bcast(None, root=0)
     task = options.task_class(options)
-    task.split(bounds)
-    task.take_block(rank)
+    take_block(task, rank, bounds, log)
     pad = pad_floats(options.pad_bits)
     inbox = Inbox(comm, mpi, [0], TAG_WORK, WORK_HEADER + max(task.largest_input(), 2 * len(bounds)), pad)
     emulation = SleepEmulation(options.channel, options.clock)
@@ -180,8 +179,7 @@ def run_worker(comm, mpi, options: ComputeOptions, log: JsonlLog) -> bool:
             comm.Send([warmup_answer, mpi.DOUBLE], dest=0, tag=TAG_RESULT)
             continue
         if kind == KIND_PLAN:
-            task.split(plan_of(message[WORK_HEADER:]))
-            task.take_block(rank)
+            take_block(task, rank, plan_of(message[WORK_HEADER:]), log)
             continue
         extra = int(extra_rows) if kind == KIND_EXTRA else None
         batches = 1 if extra is not None else task.batches()
@@ -202,6 +200,15 @@ def run_worker(comm, mpi, options: ComputeOptions, log: JsonlLog) -> bool:
             answer[:RESULT_HEADER] = (iteration, compute_s, up_s, rows, sse, stretch.late, batch, batch < batches - 1)
             answer[RESULT_HEADER:RESULT_HEADER + result.size] = result
             comm.Send([answer, mpi.DOUBLE], dest=0, tag=TAG_RESULT)
+
+
+def take_block(task: Task, rank: int, bounds: list[tuple[int, int]], log: JsonlLog) -> None:
+    """Split and take this worker's block (at the start and at each re-plan), its cost in the rank's log: for a
+    coded task, the encoding of its coded block or units."""
+    t0 = time.perf_counter()
+    task.split(bounds)
+    task.take_block(rank)
+    log.write(kinds.BLOCK_TAKEN, rank=rank, block=list(bounds[rank - 1]), take_s=time.perf_counter() - t0)
 
 
 def plan_of(payload: np.ndarray) -> list[tuple[int, int]]:

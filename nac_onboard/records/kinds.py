@@ -287,6 +287,10 @@ CHECKPOINT_FAILED = Kind("checkpoint_failed", COMPUTE_LOG, "a checkpoint could n
 WORKER_STARTED = Kind("worker_started", RANK_LOG, "a worker rank started", (
     req("rank", "integer", "", "MPI rank"), req("pid", "integer", "", "process id"),
     req("host", "string", "", "MPI processor name")))
+BLOCK_TAKEN = Kind("block_taken", RANK_LOG, "a worker took its block of the data, at the start and at each re-plan",
+                   (req("rank", "integer", "", "MPI rank"),
+                    req("block", "list", "", "its [start, stop) of the task's rows (matmul_bpcc: coded units)"),
+                    req("take_s", "number", "s", "wall time to split and take it: for a coded task, its encoding")))
 WORKER_STOPPED = Kind("worker_stopped", RANK_LOG, "a worker rank stopped", (
     req("rank", "integer", "", "MPI rank"), req("finalizes", "boolean", "", "whether it called MPI_Finalize")))
 WORKER_GAVE_UP = Kind("worker_gave_up", RANK_LOG, "a worker heard nothing from the master for its idle timeout and "

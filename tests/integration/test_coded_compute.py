@@ -93,6 +93,8 @@ def test_bpcc_decodes_a_times_b_every_iteration_with_a_worker_killed(tmp_path):
     after = [r for r in read.of_kind("iteration") if r["iteration"] > killed_at]
     assert all(r["complete"] and r["units"][1] == 0 and sum(r["units"]) >= 6 for r in after)
     _products_are_a_times_b(tmp_path, summary[0], 12, 50, 5)
+    taken = [read_jsonl(tmp_path / f"rank-{rank}.jsonl").of_kind("block_taken")[0] for rank in (1, 3)]
+    assert [t["block"] for t in taken] == [[0, 3], [6, 9]] and all(t["take_s"] > 0 for t in taken), "the encoding"
 
 
 def _slow_run(tmp_path, name: str, slowdown: float, *args: str):
