@@ -138,6 +138,8 @@ class JsonlLog(_AppendFile):
         super().__init__(path)
         if os.fstat(self._fd).st_size == 0:  # a new file (an agent restarted on its old log appends to it)
             self.write(kinds.SCHEMA, t_s, schema_version=SCHEMA_VERSION, file=self.path.name)
+        elif self._ends_mid_line():  # its writer was killed mid-record: that part stays a (damaged) line of its own
+            self._write(b"\n")
 
     def _resume_prefix(self) -> bytes:
         g = self.gap

@@ -7,6 +7,7 @@ import sys
 from dataclasses import dataclass, field
 
 from nac_onboard.clock import Clock, from_env
+from nac_onboard.compute.checkpoint import load_checkpoint
 from nac_onboard.compute.device import HOST, DeviceProfile, load_device_profile
 from nac_onboard.compute.positions import (
     FeedDistances,
@@ -66,6 +67,7 @@ class ComputeOptions:
     link_rates: str = "model"  # what the allocation expects of each link: the channel model, or the latest probes
     save_results: bool = False
     checkpoint_s: float = 10.0  # results.npz rewritten (atomically) this often while the job runs; 0 = at the end
+    resume: bool = False  # a restarted master: continue from the checkpoint in --out
     pad_bits: float = 0.0  # zeros appended to every message: the channel's overhead as real bytes (kernel network)
     device: DeviceProfile = HOST  # the companion's CPU: each rank's work takes its time on the run's clock
     device_of: tuple[tuple[str, DeviceProfile], ...] = ()  # (vehicle, profile): a companion other than the rest
@@ -158,6 +160,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--save-results", action="store_true", help="matmul: keep every B and A@B in results.npz")
     p.add_argument("--checkpoint-s", type=number_arg(0, 86400, unit="s"), default=10.0,
                    help="rewrite results.npz this often while running (0: only at the end)")
+    p.add_argument("--resume", action="store_true",
+                   help="a restarted master: continue the iteration count and the task's state (linreg's weights) "
+                        "from the checkpoint in --out; --iterations is then the total")
     p.add_argument("--pad-bits", type=number_arg(0, 1e9, unit="bits"), default=0.0,
                    help="append this many bits of zeros to every message (a transfer's overhead, as real bytes)")
     p.add_argument("--device", default="host",
@@ -207,7 +212,7 @@ def options_from_argv(argv: list[str] | None) -> ComputeOptions:
         energy_wh=energy_wh, code_k=args.code_k, code_s=args.code_s, code_redundancy=args.code_redundancy,
         batch_units=args.batch_units, replan_every=args.replan_every, link_rates=args.link_rates,
         device_of=device_of(args.device_of),
-        save_results=args.save_results, checkpoint_s=args.checkpoint_s, pad_bits=args.pad_bits,
+        save_results=args.save_results, checkpoint_s=args.checkpoint_s, resume=args.resume, pad_bits=args.pad_bits,
         device=HOST if args.device == "host" else load_device_profile(args.device), clock=from_env())
     for option, path, what, limit in [("--a", options.a_path, "matrix A (.npy)", MAX_AUTOPILOT_LOG_BYTES),
                                       ("--data", options.data, "data set (CSV)", MAX_AUTOPILOT_LOG_BYTES),
@@ -220,6 +225,11 @@ def options_from_argv(argv: list[str] | None) -> ComputeOptions:
     if options.emulate == "sleep" and options.positions == "none":
         raise BadInput("--emulate sleep needs positions: --positions fixed|script|feed")
     task.check(options)
+    if options.resume:  # every rank refuses a missing or foreign checkpoint before MPI starts
+        iteration, _ = load_checkpoint(options.out, options.task)
+        if options.iterations is not None and iteration >= options.iterations:
+            raise BadInput(f"--resume: the checkpoint in {options.out} is at iteration {iteration}, already "
+                           f"--iterations {options.iterations}")
     if options.positions != "feed":  # the feed is asked once MPI runs, on the master only
         build_source(options)
     return options

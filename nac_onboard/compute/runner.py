@@ -35,6 +35,7 @@ import numpy as np
 
 from nac_onboard.child_process import die_with_parent
 from nac_onboard.compute.allocation import Planner
+from nac_onboard.compute.checkpoint import checkpoint_path, load_checkpoint
 from nac_onboard.compute.device import CpuStretch
 from nac_onboard.compute.iteration import IterationLinks
 from nac_onboard.compute.messages import (
@@ -498,9 +499,10 @@ class Master:
                        cpu_slowdown=o.device.slowdown, device_source=o.device.source,
                        worker_devices=[o.device_for(r).name for r in self.workers], replan_every=o.replan_every,
                        link_rates=o.link_rates)
+        first = self.resume() if o.resume else 0
         self.wait_for_start()
         t_run, t_run_sim = time.monotonic(), self.clock.now_s()
-        iteration, ended_by, idle_s = 0, "iterations", 0.0
+        iteration, ended_by, idle_s = first, "iterations", 0.0
         while True:
             if o.iterations is not None and iteration >= o.iterations:
                 break
@@ -571,6 +573,15 @@ class Master:
                 stop = stop.copy()
         self.inbox.close(wait=self.finalizes)
 
+    def resume(self) -> int:
+        """--resume: the task's state and the iteration count from the checkpoint in --out (checked on every rank
+        before MPI started); the next iteration to run."""
+        iteration, arrays = load_checkpoint(self.options.out, self.task.name)
+        self.task.resume(arrays)
+        self.checkpoint_iteration = iteration
+        self.log.write(kinds.RESUMED, iteration=iteration, checkpoint=str(checkpoint_path(self.options.out)))
+        return iteration
+
     def wait_for_start(self) -> None:
         """--start-file: the job is set up (ranks, connections, data) before the go, so its start-up time does not
         land in the experiment: at a speed-up it would be simulated seconds of flight without computing."""
@@ -595,7 +606,7 @@ class Master:
         path = os.path.join(self.options.out, kinds.RESULTS.name)
         partial = path + ".partial.npz"
         try:
-            np.savez(partial, iteration=np.array(iteration), **results)
+            np.savez(partial, iteration=np.array(iteration), task=np.array(self.task.name), **results)
             os.replace(partial, path)
         except OSError as err:
             if err.errno not in DISK_FULL:

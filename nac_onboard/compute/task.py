@@ -128,6 +128,11 @@ class Task(ABC):
         """Arrays for results.npz (checkpoints and the end; empty: no file)."""
         return {}
 
+    def resume(self, arrays: dict[str, np.ndarray]) -> None:
+        """A restarted master's state from its checkpoint (what `results()` wrote, checked by the caller for its
+        name only): raise BadInput saying what is wrong with it. Default: nothing to restore."""
+        return None
+
     def final(self) -> dict:
         """The run summary's task fields."""
         return {}

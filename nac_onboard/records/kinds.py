@@ -25,8 +25,8 @@ COMPUTE_LOG = RunFile("compute.jsonl", "compute/compute.jsonl", "run", COMPUTE_W
 RANK_LOG = RunFile("rank-N.jsonl", "compute/rank-N.jsonl", "rank", "nac-onboard compute, worker rank N",
                    "a worker rank's start and stop")
 RESULTS = RunFile("results.npz", "compute/results.npz", "run", COMPUTE_WRITER,
-                  "the task's arrays (linreg weights; matmul B and A@B with --save-results), replaced atomically at "
-                  "each checkpoint", jsonl=False)
+                  "the task's arrays (linreg weights; matmul B and A@B with --save-results), the next iteration and "
+                  "the task's name, replaced atomically at each checkpoint: what --resume continues from", jsonl=False)
 MPIEXEC_LOG = RunFile("mpiexec.log", "compute/mpiexec.log", "run", RUNNER_WRITER, "mpiexec's own output",
                       jsonl=False)
 START_FILE = RunFile("start", "compute/start", "run", RUNNER_WRITER,
@@ -230,6 +230,9 @@ RUN_STARTED = Kind("run_started", COMPUTE_LOG, "the job is set up (after one unt
     opt("replan_every", "integer", "", "blocks re-planned every this many iterations and on absences (0: never)"),
     opt("link_rates", "string", "", "what the allocation expects of the links: model or probes"),
 ))
+RESUMED = Kind("resumed", COMPUTE_LOG, "a restarted master continued from its checkpoint (--resume)", (
+    req("iteration", "integer", "", "the first iteration it runs: the checkpoint's"),
+    req("checkpoint", "string", "", "the checkpoint's path")))
 STARTED = Kind("started", COMPUTE_LOG, "the go arrived (--start-file)", (
     req("start_file", "string", "", "its path"), opt("end_at_s", "number", "s", "simulated time to end at")))
 ITERATION = Kind("iteration", COMPUTE_LOG, "one iteration; `workers` holds one list per field, one entry per worker", (

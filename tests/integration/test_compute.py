@@ -83,7 +83,7 @@ def test_matmul_on_three_workers_equals_a_times_b_every_iteration(tmp_path):
     result = run_mpi(4, "--task", "matmul", "--iterations", "40", "--out", str(tmp_path), "--save-results",
                      "--seed", "7")
     assert result.returncode == 0, result.stderr
-    a, _ = matmul_inputs(7, 100, 10000)
+    a = matmul_inputs(7, 100, 10000)
     saved = np.load(tmp_path / "results.npz")
     assert len([k for k in saved if k.startswith("C_")]) == 40
     for k in range(40):
@@ -186,7 +186,7 @@ def test_matmul_reassigns_an_absent_workers_rows(tmp_path):
                      "--channel", wifi(tmp_path), "--positions", "fixed", "--distances", "5,5,40",
                      "--on-missing", "reassign", "--save-results", "--m", "30", "--n", "200")
     assert result.returncode == 0, result.stderr
-    a, _ = matmul_inputs(0, 30, 200)
+    a = matmul_inputs(0, 30, 200)
     saved = np.load(tmp_path / "results.npz")
     for r in records(tmp_path, "iteration"):
         assert r["complete"] and r["reassigned"] == [{"rows_of": 3, "by": 1}]
@@ -253,7 +253,11 @@ def test_a_killed_worker_leaves_the_others_training_to_the_end(tmp_path, task):
         assert costs[-1] < costs[0], "the weights still improve with one worker's shard"
 
 
-def test_a_killed_master_leaves_its_last_checkpoint_and_the_workers_give_up(tmp_path):
+def test_a_killed_master_leaves_its_last_checkpoint_the_workers_give_up_and_resume_continues_it(tmp_path):
+    """SIGKILL to the master mid-run (issue 29): its last checkpoint is whole and the workers give up. The job started
+    again with --resume continues from it: the iteration count goes on from the checkpoint's, and the weights at the
+    end are those of uninterrupted gradient descent over the total (every step lost after the checkpoint is taken
+    again, none twice). A checkpoint from another task, or none, is refused on every rank before MPI starts."""
     with job("--task", "linreg", "--iterations", "100000", "--out", str(tmp_path), "--checkpoint-s", "0.2",
              "--idle-timeout-s", "2") as proc:
         wait_until(lambda: (tmp_path / "results.npz").exists() and iterations_logged(tmp_path) >= 5, proc)
@@ -268,7 +272,28 @@ def test_a_killed_master_leaves_its_last_checkpoint_and_the_workers_give_up(tmp_
     assert read.problems == [] and len(read.of_kind("iteration")) >= 5
     checkpoint = np.load(tmp_path / "results.npz")
     assert checkpoint["weights"].shape == (len(forestfires.FEATURES),) and np.isfinite(checkpoint["weights"]).all()
-    assert int(checkpoint["iteration"]) >= 1
+    at = int(checkpoint["iteration"])
+    assert 1 <= at <= len(read.of_kind("iteration")) and str(checkpoint["task"]) == "linreg"
+    assert all(r["complete"] for r in read.of_kind("iteration")[:at]), "gradient descent on every row up to there"
+
+    total = at + 200
+    resumed = run_mpi(3, "--task", "linreg", "--iterations", str(total), "--out", str(tmp_path), "--resume")
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    read = read_jsonl(tmp_path / "compute.jsonl")
+    assert read.of_kind("resumed")[0]["iteration"] == at
+    after = read.records[read.records.index(read.of_kind("resumed")[0]):]
+    numbers = [r["iteration"] for r in after if r["kind"] == "iteration"]
+    assert numbers == list(range(at, total)), "the count goes on from the checkpoint's"
+    x, y = forestfires.load(SHARED_DATA / "forestfires.csv")
+    w, _ = kernels.gradient_descent(x, y, np.zeros(x.shape[1]), 0.05, total)
+    assert np.allclose(np.load(tmp_path / "results.npz")["weights"], w, rtol=1e-6, atol=1e-9)
+
+    for args, said in ((("--task", "matmul"), "was written by --task linreg, not matmul"),
+                       (("--task", "linreg", "--out", str(tmp_path / "none")), "cannot read --resume checkpoint")):
+        refused = run_mpi(3, "--iterations", "5", "--out", str(tmp_path), *args, "--resume", timeout_s=60)
+        # 2 from every rank, or hydra's SIGPIPE in its teardown once all three have said why (test_coded_compute)
+        assert refused.returncode in (2, -signal.SIGPIPE) and refused.stderr.count(said) == 3, refused.stderr[-2000:]
+        assert "Traceback" not in refused.stderr
 @pytest.mark.exclusive
 def test_a_stopped_worker_is_no_longer_waited_for_and_rejoins_when_it_answers(tmp_path):
     """Each iteration once waited the whole timeout for a worker that had stopped (SIGSTOP: a hung companion)."""

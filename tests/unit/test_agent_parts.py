@@ -114,6 +114,19 @@ def test_jsonl_records_have_time_and_kind_and_no_nan(tmp_path):
     assert json.loads(lines[2])["value"] == [1.0, None] and isinstance(json.loads(lines[2])["t_s"], float)
 
 
+def test_a_log_reopened_after_its_writer_died_mid_record_starts_the_next_record_on_a_line_of_its_own(tmp_path):
+    """A master killed mid-write and resumed (--resume), or an agent restarted, appends to its old log: the cut
+    record stays one damaged line, and every record written after it reads whole."""
+    path = tmp_path / "a.jsonl"
+    with JsonlLog(path) as log:
+        log.write(kinds.MISSION_ITEM_REACHED, t_s=1.0, seq=1)
+    path.write_bytes(path.read_bytes() + b'{"t_s": 2.0, "kind": "mission_it')
+    with JsonlLog(path) as log:
+        log.write(kinds.MISSION_ITEM_REACHED, t_s=3.0, seq=3)
+    read = read_jsonl(path)
+    assert [r["seq"] for r in read.records] == [1, 3] and len(read.problems) == 1 and "line 3" in read.problems[0]
+
+
 def test_a_cut_at_any_byte_of_the_last_record_loses_only_that_record(tmp_path):
     path = tmp_path / "a.jsonl"
     with JsonlLog(path) as log:

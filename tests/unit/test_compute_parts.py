@@ -460,7 +460,7 @@ def test_matmul_stacks_the_blocks_and_plans_the_missing_rows_for_the_workers_tha
                              on_missing="reassign", save_results=True)
     master, payload, plan, record = drive(Matmul, options, 3, lost=frozenset({2, 3}))
     assert record == {"complete": True} and [(e.by, e.rows_of, e.rows) for e in plan] == [(1, 2, 4), (1, 3, 3)]
-    a, _ = matmul_inputs(0, 10, 6)
+    a = matmul_inputs(0, 10, 6)
     assert np.allclose(master.results()["C_0"], a @ payload.reshape(6, 2))
     incomplete = dataclasses.replace(options, on_missing="incomplete")
     _, _, plan, record = drive(Matmul, incomplete, 3, lost=frozenset({2}))

@@ -8,6 +8,7 @@ import numpy as np
 
 from nac_onboard.compute import forestfires, kernels
 from nac_onboard.compute.task import Answer, Task, timed
+from nac_onboard.errors import BadInput
 
 
 class Linreg(Task):
@@ -64,6 +65,12 @@ class Linreg(Task):
 
     def results(self) -> dict[str, np.ndarray]:
         return {"weights": self.w}
+
+    def resume(self, arrays: dict[str, np.ndarray]) -> None:
+        w = arrays.get("weights")
+        if w is None or w.shape != self.w.shape or w.dtype.kind != "f" or not np.isfinite(w).all():
+            raise BadInput(f"--resume: the checkpoint's weights: expected {self.w.size} finite numbers")
+        self.w = w.astype(float)
 
     def final(self) -> dict:
         return {"final_cost": self.cost}

@@ -13,11 +13,9 @@ from nac_onboard.compute.task import Answer, Extra, Task, timed
 from nac_onboard.errors import BadInput
 
 
-def matmul_inputs(seed: int, m: int, n: int, a_path: str | None = None):
-    """A (m x n) from the seed or a .npy file, and the generator of the B (n x l) sent each iteration."""
-    rng = np.random.default_rng(seed)
-    a = np.load(a_path) if a_path else rng.standard_normal((m, n))
-    return a, np.random.default_rng(seed + 1)
+def matmul_inputs(seed: int, m: int, n: int, a_path: str | None = None) -> np.ndarray:
+    """A (m x n) from the seed or a .npy file (each iteration's B: Matmul.next_input)."""
+    return np.load(a_path) if a_path else np.random.default_rng(seed).standard_normal((m, n))
 
 
 class Matmul(Task):
@@ -27,7 +25,7 @@ class Matmul(Task):
 
     def __init__(self, options):
         super().__init__(options)
-        self.a, self.b_rng = matmul_inputs(options.seed, options.m, options.n, options.a_path)
+        self.a = matmul_inputs(options.seed, options.m, options.n, options.a_path)
         self.block = self.a
         self.saved: dict[str, np.ndarray] = {}  # --save-results
 
@@ -72,7 +70,9 @@ class Matmul(Task):
         return Answer(kernels.matmul_block(self.block, payload.reshape(n, l)).ravel(), len(self.block))
 
     def next_input(self, iteration: int) -> np.ndarray:
-        return self.b_rng.standard_normal((self.options.n, self.options.l)).ravel()
+        """B of this iteration: drawn from (seed, iteration), so a resumed master sends the B it would have sent."""
+        rng = np.random.default_rng([self.options.seed + 1, iteration])
+        return rng.standard_normal((self.options.n, self.options.l)).ravel()
 
     def plan_missing(self, iteration: int, payload: np.ndarray, missing: list[int],
                      answered: list[int]) -> list[Extra]:
@@ -97,3 +97,7 @@ class Matmul(Task):
 
     def results(self) -> dict[str, np.ndarray]:
         return self.saved
+
+    def resume(self, arrays: dict[str, np.ndarray]) -> None:
+        """--save-results: the B and A B saved so far, kept in the next checkpoints."""
+        self.saved = {name: value for name, value in arrays.items() if name[:2] in ("B_", "C_")}
