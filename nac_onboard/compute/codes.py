@@ -58,6 +58,17 @@ def worst_condition(generator: np.ndarray, seed: int = 0) -> float:
     return max(float(np.linalg.cond(generator[list(s)])) for s in subsets)
 
 
+def check_mds(n: int, k: int, rows: int, advice: str) -> None:
+    """An (n, k) code over `rows` rows of A that can be made and decoded: k within the rows, and every k of its n
+    blocks decodable within MAX_CONDITION (else CodeError ending in `advice`)."""
+    if k > rows:
+        raise CodeError(f"--code-k {k}: A has only {rows} rows to cut into k blocks")
+    worst = worst_condition(mds_generator(n, k))
+    if not worst <= MAX_CONDITION:
+        raise CodeError(f"the ({n}, {k}) code has a decoding matrix of condition number {worst:.3g} "
+                        f"(> {MAX_CONDITION:g}): {advice}")
+
+
 def row_blocks(a: np.ndarray, k: int) -> np.ndarray:
     """A's rows as k equal blocks (k x ceil(m / k) x n), the last padded with zero rows."""
     rows = -(-len(a) // k)

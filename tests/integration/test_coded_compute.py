@@ -29,19 +29,26 @@ def _kill_worker_midway(out: Path, proc, rank: int) -> int:
     return iterations_logged(out)
 
 
-@beside_the_exclusive_tests
-def test_mds_matmul_decodes_a_times_b_every_iteration_with_a_worker_killed(tmp_path):
-    """Three workers, any two decode: after worker 3 is killed, every iteration still gives A B exactly (each
-    saved product checked), decoded from workers 1 and 2 alone, and the dead one stops being sent to."""
-    with job("--task", "matmul_mds", "--m", "12", "--n", "50", "--l", "2", "--seed", "5", "--duration-s", "1.5",
+def _coded_matmul_with_a_worker_killed(tmp_path, task: str, rank: int):
+    """matmul (A 12 x 50, B 50 x 2, seed 5) by `task` on 3 workers for 1.5 s, worker `rank` killed midway: its
+    records, its summary and the iterations logged at the kill; every iteration complete, some 10 after the kill."""
+    with job("--task", task, "--m", "12", "--n", "50", "--l", "2", "--seed", "5", "--duration-s", "1.5",
              "--timeout-s", "10", "--save-results", "--checkpoint-s", "0.5", "--out", str(tmp_path),
              ranks=4) as proc:
-        killed_at = _kill_worker_midway(tmp_path, proc, 3)
+        killed_at = _kill_worker_midway(tmp_path, proc, rank)
         proc.wait(timeout=60)
     read = read_jsonl(tmp_path / "compute.jsonl")
     summary = read.of_kind("run_summary")
     assert summary, proc.stderr.read().decode()[-2000:]
     assert summary[0]["iterations"] == summary[0]["complete_iterations"] > killed_at + 10
+    return read, summary, killed_at
+
+
+@beside_the_exclusive_tests
+def test_mds_matmul_decodes_a_times_b_every_iteration_with_a_worker_killed(tmp_path):
+    """Three workers, any two decode: after worker 3 is killed, every iteration still gives A B exactly (each
+    saved product checked), decoded from workers 1 and 2 alone, and the dead one stops being sent to."""
+    read, summary, killed_at = _coded_matmul_with_a_worker_killed(tmp_path, "matmul_mds", 3)
     assert summary[0]["lost_workers"] == [3] and summary[0]["code"] == "(3, 2) systematic, Cauchy parity"
     after = [r for r in read.of_kind("iteration") if r["iteration"] > killed_at]
     assert all(r["complete"] and 3 not in r["decoded_from"] for r in after)
@@ -80,15 +87,7 @@ def _products_are_a_times_b(out: Path, summary: dict, m: int, n: int, seed: int)
 def test_bpcc_decodes_a_times_b_every_iteration_with_a_worker_killed(tmp_path):
     """Three workers holding 3 of the (9, 6) code's units each: after worker 2 is killed, the 6 units of workers 1
     and 3 still decode A B in every iteration (each saved product checked), and worker 2's units are never used."""
-    with job("--task", "matmul_bpcc", "--m", "12", "--n", "50", "--l", "2", "--seed", "5", "--duration-s", "1.5",
-             "--timeout-s", "10", "--save-results", "--checkpoint-s", "0.5", "--out", str(tmp_path),
-             ranks=4) as proc:
-        killed_at = _kill_worker_midway(tmp_path, proc, 2)
-        proc.wait(timeout=60)
-    read = read_jsonl(tmp_path / "compute.jsonl")
-    summary = read.of_kind("run_summary")
-    assert summary, proc.stderr.read().decode()[-2000:]
-    assert summary[0]["iterations"] == summary[0]["complete_iterations"] > killed_at + 10
+    read, summary, killed_at = _coded_matmul_with_a_worker_killed(tmp_path, "matmul_bpcc", 2)
     assert summary[0]["lost_workers"] == [2] and summary[0]["code"].startswith("(9, 6) systematic")
     after = [r for r in read.of_kind("iteration") if r["iteration"] > killed_at]
     assert all(r["complete"] and r["units"][1] == 0 and sum(r["units"]) >= 6 for r in after)

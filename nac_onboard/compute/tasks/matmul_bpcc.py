@@ -63,13 +63,8 @@ class BpccMatmul(Matmul):
     def check_workers(cls, options, workers: int) -> None:
         """The code, which any number of workers can hold (a worker may hold no unit): k within A's rows, and every
         k of its units decodable within codes.MAX_CONDITION."""
-        k, units = cls.code_k(options), cls.code_units(options)
-        if k > options.m:
-            raise codes.CodeError(f"--code-k {k}: A has only {options.m} rows to cut into k blocks")
-        worst = codes.worst_condition(codes.mds_generator(units, k))
-        if not worst <= codes.MAX_CONDITION:
-            raise codes.CodeError(f"the ({units}, {k}) code has a decoding matrix of condition number {worst:.3g} "
-                                  f"(> {codes.MAX_CONDITION:g}): use a smaller --code-k or --code-redundancy")
+        codes.check_mds(cls.code_units(options), cls.code_k(options), options.m,
+                        "use a smaller --code-k or --code-redundancy")
 
     def rows(self) -> int:
         return self.units  # what is shared out: coded units, not A's rows

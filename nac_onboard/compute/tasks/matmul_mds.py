@@ -49,12 +49,7 @@ class MdsMatmul(Matmul):
         k = cls.code_k(options, workers)
         if k > workers:
             raise codes.CodeError(f"--code-k {k}: a code needs k <= the {workers} workers (any k of them decode)")
-        if k > options.m:
-            raise codes.CodeError(f"--code-k {k}: A has only {options.m} rows to cut into k blocks")
-        worst = codes.worst_condition(codes.mds_generator(workers, k))
-        if not worst <= codes.MAX_CONDITION:
-            raise codes.CodeError(f"the ({workers}, {k}) code has a decoding matrix of condition number {worst:.3g} "
-                                  f"(> {codes.MAX_CONDITION:g}): use fewer workers or another k")
+        codes.check_mds(workers, k, options.m, "use fewer workers or another k")
 
     def split(self, bounds: list[tuple[int, int]]) -> None:
         super().split(bounds)
