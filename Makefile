@@ -43,7 +43,7 @@ coded-demo: $(STAMP)
 # bound, or look at the host's namespaces, on a quiet machine (marked `exclusive`). They leave one core idle most of
 # the time (104 % of one core over their 250 s, measured): the long tests that judge nothing against a clock and
 # touch nothing outside namespaces of their own (marked `niced`: the offline install, the docs' checks, ten unit modules that only
-# compute, and the coded tasks' two MPI runs with a killed worker, which judge results) run beside them in the kernel's idle class (SCHED_IDLE: any other task that wakes
+# compute, and the coded tasks' MPI runs with a killed or slow worker, which judge results) run beside them in the kernel's idle class (SCHED_IDLE: any other task that wakes
 # takes the core at once; at nice 19 alone, they slowed the exclusive tests by 30 s in all) and idle I/O class,
 # taking only what the exclusive tests leave. A test that waits on a simulated clock is not for this: starved, the
 # documented commands' copter disarmed between two commands. Their output follows the exclusive tests'.

@@ -14,7 +14,7 @@ from nac_onboard.flight_log import read_jsonl
 from tests.conftest import SHARED_DATA
 from tests.integration.test_compute import iterations_logged, job, run_mpi, wait_until
 
-# The two runs with a killed worker go beside the exclusive tests, in the idle class (make test): they judge
+# The runs with a killed or a slow worker go beside the exclusive tests, in the idle class (make test): they judge
 # results, not times, and the master's 10 s timeout only matters for a worker that is alive but starved, which the
 # decode does not wait for anyway. The exit-2 test does not: starved, hydra's mpiexec now and then dies of SIGPIPE
 # when every rank ends at once, instead of passing their 2 on (1 of 6 runs beside a busy core, measured).
@@ -116,17 +116,18 @@ def _slow_run(tmp_path, name: str, slowdown: float, *args: str):
 @beside_the_exclusive_tests
 def test_bpcc_counts_a_slow_companions_first_batches_and_gives_it_fewer_units_by_speed(tmp_path):
     """A (10, 8) code, equal units (3, 4, 3): workers 1 and 2 give 7 units, so every iteration needs 1 of slow
-    worker 3's 3, sent one batch at a time, and the master decodes as soon as it is in (the median iteration uses
-    exactly 1 of them, all 3 only if the fast ones were late). By `--allocation speed`, a worker 4 times
-    slower gets fewer of 12 units than the others. Every product is A B. The slowdown holds each of worker 3's
-    batches for 20 x its CPU time (process CPU time: other processes' load does not count), so its batches come
-    after the fast workers' even on a loaded machine; what is judged is units, not times."""
+    worker 3's 3, sent one batch at a time, and the master decodes as soon as it is in: the median iteration uses
+    fewer than all 3 (measured: exactly 1; the bound leaves room for fast workers starved in the idle class). By
+    `--allocation speed`, a worker 4 times slower gets fewer of 12 units than the others. Every product is A B. The
+    slowdown holds each of worker 3's batches for 20 x its CPU time (process CPU time: other processes' load does
+    not count), so its batches come after the fast workers' even on a loaded machine; what is judged is units, not
+    times."""
     batched = _slow_run(tmp_path, "slow20", 20, "--code-redundancy", "1.25")
     started = batched.of_kind("run_started")[0]
     assert [stop - start for start, stop in started["shards"]] == [3, 4, 3]
     assert started["worker_devices"] == ["host", "host", "slow20"]
     from_slow = [r["units"][2] for r in batched.of_kind("iteration")]
-    assert min(from_slow) >= 1 and np.median(from_slow) == 1, from_slow
+    assert min(from_slow) >= 1 and np.median(from_slow) < 3, from_slow
     by_speed = _slow_run(tmp_path, "slow4", 4, "--allocation", "speed")
     units = [stop - start for start, stop in by_speed.of_kind("run_started")[0]["shards"]]
     assert sum(units) == 12 and 0 < units[2] < min(units[:2]), units
