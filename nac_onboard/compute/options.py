@@ -63,7 +63,7 @@ class ComputeOptions:
     code_s: int = 1  # linreg_gc: stragglers tolerated
     code_redundancy: float = 1.5  # matmul_bpcc: coded units over data blocks
     batch_units: int = 1  # matmul_bpcc: coded units per batch sent back
-    replan_every: int = 0  # re-plan the blocks every this many iterations (0: only at the start and on absences)
+    replan_every: int = 0  # re-plan every this many iterations and on absences (0: the start's blocks stay)
     link_rates: str = "model"  # what the allocation expects of each link: the channel model, or the latest probes
     save_results: bool = False
     checkpoint_s: float = 10.0  # results.npz rewritten (atomically) this often while the job runs; 0 = at the end
