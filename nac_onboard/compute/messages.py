@@ -32,6 +32,7 @@ RESULT_ITERATION, RESULT_COMPUTE_S, RESULT_UP_S, RESULT_ROWS, RESULT_SSE, RESULT
 RESULT_BATCH, RESULT_MORE = 6, 7
 RESULT_HEADER = 8
 WARMUP_ANSWER = (-1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+STOPPED_ANSWER = (-2.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # a worker's last message, after a STOP that finalizes
 
 
 def pad_floats(pad_bits: float) -> int:

@@ -297,8 +297,8 @@ BLOCK_TAKEN = Kind("block_taken", RANK_LOG, "a worker took its block of the data
 WORKER_STOPPED = Kind("worker_stopped", RANK_LOG, "a worker rank stopped", (
     req("rank", "integer", "", "MPI rank"), req("finalizes", "boolean", "", "whether it called MPI_Finalize")))
 WORKER_GAVE_UP = Kind("worker_gave_up", RANK_LOG, "a worker heard nothing from the master for its idle timeout and "
-                      "aborts the job (exit 3): recorded before MPI_Abort, which can end the job before its stderr "
-                      "is forwarded", (
+                      "ends (exit 3; each worker by its own timeout): recorded first, as hydra can end the job "
+                      "before a rank's stderr is forwarded", (
     req("rank", "integer", "", "MPI rank"), req("idle_timeout_s", "number", "s", "the wait it gave the master")))
 
 # ---- the kernel network: network.jsonl ---------------------------------------------------------------------------
