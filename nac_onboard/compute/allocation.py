@@ -16,6 +16,7 @@ class Planner:
         self.model = SleepEmulation(options.channel, options.clock)  # predictions, on any network
         self.planned_out: frozenset = frozenset()  # the workers the blocks were last planned without
         self.rates_bps: list = []  # what the last plan expected of each link (capacity, speed)
+        self._row_cost: tuple[float, float] | None = None  # the task's (CPU s, result bits) per row on this host
 
     def expected_rates_bps(self, distances: dict) -> list[float | None]:
         """Each worker's link as the allocation expects it: the channel model's capacity at its distance (0 out of
@@ -42,7 +43,9 @@ class Planner:
         self.rates_bps = rates = self.expected_rates_bps(distances)
         if o.allocation == "capacity":
             return [rate or 0.0 for rate in rates]
-        cpu_s, bits = self.task.row_cost()  # speed: rows per second, from the device's CPU and the link's time
+        if self._row_cost is None:  # timed once, at the first plan: not again on the master's loop at each re-plan
+            self._row_cost = self.task.row_cost()
+        cpu_s, bits = self._row_cost  # speed: rows per second, from the device's CPU and the link's time
         return [0.0 if rate == 0.0 else 1.0 / (cpu_s * o.device_for(rank).slowdown + (bits / rate if rate else 0.0)
                                                 + 1e-12)
                 for rank, rate in zip(self.workers, rates, strict=True)]

@@ -21,20 +21,23 @@ def checkpoint_path(out: str | Path) -> Path:
     return Path(out) / kinds.RESULTS.name
 
 
-def load_checkpoint(out: str | Path, task: str) -> tuple[int, dict[str, np.ndarray]]:
-    """(the next iteration, the task's arrays) from the checkpoint in `out`; BadInput naming the file otherwise."""
+def load_checkpoint(out: str | Path, task: str, arrays: bool = True) -> tuple[int, dict[str, np.ndarray]]:
+    """(the next iteration, the task's arrays) from the checkpoint in `out`; BadInput naming the file otherwise.
+    arrays=False reads only the iteration and the task's name (every rank's check before MPI starts: matmul's
+    saved products can be large, and only the master needs them)."""
     path = checkpoint_path(out)
     check_regular_file(path, "--resume checkpoint", MAX_AUTOPILOT_LOG_BYTES)
     try:
         with np.load(path, allow_pickle=False) as data:
-            arrays = {name: data[name] for name in data.files}
+            wanted = data.files if arrays else [name for name in data.files if name in ("iteration", "task")]
+            read = {name: data[name] for name in wanted}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as err:
         raise BadInput(f"--resume: {path} is not a checkpoint numpy can read ({err})") from None
-    iteration, saved_task = arrays.pop("iteration", None), arrays.pop("task", None)
+    iteration, saved_task = read.pop("iteration", None), read.pop("task", None)
     if iteration is None or iteration.shape != () or iteration.dtype.kind not in "iu" or int(iteration) < 0:
         raise BadInput(f"--resume: {path}: expected 'iteration', a whole number >= 0")
     if saved_task is None or saved_task.shape != () or saved_task.dtype.kind != "U":
         raise BadInput(f"--resume: {path}: expected 'task', the name of the task it was written by")
     if str(saved_task) != task:
         raise BadInput(f"--resume: {path} was written by --task {saved_task}, not {task}")
-    return int(iteration), arrays
+    return int(iteration), read

@@ -226,7 +226,7 @@ def options_from_argv(argv: list[str] | None) -> ComputeOptions:
         raise BadInput("--emulate sleep needs positions: --positions fixed|script|feed")
     task.check(options)
     if options.resume:  # every rank refuses a missing or foreign checkpoint before MPI starts
-        iteration, _ = load_checkpoint(options.out, options.task)
+        iteration, _ = load_checkpoint(options.out, options.task, arrays=False)
         if options.iterations is not None and iteration >= options.iterations:
             raise BadInput(f"--resume: the checkpoint in {options.out} is at iteration {iteration}, already "
                            f"--iterations {options.iterations}")
