@@ -137,7 +137,8 @@ class ProbeScheduler:
     def results(self) -> tuple[ProbeResult, ...]:
         """Each peer's latest probe, for the state feed."""
         now = time.monotonic()
-        return tuple(ProbeResult(peer, bps, now - t) for peer, (t, bps) in sorted(self.latest.items()))
+        latest = self.latest.copy()  # one step under the GIL: the probe thread may add a peer meanwhile
+        return tuple(ProbeResult(peer, bps, now - t) for peer, (t, bps) in sorted(latest.items()))
 
     def _emulated_rate_bps(self, peer_id: str, distance_m: float, cap_bps: float | None) -> float:
         link = self.emulation.link(distance_m, peer_id, (self.self_id, peer_id))
