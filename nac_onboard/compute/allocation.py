@@ -7,13 +7,13 @@ from __future__ import annotations
 from nac_onboard.compute import kernels
 from nac_onboard.compute.iteration import IterationLinks
 from nac_onboard.compute.options import PROBE_MAX_AGE_S, ComputeOptions
-from nac_onboard.link.emulation import SleepEmulation
+from nac_onboard.radio.files import load_replay
 
 
 class Planner:
     def __init__(self, options: ComputeOptions, workers: list[int], task, source):
         self.options, self.workers, self.task, self.source = options, workers, task, source
-        self.model = SleepEmulation(options.channel, options.clock)  # predictions, on any network
+        self.replay = load_replay(options.channel.replay_file) if options.channel.replay_file else None
         self.planned_out: frozenset = frozenset()  # the workers the blocks were last planned without
         self.rates_bps: list = []  # what the last plan expected of each link (capacity, speed)
         self._row_cost: tuple[float, float] | None = None  # the task's (CPU s, result bits) per row on this host
@@ -21,17 +21,27 @@ class Planner:
     def expected_rates_bps(self, distances: dict) -> list[float | None]:
         """Each worker's link as the allocation expects it: the channel model's capacity at its distance (0 out of
         range; on a kernel network the job does not emulate the links, but the model is the one the air is shaped
-        by), or with --link-rates probes its latest probe where one is fresh; None without a position."""
+        by; see _predicted_bps), or with --link-rates probes its latest probe where one is fresh; None without a
+        position."""
         o = self.options
         measured = self.source.measured_rates_bps(o.clock.wall_s(PROBE_MAX_AGE_S)) \
             if o.link_rates == "probes" and self.source is not None else {}
         rates = []
         for rank in self.workers:
             d = distances.get(rank) if distances else None
-            now = None if d is None else self.model.link(d, rank, (o.vehicle_of(0), o.vehicle_of(rank)))
-            predicted = None if now is None else now.capacity_bps if now.in_range else 0.0
+            predicted = None if d is None else self._predicted_bps(d, (o.vehicle_of(0), o.vehicle_of(rank)))
             rates.append(measured[rank] if measured.get(rank) is not None else predicted)
         return rates
+
+    def _predicted_bps(self, distance_m: float, ids: tuple[str, str]) -> float:
+        """A replay table's rate now where it recorded the pair, else the model's median rate at the distance:
+        no shadowing or fading draw and the rate adaptation settled, as the plan is for the iterations ahead (a
+        stateful look here would lag behind by the time since the last plan, so a plan would depend on when it was
+        made); 0 out of range."""
+        channel = self.options.channel
+        recorded = None if self.replay is None else self.replay.rate_bps(ids[0], ids[1], self.options.clock.now_s())
+        rate = channel.capacity_bps(distance_m) if recorded is None else recorded
+        return rate if channel.usable(rate) else 0.0
 
     def shares(self, distances: dict) -> list[float]:
         """Each worker's share of the task's rows by --allocation, at these positions."""

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from nac_onboard.compute import forestfires, kernels
+from nac_onboard.compute.allocation import Planner
 from nac_onboard.compute.launch import core_binding, cpu_per_host, mpiexec_command
 from nac_onboard.compute.messages import KIND_WORK
 from nac_onboard.compute.options import ComputeOptions
@@ -480,3 +481,19 @@ def test_linreg_steps_on_the_shards_that_arrived(tmp_path):
     assert record["rows_used"] == 258 and not record["complete"]
     _, _, _, record = drive(Linreg, options, 2, lost=frozenset({1, 2}))
     assert record == {"cost": None, "rows_used": 0, "complete": False}
+
+
+def test_the_planned_links_are_the_model_median_whenever_the_plan_is_made(tmp_path):
+    """--allocation capacity's expected rate at a distance is the channel's median rate (rate adaptation settled,
+    no shadowing or fading draw) however long after the last plan, and at which distance, it is made: a stateful
+    look made a plan depend on the time since the last one (a clean-clone run re-planned the same positions)."""
+    channel = PRESETS["wifi-flight"]
+    assert channel.rate_adaptation_s > 0 and channel.shadowing_sigma_db > 0
+    options = ComputeOptions(task="linreg", iterations=1, duration_s=None, out=str(tmp_path), channel=channel,
+                             allocation="capacity")
+    planner = Planner(options, [1, 2], task=None, source=None)
+    out_of_range_m = channel.range_m() + 10.0
+    assert planner.expected_rates_bps({1: 8.0, 2: out_of_range_m}) == [channel.capacity_bps(8.0), 0.0]
+    for _ in range(3):  # back in range at once: no lag from the out-of-range look
+        assert planner.expected_rates_bps({1: 8.0, 2: 16.0}) == [channel.capacity_bps(8.0), channel.capacity_bps(16.0)]
+    assert planner.expected_rates_bps({2: 16.0}) == [None, channel.capacity_bps(16.0)]
