@@ -40,12 +40,13 @@ def _prctl():
         return None
 
 
-def die_with_parent() -> None:
-    """This process is killed (SIGKILL) when the thread that started it ends: the parent's death, SIGKILL included.
-    Called by a process itself (MPI ranks, whose launcher's proxy starts them in sessions of their own)."""
+def die_with_parent(signum: int = signal.SIGKILL) -> None:
+    """This process gets signum (SIGKILL: it is killed) when the thread that started it ends: the parent's death,
+    SIGKILL included. Called by a process itself (MPI ranks, whose launcher's proxy starts them in sessions of
+    their own)."""
     prctl = _prctl()
     if prctl is not None:
-        prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+        prctl(PR_SET_PDEATHSIG, signum)
 
 
 def die_with_parent_preexec() -> Callable[[], None] | None:

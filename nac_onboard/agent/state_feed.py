@@ -1,7 +1,8 @@
 """The agent's local state feed: the compute job asks, the agent answers with where everyone is.
 
 One UDP datagram each way on the companion itself (default 127.0.0.1:47200). The answer is JSON:
-{"t_s", "self": {id, role, lat_deg, lon_deg, alt_m, vel_ned_mps, link_up, ...}, "peers": {id: {..., age_s, lost}},
+{"t_s", "self": {id, role, lat_deg, lon_deg, alt_m, vel_ned_mps, link_up, ...}, "peers": {id: {..., boot, age_s,
+lost}},
 "probes": {id: {bits_per_second, age_s}}} (probes: only on a vehicle that probes, each peer's latest).
 The agent hands a typed AgentSnapshot (nac_onboard.agent.snapshot); this module alone writes it as JSON, and
 `position_of`/`distance_between` read the JSON answer back, for the processes that ask.
@@ -9,6 +10,7 @@ The agent hands a typed AgentSnapshot (nac_onboard.agent.snapshot); this module 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import socket
 from dataclasses import asdict
@@ -27,14 +29,23 @@ class StateFeedError(OperationFailed):
     pass
 
 
-def fetch_state(address: str = "127.0.0.1:47200", timeout_s: float = 1.0) -> dict:
-    """Ask the agent at address (HOST:PORT) for the current positions; raises StateFeedError on no answer."""
+def fetch_state(address: str = "127.0.0.1:47200", timeout_s: float = 1.0,
+                sock: socket.socket | None = None) -> dict:
+    """Ask the agent at address (HOST:PORT) for the current positions; raises StateFeedError on no answer.
+    sock: a UDP socket to ask from, kept by the caller (one made in another network namespace); answers to
+    earlier questions still queued on it are dropped first."""
     host, port = parse_host_port(address, "state feed")
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.settimeout(timeout_s)
+    with contextlib.nullcontext(sock) if sock is not None else socket.socket(socket.AF_INET, socket.SOCK_DGRAM) \
+            as asking:
         try:
-            sock.sendto(REQUEST, (host, port))
-            data, _ = sock.recvfrom(65535)
+            if sock is not None:
+                asking.setblocking(False)
+                with contextlib.suppress(BlockingIOError):
+                    while True:
+                        asking.recv(65535)
+            asking.settimeout(timeout_s)
+            asking.sendto(REQUEST, (host, port))
+            data, _ = asking.recvfrom(65535)
         except (TimeoutError, OSError) as err:
             raise StateFeedError(f"no answer from the agent's state feed at {address} within {timeout_s:g} s "
                                  f"({err.strerror or err}); is nac-onboard agent running?") from None
@@ -46,7 +57,7 @@ def fetch_state(address: str = "127.0.0.1:47200", timeout_s: float = 1.0) -> dic
 
 def answer_of(snapshot: AgentSnapshot) -> dict:
     """The answer's JSON object: "self" is the own state, each peer its last message with age_s and lost (without
-    its boot and seq: they are the peer messages' freshness, not the feed's)."""
+    its seq: that is the peer messages' freshness, not the feed's)."""
     peers = {p.state.id: {**_without_freshness(asdict(p.state)), "age_s": p.age_s, "lost": p.lost}
              for p in snapshot.peers}
     answer = {"t_s": snapshot.t_s, "self": asdict(snapshot.own), "peers": peers}
@@ -56,7 +67,7 @@ def answer_of(snapshot: AgentSnapshot) -> dict:
 
 
 def _without_freshness(fields: dict) -> dict:
-    del fields["boot"], fields["seq"]
+    del fields["seq"]  # boot stays: which start of the peer's agent this is (a supervisor sees a reboot by it)
     return fields
 
 

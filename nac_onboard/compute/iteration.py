@@ -20,7 +20,7 @@ class IterationLinks:
         self.distance_m: list = [None] * workers
         self.rate_bps: list = [None] * workers
         self.loss: list = [None] * workers  # the emulated link's packet loss (sleep emulation)
-        self.absent: list = [None] * workers  # None = present; else why: out_of_range, no_position, timeout
+        self.absent: list = [None] * workers  # None = present, else why (kinds.ITERATION's workers.absent)
         self.bytes_down = [0] * workers
         self.bytes_up = [0] * workers
         self.down_s = [0.0] * workers

@@ -46,13 +46,16 @@ def cpu_per_host(hosts: list[str], cores: int | None = None) -> dict[str, int]:
     return {host: int(c) for host, c in zip(hosts, binding.removeprefix("user:").split(","), strict=True)}
 
 
-def write_launcher(path: Path, cpus: dict[str, int], netns: bool) -> Path:
+def write_launcher(path: Path, cpus: dict[str, int], netns: bool, down_dir: Path | None = None) -> Path:
     """The program hydra calls like ssh (`LAUNCHER [-x] HOST COMMAND...`) to start a host's proxy: here, or
-    inside the network namespace named HOST; pinned to the host's core when `cpus` gives one."""
+    inside the network namespace named HOST; pinned to the host's core when `cpus` gives one. down_dir (SITL): a
+    file named HOST there is a companion that is lost, which the launcher cannot reach (exit 255, as ssh)."""
     cases = "".join(f"  {name}) cpu={cpu} ;;\n" for name, cpu in cpus.items())
     enter = 'ip netns exec "$host" ' if netns else ""
+    down = (f'if [ -e "{down_dir}/$host" ]; then echo "launcher: $host: no route to host (lost)" >&2; exit 255; fi\n'
+            if down_dir else "")
     path.write_text("#!/bin/sh\n# written by nac-onboard: hydra's bootstrap onto a companion\n"
-                    "[ \"$1\" = \"-x\" ] && shift\nhost=$1; shift\ncpu=\ncase \"$host\" in\n" + cases +
+                    "[ \"$1\" = \"-x\" ] && shift\nhost=$1; shift\n" + down + "cpu=\ncase \"$host\" in\n" + cases +
                     "esac\nif [ -n \"$cpu\" ] && command -v taskset >/dev/null; then\n"
                     f"  exec {enter}taskset -c \"$cpu\" sh -c \"$*\"\nfi\n"
                     f"exec {enter}sh -c \"$*\"\n")
@@ -61,7 +64,7 @@ def write_launcher(path: Path, cpus: dict[str, int], netns: bool) -> Path:
 
 
 def mpiexec_command(hosts: list[str], config_dir: Path, server_address: str = "127.0.0.1", netns: bool = False,
-                    env: dict[str, str] | None = None) -> list[str]:
+                    env: dict[str, str] | None = None, down_dir: Path | None = None) -> list[str]:
     """`mpiexec` up to the program: rank k on hosts[k] (rank 0, the master, first), one proxy each, pinned as
     cpu_per_host says. Writes the launcher and the hostfile (what a lab writes for its Jetsons) to config_dir."""
     for host in hosts:
@@ -70,7 +73,8 @@ def mpiexec_command(hosts: list[str], config_dir: Path, server_address: str = "1
     if len(set(hosts)) != len(hosts):
         raise BadInput(f"MPI hosts must differ, got {hosts}")
     config_dir.mkdir(parents=True, exist_ok=True)
-    launcher = write_launcher(config_dir / ("netns-launcher" if netns else "launcher"), cpu_per_host(hosts), netns)
+    launcher = write_launcher(config_dir / ("netns-launcher" if netns else "launcher"), cpu_per_host(hosts), netns,
+                              down_dir)
     hostfile = config_dir / "hostfile"
     hostfile.write_text("".join(f"{host}:1\n" for host in hosts))
     genv = [part for name, value in (env or {}).items() for part in ("-genv", name, value)]

@@ -54,6 +54,7 @@ class ComputeOptions:
     positions_script: str | None = None
     feed: str = "127.0.0.1:47200"
     vehicles: tuple[str, ...] = ()
+    fleet_workers: tuple[str, ...] = ()  # every worker of the fleet in order: a rank's log is named by its place here
     timeout_s: float = 5.0
     idle_timeout_s: float = 600.0
     on_missing: str = "incomplete"
@@ -79,6 +80,12 @@ class ComputeOptions:
 
     def vehicle_of(self, rank: int) -> str:
         return self.vehicles[rank] if rank < len(self.vehicles) else f"rank{rank}"
+
+    def log_number(self, rank: int) -> int:
+        """The N of a worker's rank-N.jsonl: its place among --fleet-workers, so a job restarted without a lost
+        worker (its ranks numbered again) keeps each vehicle's records in one file; the rank without them."""
+        vehicle = self.vehicle_of(rank)
+        return self.fleet_workers.index(vehicle) + 1 if vehicle in self.fleet_workers else rank
 
     def device_for(self, rank: int) -> DeviceProfile:
         """Rank `rank`'s companion: its own profile (--device-of), else the fleet's (--device)."""
@@ -129,6 +136,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--positions-script", help="script: JSON file of distances by iteration or time")
     p.add_argument("--feed", default="127.0.0.1:47200", help="feed: the local agent's state feed")
     p.add_argument("--vehicles", help="feed: vehicle ids in rank order, master first (comma-separated)")
+    p.add_argument("--fleet-workers", help="every worker of the fleet, in order, when this job has only some of "
+                                           "them (a restart without a lost companion): worker logs keep their "
+                                           "numbers (comma-separated ids)")
     p.add_argument("--timeout-s", type=number_arg(0, 86400, low_open=True, unit="s"), default=5.0,
                    help="how long the master waits for an iteration's results")
     p.add_argument("--idle-timeout-s", type=number_arg(0, 7 * 86400, low_open=True, unit="s"), default=600.0,
@@ -198,6 +208,8 @@ def options_from_argv(argv: list[str] | None) -> ComputeOptions:
     distances = tuple(parse_number(d, "--distances", 0, 1e6, unit="m") for d in args.distances.split(",")) \
         if args.distances else ()
     vehicles = tuple(check_id(v.strip(), "--vehicles") for v in args.vehicles.split(",")) if args.vehicles else ()
+    fleet_workers = tuple(check_id(v.strip(), "--fleet-workers") for v in args.fleet_workers.split(",")) \
+        if args.fleet_workers else ()
     energy_wh = tuple(parse_number(e, "--energy-wh", 0, 1e6, low_open=True, unit="Wh")
                       for e in args.energy_wh.split(",")) if args.energy_wh else ()
     if (args.allocation == "energy") != bool(energy_wh):
@@ -207,8 +219,9 @@ def options_from_argv(argv: list[str] | None) -> ComputeOptions:
         start_file=args.start_file, out=args.out, seed=args.seed, m=args.m,
         n=args.n, l=args.l, a_path=args.a_path, data=args.data, learning_rate=args.learning_rate,
         emulate=args.emulate, channel=load_channel(args.channel), positions=args.positions, distances=distances,
-        positions_script=args.positions_script, feed=args.feed, vehicles=vehicles, timeout_s=args.timeout_s,
-        idle_timeout_s=args.idle_timeout_s, on_missing=args.on_missing, allocation=args.allocation,
+        positions_script=args.positions_script, feed=args.feed, vehicles=vehicles, fleet_workers=fleet_workers,
+        timeout_s=args.timeout_s, idle_timeout_s=args.idle_timeout_s, on_missing=args.on_missing,
+        allocation=args.allocation,
         energy_wh=energy_wh, code_k=args.code_k, code_s=args.code_s, code_redundancy=args.code_redundancy,
         batch_units=args.batch_units, replan_every=args.replan_every, link_rates=args.link_rates,
         device_of=device_of(args.device_of),

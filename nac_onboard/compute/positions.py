@@ -31,6 +31,9 @@ class FixedDistances:
     def distances_m(self, iteration: int, elapsed_s: float) -> dict[int, float | None]:
         return dict(self.distances)
 
+    def lost_ranks(self) -> set[int]:
+        return set()  # no agents to lose
+
 
 class ScriptedDistances:
     def __init__(self, by: str, schedule: dict[int, list[tuple[float, float]]]):
@@ -65,6 +68,9 @@ class ScriptedDistances:
             out[rank] = current
         return out
 
+    def lost_ranks(self) -> set[int]:
+        return set()  # no agents to lose
+
 
 class FeedDistances:
     def __init__(self, address: str, vehicle_ids: list[str], timeout_s: float = 0.3):
@@ -81,8 +87,16 @@ class FeedDistances:
             self.failures += 1
             self.state = {}
             return {rank: None for rank in range(1, len(self.ids))}
-        return {rank: distance_between(self.state, self.ids[0], vehicle) for rank, vehicle in
-                enumerate(self.ids[1:], start=1)}
+        lost = self.lost_ranks()  # a lost peer's last position is not where it is
+        return {rank: None if rank in lost else distance_between(self.state, self.ids[0], vehicle)
+                for rank, vehicle in enumerate(self.ids[1:], start=1)}
+
+    def lost_ranks(self) -> set[int]:
+        """The workers whose agents the master's agent has lost (silent for its peers.timeout_s), in the last
+        answer: not sent work until heard again, sooner than the job's own deadlines would find them gone."""
+        peers = self.state.get("peers") or {}
+        return {rank for rank, vehicle in enumerate(self.ids[1:], start=1)
+                if isinstance(peers.get(vehicle), dict) and peers[vehicle].get("lost") is True}
 
     def measured_rates_bps(self, max_age_s: float) -> dict[int, float | None]:
         """Each worker's rate as the master's agent last measured it (its probes in the last answer), if no older

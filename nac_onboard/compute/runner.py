@@ -261,6 +261,7 @@ class Master:
         self.undrained: set[int] = set()  # ranks whose STOPPED_ANSWER did not come: MPI_Finalize would fail
         self._stalled_s = 0.0  # wall seconds this iteration spent on sends that missed their deadline
         self._next_checkpoint_s = 0.0
+        self.stop_signal: str | None = None  # set by request_stop
         self.checkpoint_iteration: int | None = None  # the iteration of the last whole checkpoint on disk
         self.end_at_s = options.end_at_s
 
@@ -272,6 +273,8 @@ class Master:
             links.distance_m[k] = d
             if rank in self.unresponsive:
                 links.absent[k] = "unresponsive"  # not waited for; pinged until it answers again
+            elif self.source is not None and rank in self.source.lost_ranks():
+                links.absent[k] = "agent_lost"  # its agent unheard (the fleet's Wi-Fi): nothing of it is believed
             elif self.emulation is not None:
                 if d is None:
                     links.absent[k] = "no_position"
@@ -519,6 +522,9 @@ class Master:
             if self.end_at_s is not None and self.clock.now_s() >= self.end_at_s:
                 ended_by = "end_at"
                 break
+            if self.stop_signal is not None:
+                ended_by = "stopped"
+                break
             t_start, start_unix, start_sim = time.monotonic(), time.time(), self.clock.now_s()
             distances = self.source.distances_m(iteration, start_sim - t_run_sim) if self.source else {}
             links = self.link(distances)
@@ -541,27 +547,41 @@ class Master:
                             record)
             iteration += 1
             if o.checkpoint_s and time.monotonic() >= self._next_checkpoint_s:
+                self.write_pending()  # a checkpoint holds no step whose record is not on disk before it
                 self.checkpoint(iteration)
                 self._next_checkpoint_s = time.monotonic() + o.checkpoint_s
         self.write_pending()
         self.checkpoint(iteration)
+        stopped = self.stop_signal is not None
+        if stopped:  # summary first: a worker's exit can end mpiexec, and hydra then kills this rank (issue 29)
+            self.summarize(iteration, ended_by, t_run, t_run_sim)
         self.stop_workers(iteration)
+        if not stopped:
+            self.summarize(iteration, ended_by, t_run, t_run_sim)
+        return 0
+
+    def summarize(self, iteration: int, ended_by: str, t_run: float, t_run_sim: float) -> None:
         t = self.tally
         d = np.array(t.durations) if t.durations else np.array([np.nan])
-        self.log.write(kinds.RUN_SUMMARY, task=task.name, iterations=iteration, complete_iterations=t.complete,
+        self.log.write(kinds.RUN_SUMMARY, task=self.task.name, iterations=iteration, complete_iterations=t.complete,
                        ended_by=ended_by, elapsed_s=time.monotonic() - t_run,
                        elapsed_sim_s=self.clock.now_s() - t_run_sim, mean_duration_s=float(np.mean(d)),
                        p95_duration_s=float(np.percentile(d, 95)),
                        absent_iterations={str(r): n for r, n in t.absences.items()},
                        stale_results=self.stale_results, lost_workers=sorted(self.unresponsive),
                        failed_workers=sorted(self.lost),
-                       late_cpu_segments=self.stretch.late + sum(self.late_by_worker.values()), **task.final())
-        return 0
+                       late_cpu_segments=self.stretch.late + sum(self.late_by_worker.values()), **self.task.final())
 
     @property
     def finalizes(self) -> bool:
-        """Whether MPI_Finalize can end the job: not with a rank that does not answer (it would wait for it)."""
-        return not (self.unresponsive or self.lost or self._stuck or self.undrained)
+        """Whether MPI_Finalize can end the job: not with a rank that does not answer (it would wait for it), nor
+        after SIGTERM (the launcher, which Finalize talks to, may be gone)."""
+        return not (self.unresponsive or self.lost or self._stuck or self.undrained or self.stop_signal)
+
+    def request_stop(self, signum: int, _frame) -> None:
+        """SIGTERM (a supervisor restarting the job, or the launcher gone): the loop ends after this iteration and
+        the run ends as at its end, checkpoint and summary written (`ended_by` "stopped")."""
+        self.stop_signal = signal.Signals(signum).name
 
     def stop_workers(self, iteration: int) -> None:
         """STOP to every worker, saying whether MPI_Finalize will run; each send gives up at its deadline."""
@@ -616,6 +636,8 @@ class Master:
             return
         deadline = time.monotonic() + self.options.idle_timeout_s
         while not os.path.exists(path):
+            if self.stop_signal is not None:
+                return
             if time.monotonic() > deadline:
                 raise TimeoutError(f"--start-file {path} did not appear within {self.options.idle_timeout_s:g} s")
             time.sleep(0.005)
@@ -717,7 +739,10 @@ def main(argv: list[str] | None = None) -> int:
     comm.Set_errhandler(MPI.ERRORS_RETURN)  # a dead peer is an exception to handle, not the end of this rank
     # hydra's notice that a rank died: the job finds lost ranks by their silence and needs no handler for it
     signal.signal(signal.SIGUSR1, signal.SIG_IGN)
-    die_with_parent()  # ranks run in sessions of their own (hydra's doing): if their proxy is killed, they go too
+    # ranks run in sessions of their own (hydra's doing): if their proxy is killed, they go too; the master by
+    # SIGTERM, which stops it at the end of its iteration with its checkpoint and summary written (its launcher,
+    # mpiexec, dies when a lost companion's proxy connection closes: the job is restarted from there)
+    die_with_parent(signal.SIGTERM if comm.Get_rank() == 0 else signal.SIGKILL)
     if comm.Get_size() < 2:
         sys.stderr.write("nac-onboard compute: needs at least 2 ranks (mpiexec -n N+1 ...): a master and a worker\n")
         return 2
@@ -735,11 +760,13 @@ def main(argv: list[str] | None = None) -> int:
         if comm.Get_rank() == 0:
             with JsonlLog(os.path.join(options.out, kinds.COMPUTE_LOG.name)) as log:
                 master = Master(comm, MPI, options, log)
+                signal.signal(signal.SIGTERM, master.request_stop)
                 code = master.run()
             if not master.finalizes:
                 end_without_finalize(code)
             return code
-        with JsonlLog(os.path.join(options.out, kinds.RANK_LOG.file_name(rank=comm.Get_rank()))) as log:
+        with JsonlLog(os.path.join(options.out, kinds.RANK_LOG.file_name(rank=options.log_number(comm.Get_rank())))) \
+                as log:
             log.write(kinds.WORKER_STARTED, rank=comm.Get_rank(), pid=os.getpid(), host=MPI.Get_processor_name())
             finalizes = run_worker(comm, MPI, options, log)
             log.write(kinds.WORKER_STOPPED, rank=comm.Get_rank(), finalizes=finalizes)

@@ -46,6 +46,12 @@ def job_nodes(state: dict, master_host: str) -> tuple[list[Node], list[str]]:
     return nodes, notes
 
 
+def heard_workers(state: dict) -> dict[str, str]:
+    """The workers the agent hears now (not lost): id -> the boot of its agent (another boot: it restarted)."""
+    return {peer_id: str(peer.get("boot", "")) for peer_id, peer in (state.get("peers") or {}).items()
+            if isinstance(peer, dict) and not peer.get("lost") and peer.get("role") == "worker"}
+
+
 def check_builds(nodes: list[Node]) -> str:
     """The build every node runs, or MpiBuildMismatch naming each node that differs from the most common one
     (the master's on a tie) or reports none."""

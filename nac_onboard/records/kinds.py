@@ -27,6 +27,9 @@ RANK_LOG = RunFile("rank-N.jsonl", "compute/rank-N.jsonl", "rank", "nac-onboard 
 RESULTS = RunFile("results.npz", "compute/results.npz", "run", COMPUTE_WRITER,
                   "the task's arrays (linreg weights; matmul B and A@B with --save-results), the next iteration and "
                   "the task's name, replaced atomically at each checkpoint: what --resume continues from", jsonl=False)
+JOB_LOG = RunFile("job.jsonl", "compute/job.jsonl", "run",
+                  "the job's supervisor (nac_onboard/compute/supervisor.py: nac-sitl experiment, nac-onboard mpi run "
+                  "--keep-going)", "the MPI job's launches, the stops asked of it and its waits for a worker")
 MPIEXEC_LOG = RunFile("mpiexec.log", "compute/mpiexec.log", "run", RUNNER_WRITER, "mpiexec's own output",
                       jsonl=False)
 START_FILE = RunFile("start", "compute/start", "run", RUNNER_WRITER,
@@ -65,7 +68,7 @@ ANALYSIS_DIR = "analysis"
 #: VEHICLE/iperf3-PEER[.anything].json: the output of `iperf3 --client PEER --json` run on VEHICLE, read as probes
 IPERF3_GLOB = "iperf3-*.json"
 
-FILES = (AGENT_LOG, THROUGHPUT_LOG, TLOG, COMPUTE_LOG, RANK_LOG, RESULTS, MPIEXEC_LOG, START_FILE, NETWORK_LOG,
+FILES = (AGENT_LOG, THROUGHPUT_LOG, TLOG, COMPUTE_LOG, RANK_LOG, RESULTS, JOB_LOG, MPIEXEC_LOG, START_FILE, NETWORK_LOG,
          EXPERIMENT_LOG, ENERGY_LOG, CLOCK_FILE, CHANNEL_FILE, REPLAY_TABLE, AGENT_CONFIG, FLEET_KEY, PEER_FRESHNESS,
          HOSTFILE, REPORT, SUMMARY, VIEW_PNG)
 
@@ -241,7 +244,9 @@ ITERATION = Kind("iteration", COMPUTE_LOG, "one iteration; `workers` holds one l
     opt("start_sim_s", "number", "s", "simulated start (absent: the analysis uses start_s)"),
     opt("duration_sim_s", "number", "s", "simulated time (absent: the analysis uses duration_s)"),
     req("workers", "object", "", "rank, vehicle, present, distance_m (m), rate_bps (bit/s), loss, absent (why: "
-                                 "out_of_range, no_position, timeout), bytes_down, bytes_up (bytes), down_s, up_s, "
+                                 "out_of_range, no_position, timeout, unresponsive, agent_lost: its agent unheard "
+                                 "by the master's), "
+                                 "bytes_down, bytes_up (bytes), down_s, up_s, "
                                  "compute_s (s)"),
     req("complete", "boolean", "", "every worker's block arrived"),
     opt("master_compute_s", "number", "s", "with a device profile: the master's own work (input and combine) on the "
@@ -256,7 +261,9 @@ ITERATION = Kind("iteration", COMPUTE_LOG, "one iteration; `workers` holds one l
 RUN_SUMMARY = Kind("run_summary", COMPUTE_LOG, "the job's end", (
     req("task", "string", "", "the task's name (linreg, matmul, or a coded one: linreg_gc, matmul_mds, matmul_bpcc)"),
     req("iterations", "integer", "", "iterations run"),
-    req("complete_iterations", "integer", "", "with every worker"), req("ended_by", "string", "", "why it stopped"),
+    req("complete_iterations", "integer", "", "with every worker"),
+    req("ended_by", "string", "", "why it stopped: iterations, duration, end_at, or stopped (SIGTERM: its "
+                                  "supervisor restarting it, or its launcher gone)"),
     req("elapsed_s", "number", "s", "wall time"), req("elapsed_sim_s", "number", "s", "simulated time"),
     req("mean_duration_s", "number", "s", "mean iteration time"), req("p95_duration_s", "number", "s", "95th pct"),
     req("absent_iterations", "object", "", "iterations each rank missed"),
@@ -300,6 +307,27 @@ WORKER_GAVE_UP = Kind("worker_gave_up", RANK_LOG, "a worker heard nothing from t
                       "ends (exit 3; each worker by its own timeout): recorded first, as hydra can end the job "
                       "before a rank's stderr is forwarded", (
     req("rank", "integer", "", "MPI rank"), req("idle_timeout_s", "number", "s", "the wait it gave the master")))
+
+# ---- the job's supervisor: compute/job.jsonl --------------------------------------------------------------------
+JOB_LAUNCHED = Kind("job_launched", JOB_LOG, "mpiexec started for the job: the first time, or again", (
+    req("launch", "integer", "", "1 for the first, then 2, 3..."),
+    req("why", "string", "", "start; rejoin (a worker came back); launcher lost (mpiexec died under the master: a "
+                             "companion's proxy connection closed); stopped; ended without its summary"),
+    req("workers", "list", "", "the vehicles of its workers, rank order"),
+    req("resume", "boolean", "", "whether it continues from the checkpoint (--resume)"),
+    req("from_iteration", "any", "", "the checkpoint's iteration (null: a fresh start)"),
+    req("pid", "integer", "", "mpiexec's process id"), req("t_sim_s", "number", "s", "on the run's clock")))
+JOB_STOPPING = Kind("job_stopping", JOB_LOG, "the supervisor asked the master to stop (SIGTERM) so that the job "
+                                             "starts again with a worker that came back", (
+    req("launch", "integer", "", "the launch asked"), req("why", "string", "", "rejoin"),
+    req("vehicles", "list", "", "the workers it starts again for"), req("t_sim_s", "number", "s", "the run's clock")))
+JOB_WAITING = Kind("job_waiting", JOB_LOG, "the job waits before it starts again (longer each time in a row)", (
+    req("why", "string", "", "no worker heard, or the last start was not set up"),
+    req("retry_in_s", "number", "s", "simulated"), req("t_sim_s", "number", "s", "the run's clock")))
+JOB_ENDED = Kind("job_ended", JOB_LOG, "an mpiexec of the job ended", (
+    req("launch", "integer", "", "which"), req("exit_code", "any", "", "mpiexec's"),
+    req("ended_by", "any", "", "its master's run_summary.ended_by (null: no summary: the master died)"),
+    req("t_sim_s", "number", "s", "the run's clock")))
 
 # ---- the kernel network: network.jsonl ---------------------------------------------------------------------------
 LINK_RATES = Kind("link_rates", NETWORK_LOG, "every pair's link, one list per field, one entry per pair", (

@@ -78,12 +78,20 @@ def agent_config(scenario: Scenario, index: int, run_dir: Path, ports: Ports,
     })
 
 
+# wall seconds between the master's checkpoints: a master its launcher kills (hydra's proxies kill their ranks when
+# mpiexec dies) loses at most this much work; linreg's is 13 numbers, written and renamed in well under 1 ms
+CHECKPOINT_S = 1.0
+
+
 def compute_args(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: float,
-                 kernel: bool = False) -> list[str]:
+                 kernel: bool = False, workers: list[str] | None = None, resume: bool = False) -> list[str]:
     """The `nac-onboard compute` arguments of the scenario's MPI job: on a kernel network the flight path
-    (--emulate none) with the channel's per-transfer overhead as real bytes; otherwise the research's sleeps."""
+    (--emulate none) with the channel's per-transfer overhead as real bytes; otherwise the research's sleeps.
+    workers: the ids of the job's workers when not all (a restart without a lost companion); resume: continue from
+    the checkpoint."""
     c = scenario.compute
-    ids = [scenario.master.id, *(w.id for w in scenario.workers)]
+    workers = [w.id for w in scenario.workers] if workers is None else workers
+    ids = [scenario.master.id, *workers]
     # without a number of iterations the runner's go (kinds.START_FILE) says when to end
     stop = ["--iterations", str(c.iterations)] if c.iterations else ["--end-at-s", f"{end_at_sim_s:.3f}"]
     if kernel:
@@ -93,40 +101,52 @@ def compute_args(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: 
     return ["--task", c.task, *stop, "--start-file", str(kinds.START_FILE.at(run_dir)), "--out",
             str(kinds.COMPUTE_LOG.at(run_dir).parent), *link,
             "--channel", str(run_channel_path(run_dir)), "--positions", "feed", "--feed", f"127.0.0.1:{ports.feed()}",
-            "--vehicles", ",".join(ids), "--timeout-s", str(c.timeout_s), "--on-missing", c.on_missing,
-            "--allocation", c.allocation, *energy_args(scenario), "--device", c.device, "--code-k", str(c.code_k),
-            "--code-s", str(c.code_s), "--code-redundancy", f"{c.code_redundancy:g}", "--batch-units",
+            "--vehicles", ",".join(ids), "--fleet-workers", ",".join(w.id for w in scenario.workers),
+            *(["--resume"] if resume else []), "--checkpoint-s", f"{CHECKPOINT_S:g}", "--timeout-s", str(c.timeout_s),
+            "--on-missing", c.on_missing, "--allocation", c.allocation, *energy_args(scenario, workers), "--device",
+            c.device, "--code-k", str(c.code_k), "--code-s", str(c.code_s), "--code-redundancy",
+            f"{c.code_redundancy:g}", "--batch-units",
             str(c.batch_units), "--replan-every", str(c.replan_every), "--link-rates", c.link_rates,
             *(f"--device-of={w.id}={w.device}" for w in scenario.vehicles if w.device), *c.args]
 
 
-def energy_args(scenario: Scenario) -> list[str]:
+def energy_args(scenario: Scenario, workers: list[str]) -> list[str]:
     """--allocation energy: each worker's companion pack, full at the start, as the energy it holds (Wh)."""
     if scenario.compute.allocation != "energy":
         return []
-    held = [energy.rated_wh(scenario.energy.companion_cells, scenario.companion_mah(w)) for w in scenario.workers]
+    held = [energy.rated_wh(scenario.energy.companion_cells, scenario.companion_mah(w)) for w in scenario.workers
+            if w.id in workers]
     return ["--energy-wh", ",".join(f"{wh:.4g}" for wh in held)]
 
 
-def mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: float) -> list[str]:
+def down_dir(run_dir: Path) -> Path:
+    """Where a lost companion's marker lies (its host name): the launcher cannot reach it, as ssh could not."""
+    return run_dir / "config" / "down"
+
+
+def mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: float,
+                workers: list[str] | None = None, resume: bool = False) -> list[str]:
     """mpiexec on this machine, one proxy per vehicle (named after it) as on the fleet: a killed rank ends
-    only itself (nac_onboard.compute.launch)."""
-    hosts = [scenario.master.id, *(w.id for w in scenario.workers)]
-    return [*launch.mpiexec_command(hosts, run_dir / "config"), sys.executable, "-m", "mpi4py", "-m",
-            "nac_onboard.compute", *compute_args(scenario, run_dir, ports, end_at_sim_s)]
+    only itself (nac_onboard.compute.launch). workers, resume: as compute_args."""
+    workers = [w.id for w in scenario.workers] if workers is None else workers
+    hosts = [scenario.master.id, *workers]
+    return [*launch.mpiexec_command(hosts, run_dir / "config", down_dir=down_dir(run_dir)), sys.executable, "-m",
+            "mpi4py", "-m", "nac_onboard.compute",
+            *compute_args(scenario, run_dir, ports, end_at_sim_s, workers=workers, resume=resume)]
 
 
 def kernel_mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: float, air: AirNetwork,
-                       clock_path: Path) -> list[str]:
+                       clock_path: Path, workers: list[str] | None = None, resume: bool = False) -> list[str]:
     """mpiexec as on the fleet: started on the master's companion, one rank per vehicle's namespace, over TCP
-    only (shared memory would bypass the shaped links)."""
+    only (shared memory would bypass the shaped links). workers, resume: as compute_args."""
     ids = [v.id for v in scenario.vehicles]
-    order = [ids.index(scenario.master.id), *(ids.index(w.id) for w in scenario.workers)]
+    workers = [w.id for w in scenario.workers] if workers is None else workers
+    order = [ids.index(scenario.master.id), *(ids.index(w) for w in workers)]
     env = {"UCX_TLS": "tcp,self", "UCX_NET_DEVICES": "air0", "MPIR_CVAR_NOLOCAL": "1", clock.ENV: str(clock_path)}
     mpiexec = launch.mpiexec_command([air.stations[k].netns for k in order], run_dir / "config",
                                      air.stations[order[0]].address, netns=True, env=env)
     return [*air.exec_prefix(order[0]), *mpiexec, sys.executable, "-m", "mpi4py", "-m", "nac_onboard.compute",
-            *compute_args(scenario, run_dir, ports, end_at_sim_s, kernel=True)]
+            *compute_args(scenario, run_dir, ports, end_at_sim_s, kernel=True, workers=workers, resume=resume)]
 
 
 def choose_network(requested: str | None, air: str = "htb") -> tuple[str, str]:

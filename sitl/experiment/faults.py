@@ -3,7 +3,8 @@
 Link, GPS, battery and loss faults go through the simulator's fault API (sitl/server.py), which sets the
 vehicle's SIM_* parameters (sitl/vehicle/params.py); the vehicle's flight logic reacts as an autopilot would
 (sitl/vehicle/guards.py: GPS lost -> land, low battery -> BATT_FS_LOW_ACT). Process faults kill the vehicle's
-agent or its MPI rank, as a crash on the companion computer would.
+agent or its MPI rank, as a crash on the companion computer would; companion faults take the whole companion
+computer away (and back), which the experiment runner does (it owns the processes and the network).
 """
 
 from __future__ import annotations
@@ -31,6 +32,11 @@ class FaultKind(Enum):
     PACKET_LOSS_PCT = "packet_loss_pct"  # `value` % of the companion link's packets lost both ways
     KILL_AGENT = "kill_agent"  # the onboard agent is SIGKILLed (not restarted)
     KILL_WORKER = "kill_worker"  # the vehicle's MPI rank is SIGKILLed
+    # the companion computer gone (brown-out, reset, router dead): every process on it killed, its Wi-Fi down
+    LOSE_COMPANION = "lose_companion"
+    # the same, then back after duration_s: Wi-Fi up, its agent started again as systemd would, and its rank
+    # back in the MPI job (which the experiment restarts from its checkpoint with the workers present)
+    REBOOT_COMPANION = "reboot_companion"
 
 
 @dataclass(frozen=True)
@@ -45,10 +51,12 @@ class Fault:
 class FaultInjector:
     """Applies scenario faults to vehicle `index` of the running simulator and processes."""
 
-    def __init__(self, sim: Sitl, kill_agent: Callable[[int], None], rank_log: Callable[[str], Path]):
+    def __init__(self, sim: Sitl, kill_agent: Callable[[int], None], rank_log: Callable[[str], Path],
+                 companion: Callable[[int, bool], None]):
         self.sim = sim
         self.kill_agent = kill_agent  # index -> None
         self.rank_log = rank_log  # vehicle id -> its MPI rank's log (which names the rank's pid)
+        self.companion = companion  # (index, up): the companion computer lost (False) or back (True)
 
     def apply(self, fault: Fault, index: int, on: bool) -> None:
         kind = fault.kind
@@ -64,6 +72,10 @@ class FaultInjector:
             self.kill_agent(index)
         elif kind is FaultKind.KILL_WORKER and on:
             self._kill_rank(fault.vehicle)
+        elif kind is FaultKind.LOSE_COMPANION and on:
+            self.companion(index, False)
+        elif kind is FaultKind.REBOOT_COMPANION:
+            self.companion(index, not on)
 
     def _kill_rank(self, vehicle_id: str) -> None:
         path = self.rank_log(vehicle_id)

@@ -19,6 +19,7 @@ import logging
 import os
 import secrets
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -28,15 +29,18 @@ from pathlib import Path
 
 from missions.model import MavCmd
 from nac_onboard import clock
+from nac_onboard.agent.state_feed import StateFeedError, fetch_state
 from nac_onboard.child_process import AgentProcess, ChildStartError, die_with_parent_preexec
 from nac_onboard.compute.device import load_device_profile
 from nac_onboard.compute.options import options_from_argv
+from nac_onboard.compute.supervisor import JobSupervisor
 from nac_onboard.errors import BadInput, NacError, OperationFailed, Terminated
 from nac_onboard.flight_log import JsonlLog, read_jsonl
 from nac_onboard.link.iperf3 import iperf3_server
 from nac_onboard.mavlink.client import CommandError, LinkError, VehicleClient
 from nac_onboard.mavlink.dialect import M
 from nac_onboard.mavlink.mission_transfer import MissionError
+from nac_onboard.node.fleet_mpi import heard_workers
 from nac_onboard.radio.files import save_channel, save_replay
 from nac_onboard.radio.replay import ReplayError, ReplayLinks
 from nac_onboard.records import Kind, kinds
@@ -46,6 +50,7 @@ from sitl.experiment.commands import (
     agent_config,
     choose_network,
     compute_args,
+    down_dir,
     kernel_mpi_command,
     mpi_command,
     run_channel_path,
@@ -57,7 +62,7 @@ from sitl.experiment.scenario import Scenario
 from sitl.experiment.watchdog import TOKEN_ENV, Watchdog
 from sitl.network.air import AirNetwork
 from sitl.network.medium_air import MediumAir
-from sitl.network.netns import NetworkError, remove_leftovers
+from sitl.network.netns import NetworkError, forget_connections, pids_in, remove_leftovers, socket_in_netns
 from sitl.network.replay import parse_links
 from sitl.network.shaper import Shaper
 from sitl.server import Sitl, SitlConfig, SitlError
@@ -129,7 +134,10 @@ class Experiment:
         self.sim: Sitl | None = None
         self.agents: list[AgentProcess] = []
         self.clients: list[VehicleClient] = []
-        self.mpi: subprocess.Popen | None = None
+        self.mpi: subprocess.Popen | None = None  # the job's mpiexec now (its supervisor may start another)
+        self.job: JobSupervisor | None = None
+        self.job_over = False
+        self.feed_socket: socket.socket | None = None
         self.mpi_log = None
         self.master_pid: int | None = None  # the MPI master rank's process, once the job is set up
         self.progress = [VehicleProgress(v.id) for v in scenario.vehicles]
@@ -141,6 +149,8 @@ class Experiment:
         self.energy: EnergyMeter | None = None
         self.energy_log: JsonlLog | None = None
         self.rank_pids: dict[str, int] = {}  # vehicle id -> its MPI rank's pid, once its log names it
+        self.companions_down: set[int] = set()  # vehicles whose companion computer is lost (faults, empty packs)
+        self.frozen: dict[int, list[int]] = {}  # sleep network: a lost companion's stopped processes, by vehicle
 
     # ---- the run ---------------------------------------------------------------------------------------------
     def run(self) -> ExperimentResult:
@@ -259,7 +269,8 @@ class Experiment:
         except (SitlError, NetworkError, OSError) as err:  # e.g. a base port already taken
             raise ExperimentError(Outcome.SITL_FAILED, f"cannot start the simulator: {err}") from None
         self.sim.world.step_observers.extend(self.step_observers)
-        self.faults = FaultInjector(self.sim, lambda index: self.agents[index].kill(), self._rank_log)
+        self.faults = FaultInjector(self.sim, lambda index: self.agents[index].kill(), self._rank_log,
+                                    self._companion)
         self.sim.start()
         self._clock_thread = threading.Thread(target=self._publish_clock, name="clock", daemon=True)
         self._clock_thread.start()
@@ -280,11 +291,10 @@ class Experiment:
         addresses = [st.address for st in self.air.stations] if self.air else None
         if self.iperf3_probes:
             self._start_iperf3_servers()
-        env = {**os.environ, clock.ENV: str(self.clock_path)}
         for i, vehicle in enumerate(s.vehicles):
             path = kinds.AGENT_CONFIG.at(self.run_dir, vehicle.id)
             path.write_text(agent_config(s, i, self.run_dir, self.ports, addresses))
-            agent = AgentProcess(path, env=env, prefix=self.air.exec_prefix(i) if self.air else None)
+            agent = AgentProcess(path, env=self._child_env(), prefix=self.air.exec_prefix(i) if self.air else None)
             self.agents.append(agent.launch())  # all at once: each takes a second or so to import and bind
         for vehicle, agent in zip(s.vehicles, self.agents, strict=True):
             try:
@@ -293,6 +303,9 @@ class Experiment:
                 raise ExperimentError(Outcome.AGENT_FAILED, f"{vehicle.id}: {err}") from None
         print(f"{s.name}: {len(s.vehicles)} vehicles, {self.speedup:g}x, {len(self.agents)} agents up, "
               f"{self.network} network; logs in {self.run_dir}", file=self.out, flush=True)
+
+    def _child_env(self) -> dict[str, str]:
+        return {**os.environ, clock.ENV: str(self.clock_path)}
 
     def _start_air(self) -> None:
         s = self.scenario
@@ -406,20 +419,50 @@ class Experiment:
         self.master_pid = started[0].get("pid")
 
     def _start_mpi(self) -> None:
-        end_at_sim_s = self.sim.t_s + TAKEOFF_TIMEOUT_S + self.scenario.duration_s  # the go gives the real end
+        """The MPI job under its supervisor, which starts it again from its checkpoint when a companion is lost or
+        back (nac_onboard/compute/supervisor.py), as `nac-onboard mpi run --keep-going` does on the fleet."""
+        s = self.scenario
+        self.end_at_sim_s = self.sim.t_s + TAKEOFF_TIMEOUT_S + s.duration_s  # the go gives the real end
         kinds.MPIEXEC_LOG.at(self.run_dir).parent.mkdir(exist_ok=True)
-        self.mpi_log = open(kinds.MPIEXEC_LOG.at(self.run_dir), "wb")  # noqa: SIM115 (closed at shutdown)
+        self.mpi_log = open(kinds.MPIEXEC_LOG.at(self.run_dir), "ab")  # noqa: SIM115 (closed at shutdown)
+        master = s.vehicles.index(s.master)
         if self.air is not None:
             self.air.wait_for_carrier()  # MPI's transport picks its devices once, at start
-            command = kernel_mpi_command(self.scenario, self.run_dir, self.ports, end_at_sim_s, self.air,
-                                         self.clock_path)
+            self.feed_socket = socket_in_netns(self.air.stations[master].netns, socket.AF_INET, socket.SOCK_DGRAM)
         else:
-            command = mpi_command(self.scenario, self.run_dir, self.ports, end_at_sim_s)
-        env = {**os.environ, clock.ENV: str(self.clock_path)}
+            self.feed_socket = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.job = JobSupervisor([w.id for w in s.workers], self._launch_mpi, self._workers_heard,
+                                 kinds.COMPUTE_LOG.at(self.run_dir).parent, s.compute.task, lambda: self.sim.t_s)
+        self.job.begin()
+        print(f"MPI job started (pid {self.mpi.pid}): {s.compute.task}, {len(s.workers)} workers", file=self.out,
+              flush=True)
+
+    def _launch_mpi(self, workers: list[str], resume: bool) -> subprocess.Popen:
+        """mpiexec for the job's supervisor: these workers, from the checkpoint or not."""
+        if self.air is not None:
+            command = kernel_mpi_command(self.scenario, self.run_dir, self.ports, self.end_at_sim_s, self.air,
+                                         self.clock_path, workers, resume)
+        else:
+            command = mpi_command(self.scenario, self.run_dir, self.ports, self.end_at_sim_s, workers, resume)
+        self.mpi_log.write(f"---- nac-sitl: mpiexec for {', '.join(workers)}{' (--resume)' if resume else ''}\n"
+                           .encode())
+        self.mpi_log.flush()
         self.mpi = subprocess.Popen(command, stdout=self.mpi_log, stderr=subprocess.STDOUT, start_new_session=True,
-                                    env=env, preexec_fn=die_with_parent_preexec())
-        print(f"MPI job started (pid {self.mpi.pid}): {self.scenario.compute.task}, "
-              f"{len(self.scenario.workers)} workers", file=self.out, flush=True)
+                                    env=self._child_env(), preexec_fn=die_with_parent_preexec())
+        self.rank_pids.clear()
+        if self.mission_start_sim_s is not None:  # a start again, not the first
+            print(f"MPI job started again (pid {self.mpi.pid}) with {', '.join(workers)}"
+                  f"{', from its checkpoint' if resume else ''} at t={self._sim_elapsed_s():.1f} s", file=self.out,
+                  flush=True)
+        return self.mpi
+
+    def _workers_heard(self) -> dict[str, str] | None:
+        """The workers the master's agent hears now (its state feed), as the fleet's supervisor asks it."""
+        try:
+            state = fetch_state(f"127.0.0.1:{self.ports.feed()}", timeout_s=0.2, sock=self.feed_socket)
+        except StateFeedError:
+            return None
+        return heard_workers(state)
 
     def _watch(self) -> None:
         pending = sorted(self.scenario.faults, key=lambda f: f.at_s)
@@ -437,7 +480,7 @@ class Experiment:
                 self._inject(item[1], False)
             self._check_children()
             self._meter()
-            if self.mpi is not None and self.mpi.poll() is not None and self.scenario.compute.iterations:
+            if self.job_over and self.scenario.compute.iterations:
                 print(f"MPI job finished its {self.scenario.compute.iterations} iterations at "
                       f"t={now:.1f} s", file=self.out, flush=True)
                 return
@@ -503,20 +546,75 @@ class Experiment:
             self.rank_pids[vehicle_id] = int(started[-1]["pid"])
         return self.rank_pids[vehicle_id]
 
-    def _companion_off(self, index: int, now_s: float) -> None:
+    def _companion(self, index: int, up: bool) -> None:
+        """lose_companion / reboot_companion: the vehicle's companion computer gone, or back."""
+        if not up:
+            self.companions_down.add(index)
+            self._lose_companion(index)
+            return
+        self.companions_down.discard(index)
         vehicle = self.scenario.vehicles[index]
-        stopped = ["agent"]
-        self._inject(Fault(now_s, vehicle.id, FaultKind.KILL_AGENT), True)
-        if self.scenario.compute is not None and vehicle.role == "worker":
-            self._inject(Fault(now_s, vehicle.id, FaultKind.KILL_WORKER), True)
-            stopped.append("rank")
-        elif self.scenario.compute is not None and self.master_pid:  # the job's master: the job ends with it
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(self.master_pid, signal.SIGKILL)
-            stopped.append("rank")
+        self._kill_frozen(index)
+        if self.air is not None:
+            self.air.silence(index, False)
+            if self.iperf3_probes and vehicle.role == "worker":
+                k = [v.role for v in self.scenario.vehicles[:index]].count("worker")
+                self.iperf3_servers[k] = iperf3_server(self.ports.throughput(index),
+                                                       self.air.stations[index].netns).launch()
+        agent = AgentProcess(kinds.AGENT_CONFIG.at(self.run_dir, vehicle.id), env=self._child_env(),
+                             prefix=self.air.exec_prefix(index) if self.air else None)
+        self.agents[index] = agent.launch()  # as systemd's Restart= would; ready is awaited by the job's restart
+        with contextlib.suppress(FileNotFoundError):
+            (down_dir(self.run_dir) / vehicle.id).unlink()
+
+    def _lose_companion(self, index: int) -> list[str]:
+        """Everything on the vehicle's companion stops at once, as in a brown-out, and sends nothing more (no FIN,
+        no RST): on the kernel network its radio goes down first, then every process in its namespace is killed
+        and its connections forgotten; on the sleep network, where its sockets are the host's, its agent, MPI rank
+        and the rank's proxy are frozen (SIGSTOP) until it reboots or the run ends, and then killed (its stale
+        connections reset then, as a rebooted computer's do). Returns what stopped."""
+        vehicle = self.scenario.vehicles[index]
+        stopped = []
         if self.air is not None:
             self.air.silence(index)
             stopped.append("radio")
+        down_dir(self.run_dir).mkdir(parents=True, exist_ok=True)
+        (down_dir(self.run_dir) / vehicle.id).touch()  # the sleep network's launcher cannot reach it now
+        pids = pids_in(self.air.stations[index].netns) if self.air is not None else []
+        if self.agents[index].alive():
+            pids.append(self.agents[index].proc.pid)
+            stopped.append("agent")
+        if self.scenario.compute is not None:
+            rank = self.master_pid if vehicle.role == "master" else self._rank_pid(vehicle.id)
+            proxy = _parent_if(rank, "hydra_pmi_proxy") if rank else None
+            pids += [p for p in (rank, proxy) if p and p not in pids]
+            if rank and _alive(rank):
+                stopped.append("rank")
+            self.rank_pids.pop(vehicle.id, None)  # a rank started again has another pid
+        if self.air is None:
+            self.frozen[index] = pids
+        for pid in pids:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGSTOP if self.air is None else signal.SIGKILL)
+        if self.air is not None:  # and no connection state: a dead computer retransmits no FIN when it is back
+            forget_connections(self.air.stations[index].netns)
+        return stopped
+
+    def _kill_frozen(self, index: int) -> None:
+        """A lost companion's processes that were frozen (sleep network) killed, its agent reaped: it reboots, or
+        the run ends."""
+        if index not in self.frozen:
+            return
+        for pid in self.frozen.pop(index):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        self.agents[index].kill()
+
+    def _companion_off(self, index: int, now_s: float) -> None:
+        vehicle = self.scenario.vehicles[index]
+        self.companions_down.add(index)
+        stopped = self._lose_companion(index)
+        self._note_fault(vehicle.id, FaultKind.LOSE_COMPANION, True)
         self.energy_log.write(kinds.BATTERY_EMPTY, t_sim_s=round(now_s, 3), vehicle=vehicle.id, pack="companion",
                               stopped=stopped)
         print(f"energy: {vehicle.id}'s companion pack is empty at t={now_s:.1f} s: {', '.join(stopped)} stopped",
@@ -529,22 +627,20 @@ class Experiment:
         if not self.sim.alive:
             raise ExperimentError(Outcome.SITL_FAILED, "the simulation loop stopped (see the log)")
         for agent, vehicle in zip(self.agents, self.scenario.vehicles, strict=False):
-            if not agent.alive() and not self._killed_on_purpose(vehicle.id, FaultKind.KILL_AGENT):
+            if not agent.alive() and not self._killed_on_purpose(vehicle.id, FaultKind.KILL_AGENT) and \
+                    self.scenario.vehicles.index(vehicle) not in self.companions_down:
                 raise ExperimentError(Outcome.AGENT_FAILED, f"{vehicle.id}'s agent exited "
                                                             f"({agent.proc.returncode}): {agent.stderr_text()[-500:]}")
-        if self.mpi is not None and self.mpi.poll() not in (None, 0) and not self._compute_summary():
-            raise ExperimentError(Outcome.COMPUTE_FAILED, f"mpiexec exited {self.mpi.returncode} (see "
-                                                          f"{kinds.MPIEXEC_LOG.at(self.run_dir)})")
-        # mpiexec waits on for the other ranks when the master alone dies
-        if self.master_pid and not _alive(self.master_pid) and not self._compute_summary():
-            raise ExperimentError(Outcome.COMPUTE_FAILED, f"the MPI master (pid {self.master_pid}) ended without its "
-                                                          f"summary (see {kinds.MPIEXEC_LOG.at(self.run_dir)})")
-
-    def _compute_summary(self) -> dict | None:
-        """The master's run_summary: a job that wrote it finished, even when mpiexec reports a worker it lost."""
-        path = kinds.COMPUTE_LOG.at(self.run_dir)
-        summaries = read_jsonl(path).of_kind(kinds.RUN_SUMMARY) if path.exists() else []
-        return summaries[-1] if summaries else None
+        if self.job is not None and not self.job_over:
+            code = self.job.poll()  # a job that ended without its end is started again, from its checkpoint
+            if self.job.launch is not None and self.job.launch.master_pid:
+                self.master_pid = self.job.launch.master_pid
+            if code is not None:
+                self.job_over = True
+                if code != 0:
+                    raise ExperimentError(Outcome.COMPUTE_FAILED, f"the MPI job could not be kept going (exit "
+                                                                  f"{code}; see {kinds.MPIEXEC_LOG.at(self.run_dir)} "
+                                                                  f"and {kinds.JOB_LOG.at(self.run_dir)})")
 
     def _killed_on_purpose(self, vehicle_id: str, kind: FaultKind) -> bool:
         return any(f["vehicle"] == vehicle_id and f["kind"] == kind.value for f in self.fault_log)
@@ -552,12 +648,15 @@ class Experiment:
     def _inject(self, fault: Fault, on: bool) -> None:
         index = next(k for k, v in enumerate(self.scenario.vehicles) if v.id == fault.vehicle)
         self.faults.apply(fault, index, on)
-        record = {"t_sim_s": round(self._sim_elapsed_s(), 3), "vehicle": fault.vehicle, "kind": fault.kind.value,
+        self._note_fault(fault.vehicle, fault.kind, on)
+
+    def _note_fault(self, vehicle_id: str, kind: FaultKind, on: bool) -> None:
+        record = {"t_sim_s": round(self._sim_elapsed_s(), 3), "vehicle": vehicle_id, "kind": kind.value,
                   "state": "on" if on else "off"}
         self.fault_log.append(record)
-        self._write_record(kinds.FAULT, vehicle=fault.vehicle, fault=fault.kind.value, state=record["state"],
+        self._write_record(kinds.FAULT, vehicle=vehicle_id, fault=kind.value, state=record["state"],
                            t_sim_s=record["t_sim_s"])  # as it happens: the live view reads it
-        print(f"fault: {fault.kind.value} {record['state']} for {fault.vehicle} at t={record['t_sim_s']:.1f} s",
+        print(f"fault: {kind.value} {record['state']} for {vehicle_id} at t={record['t_sim_s']:.1f} s",
               file=self.out, flush=True)
 
     def _rank_log(self, vehicle_id: str) -> Path:
@@ -567,8 +666,14 @@ class Experiment:
     # ---- the end ---------------------------------------------------------------------------------------------
     def _shutdown(self, land: bool) -> None:
         self.stop_event.set()  # the progress followers stop reading
+        for index in list(self.frozen):
+            self._kill_frozen(index)
         # at the scenario's end the MPI job is finishing its own --duration-s: let it write its summary
         self._stop_mpi(grace_s=self.scenario.compute.timeout_s + 2.0 if land and self.scenario.compute else 0.0)
+        if self.job is not None:
+            self.job.stop()
+        if self.feed_socket is not None:
+            self.feed_socket.close()
         for t in self.pilots:
             t.join(2.0)
         for agent in self.agents:  # their records end with the scenario: the landing below is not part of it
@@ -642,6 +747,15 @@ class Experiment:
                 print(f"analysis: {err}", file=self.out)  # failure alone says why
             return None, {}
         return kinds.REPORT.at(self.run_dir), tables.summary
+
+
+def _parent_if(pid: int, name: str) -> int | None:
+    """pid's parent process, if its name is `name` (a rank's hydra proxy)."""
+    try:
+        ppid = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+        return ppid if Path(f"/proc/{ppid}/comm").read_text().strip() == name else None
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 def _alive(pid: int) -> bool:

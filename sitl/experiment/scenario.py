@@ -216,6 +216,14 @@ def load_scenario(name_or_path: str) -> Scenario:
                                             [w.id for w in scenario.workers]):
             raise ScenarioError(f"{where}: fault {k + 1}: kill_worker needs a worker of the MPI job ([compute]), "
                                 f"got {fault.vehicle!r}")
+        if fault.kind in (FaultKind.LOSE_COMPANION, FaultKind.REBOOT_COMPANION) and scenario.compute is not None \
+                and fault.vehicle == scenario.master.id:
+            raise ScenarioError(f"{where}: fault {k + 1}: {fault.kind.value} of the MPI job's master ends the job; "
+                                "a worker is expected (a lost master is restarted with `nac-onboard compute "
+                                "--resume`, docs/compute.md)")
+        if fault.kind is FaultKind.REBOOT_COMPANION and fault.duration_s <= 0:
+            raise ScenarioError(f"{where}: fault {k + 1}: reboot_companion needs duration_s > 0 (how long the "
+                                "companion is away)")
     if scenario.compute is not None:  # a code the fleet cannot hold: refused before anything starts
         c = scenario.compute
         options = ComputeOptions(task=c.task, iterations=None, duration_s=None, out="", code_k=c.code_k,

@@ -202,10 +202,11 @@ class AirNetwork:
             self.nft.send(nft)
             self._last_nft = nft
 
-    def silence(self, index: int) -> None:
-        """Station `index` neither sends nor hears any more (its companion lost its power): its air0 down."""
+    def silence(self, index: int, silent: bool = True) -> None:
+        """Station `index` neither sends nor hears any more (its companion lost its power): its air0 down; or,
+        silent=False, up again (a rebooted companion: its address, and the prefix route the kernel re-adds)."""
         s = self.stations[index]
-        netns.run(["ip", "-n", s.netns, "link", "set", "air0", "down"], f"{s.vehicle_id}'s air0")
+        netns.run(["ip", "-n", s.netns, "link", "set", "air0", "down" if silent else "up"], f"{s.vehicle_id}'s air0")
 
     def exec_prefix(self, index: int) -> list[str]:
         """The command prefix that runs a program on station `index`."""

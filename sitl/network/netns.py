@@ -124,6 +124,14 @@ def pids_in(name: str) -> list[int]:
     return [int(p) for p in out.split() if p.isdigit()]
 
 
+def forget_connections(name: str) -> None:
+    """Every TCP socket of the namespace destroyed (SOCK_DESTROY, `ss -K`): what a companion's reboot does to its
+    connections, which its killed processes' sockets would otherwise outlive (closing, retransmitting their FIN)."""
+    with contextlib.suppress(OSError, subprocess.TimeoutExpired):
+        subprocess.run(["ip", "netns", "exec", name, "ss", "-K", "-t", "state", "all"], capture_output=True,
+                       timeout=COMMAND_TIMEOUT_S)
+
+
 def delete_namespace(name: str) -> None:
     """Kill what runs inside, then delete the namespace: its veth ends, bridge, qdiscs and tables go with it."""
     for pid in pids_in(name):

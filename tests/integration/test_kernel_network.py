@@ -212,10 +212,10 @@ def test_the_moving_flight_on_a_kernel_network(tmp_path):
     assert compute.of_kind("run_started")[0]["emulate"] == "none"
     iterations = compute.of_kind("iteration")
     w1_absent = [r for r in iterations if not r["workers"]["present"][0]]
-    assert w1_absent and {r["workers"]["absent"][0] for r in w1_absent} <= {"timeout", "unresponsive"}
+    # missed deadlines, or its agent unheard by the master's (then it is not sent work until heard again)
+    assert w1_absent and {r["workers"]["absent"][0] for r in w1_absent} <= {"timeout", "unresponsive", "agent_lost"}
     last_absent = w1_absent[-1]["iteration"]
     assert any(r["iteration"] > last_absent and r["workers"]["present"][0] for r in iterations), "w1 came back"
-    assert compute.of_kind("worker_back"), "w1 answered again"
     during = [r["cost"] for r in iterations if r["workers"]["absent"][0] and r["cost"] is not None]
     assert during[-1] < during[0], "training went on without w1"
     assert run_namespaces(os.getpid()) == [] and root_state() == before, "the network was removed"

@@ -204,9 +204,9 @@ def test_the_state_feed_writes_the_snapshot_in_its_wire_format_byte_for_byte():
         b'"vel_ned_mps":[0.0,0.0,0.0],"battery_pct":95,"mpi_build":"MPICH 5","link_up":true},"peers":{'
         b'"w1":{"id":"w1","role":"worker","t_s":1000.0,"sysid":2,"lat_deg":47.0,"lon_deg":8.0,"alt_m":510.0,'
         b'"vel_ned_mps":[1.0,0.5,-0.25],"battery_pct":80,"probe_port":5201,"mpi_build":"MPICH 5","host":"10.0.0.2",'
-        b'"age_s":4.0,"lost":true},'
+        b'"boot":"","age_s":4.0,"lost":true},'
         b'"w2":{"id":"w2","role":"worker","t_s":1000.5,"sysid":3,"lat_deg":null,"lon_deg":null,"alt_m":null,'
-        b'"vel_ned_mps":null,"battery_pct":null,"probe_port":5201,"mpi_build":"","host":"","age_s":3.5,'
+        b'"vel_ned_mps":null,"battery_pct":null,"probe_port":5201,"mpi_build":"","host":"","boot":"","age_s":3.5,'
         b'"lost":false}}}')
     answer = json.loads(data)
     assert distance_between(answer, "m", "w1") == snapshot.distance_m("m", "w1")
@@ -226,7 +226,8 @@ def test_the_state_feed_hands_the_masters_probes_to_the_mpi_job(monkeypatch):
     assert "probes" not in json.loads(encode_snapshot(_snapshot())), "a vehicle that does not probe: no key"
     feed = FeedDistances("127.0.0.1:1", ["m", "w1", "w2", "w3"])
     monkeypatch.setattr(positions, "fetch_state", lambda address, timeout_s: answer)
-    assert feed.distances_m(0, 0.0)[1] is not None
+    # w1 is lost to the agent: its last position is not believed, and the job does not send it work
+    assert feed.distances_m(0, 0.0) == {1: None, 2: None, 3: None} and feed.lost_ranks() == {1}
     assert feed.measured_rates_bps(max_age_s=5.0) == {1: 12.5e6, 2: 0.0, 3: None}
     assert feed.measured_rates_bps(max_age_s=0.75) == {1: None, 2: 0.0, 3: None}, "too old: not believed"
     for bad in ({"w1": {"bits_per_second": "fast", "age_s": 1}}, {"w1": {"bits_per_second": -1, "age_s": 1}},
