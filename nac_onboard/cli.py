@@ -11,6 +11,7 @@
     nac-onboard doctor [--role R] [--config FILE] [--json]           what this node has, and what its role lacks
     nac-onboard mpi hostfile [--feed HOST:PORT] [--out FILE]         MPICH hostfile from the peers the agent hears
     nac-onboard mpi run [--hostfile FILE] -- PROGRAM ARGS...         the job over them, same MPI build checked
+    nac-onboard mpi run --keep-going -- nac-onboard compute ...      ... started again when a companion is lost or back
 
 Exit codes: 0 ok, 1 the operation failed, 2 bad input.
 """
@@ -94,6 +95,9 @@ def build_parser() -> argparse.ArgumentParser:
     job.add_argument("--feed", default="127.0.0.1:47200", help="the master agent's state feed")
     job.add_argument("--hostfile", default="mpi-hostfile", help="where to write the hostfile (default: %(default)s)")
     job.add_argument("--timeout", type=float, default=None, dest="timeout_s", help="seconds before giving up")
+    job.add_argument("--keep-going", action="store_true",
+                     help="nac-onboard compute only: start the job again from its checkpoint when a companion is "
+                          "lost (with the workers heard) or back (with it), until it ends (docs/compute.md)")
     job.add_argument("program", nargs=argparse.REMAINDER, help="-- then the program and its arguments")
     return parser
 
@@ -124,6 +128,8 @@ def run(args) -> int:
         if args.action == "hostfile":
             return commands.write_hostfile(args.feed, args.out)
         program = args.program[1:] if args.program[:1] == ["--"] else args.program
+        if args.keep_going:
+            return commands.run_kept_job(args.feed, args.hostfile, program, args.timeout_s)
         return commands.run_job(args.feed, args.hostfile, program, args.timeout_s)
     if args.command == "bench":
         return bench_command(args)

@@ -28,6 +28,7 @@ from nac_onboard.compute.iteration import iterations_per_min
 MAX_GAP_S = 2.0  # no interpolation across a longer silence: that is a lost link, not a straight flight
 DEFAULT_BIN_M = 2.0
 DEFAULT_THRESHOLD_MBPS = 1.0
+EVENT_COLUMNS = ["t_rel_s", "iteration", "what"]
 
 
 
@@ -52,13 +53,15 @@ class RunTables:
         default_factory=lambda: pd.DataFrame(columns=iteration_pace.BIN_COLUMNS))
     energy: pd.DataFrame = field(default_factory=lambda: pd.DataFrame(columns=energy_.POWER_COLUMNS))
     energy_by_vehicle: pd.DataFrame = field(default_factory=lambda: pd.DataFrame(columns=energy_.VEHICLE_COLUMNS))
+    # faults as they happened and the MPI job's starts and stops: t_rel_s, the iteration running then, what
+    events: pd.DataFrame = field(default_factory=lambda: pd.DataFrame(columns=EVENT_COLUMNS))
 
     def csv_tables(self) -> dict[str, pd.DataFrame]:
         return {"trajectories": self.trajectories, "distances": self.distances, "throughput": self.throughput,
                 "throughput_by_distance": self.throughput_by_distance, "iterations": self.iterations,
                 "iteration_workers": self.iteration_workers, "training_cost": self.training_cost,
                 "time_per_10": self.time_per_10, "time_per_10_by_distance": self.time_per_10_by_distance,
-                "energy": self.energy, "energy_by_vehicle": self.energy_by_vehicle}
+                "energy": self.energy, "energy_by_vehicle": self.energy_by_vehicle, "events": self.events}
 
 
 def sample_times(positions: pd.DataFrame) -> pd.Series:
@@ -244,6 +247,17 @@ def iterations(run: RunLog, t0_s: float) -> tuple[pd.DataFrame, pd.DataFrame]:
     return pd.DataFrame(rows, columns=it_columns), pd.DataFrame(worker_rows)
 
 
+def events(run: RunLog, its: pd.DataFrame, t0_s: float) -> pd.DataFrame:
+    """Each fault and MPI job restart, at its time and the iteration running then (the cost figure's axis)."""
+    rows = []
+    for e in run.events:
+        t_rel_s = e["t_s"] - t0_s
+        before = its[its["t_rel_s"] <= t_rel_s] if not its.empty else its
+        rows.append({"t_rel_s": t_rel_s, "iteration": int(before["iteration"].iloc[-1]) if len(before) else None,
+                     "what": e["what"]})
+    return pd.DataFrame(rows, columns=EVENT_COLUMNS)
+
+
 def training_cost(its: pd.DataFrame) -> pd.DataFrame:
     table = its.dropna(subset=["cost"])[["iteration", "t_rel_s", "cost"]] if not its.empty else its
     if table.empty:
@@ -342,7 +356,8 @@ def analyze(run: RunLog, master: str | None = None, bin_m: float = DEFAULT_BIN_M
     vehicles = energy_.by_vehicle(power, run.battery_empty)
     summary.update(energy_.summarize(vehicles, summary))
     return RunTables(run.name, master, t0_s, traj, dist, probes, bins, its, workers, training_cost(its), summary,
-                     problems, missing, per_10, iteration_pace.by_distance(per_10, bin_m), power, vehicles)
+                     problems, missing, per_10, iteration_pace.by_distance(per_10, bin_m), power, vehicles,
+                     events(run, its, t0_s))
 
 
 MACHINE_ITERATION_COST_S = 0.0024  # a linreg iteration with 2 workers at 1x, kernel network (docs/benchmarks.md)

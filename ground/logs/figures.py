@@ -70,7 +70,16 @@ def iteration_time(ax, t: RunTables) -> None:
     partial = its[its["absent"] != ""]
     if not partial.empty:
         ax.plot(partial["t_rel_s"], partial["duration_s"], "x", color="tab:red", label="a worker absent")
+    _mark_events(ax, t.events, "t_rel_s")
     ax.legend(fontsize="small")
+
+
+def _mark_events(ax, events, column: str) -> None:
+    """A faint vertical line and its words at each fault and MPI job restart (column: the axis's quantity)."""
+    for _, e in events.dropna(subset=[column]).iterrows():
+        ax.axvline(e[column], color="tab:gray", linestyle=":", linewidth=1)
+        ax.annotate(e["what"], (e[column], 1.0), xycoords=("data", "axes fraction"), rotation=90, fontsize="x-small",
+                    va="top", ha="right", color="tab:gray")
 
 
 def time_per_10_vs_distance(ax, t: RunTables) -> None:
@@ -91,6 +100,7 @@ def training_cost(ax, t: RunTables) -> None:
     if t.training_cost.empty:
         return _empty(ax, "training cost (linear regression)")
     ax.plot(t.training_cost["iteration"], t.training_cost["cost"])
+    _mark_events(ax, t.events, "iteration")
 
 
 def power(ax, t: RunTables) -> None:

@@ -43,6 +43,7 @@ class RunLog:
     energy: list[dict] = field(default_factory=list)  # the experiment's energy records, a vehicle a second
     energy_plan: dict | None = None  # its energy models
     battery_empty: list[dict] = field(default_factory=list)  # companion packs that ran out
+    events: list[dict] = field(default_factory=list)  # faults as they happened, the MPI job's starts and stops
     problems: list[str] = field(default_factory=list)
     missing: list[str] = field(default_factory=list)
 
@@ -90,6 +91,9 @@ def read_run(path: str | Path) -> RunLog:
         for record in read.records:  # the runner's start record, then its end record (outcome)
             if record.get("kind") != kinds.FAULT.name:  # each fault as it happened; the end record lists them all
                 run.experiment.update(record)
+            elif isinstance(record.get("t_s"), (int, float)):
+                run.events.append({"t_s": float(record["t_s"]),
+                                   "what": f"{record.get('fault')} {record.get('state')}: {record.get('vehicle')}"})
     network = kinds.NETWORK_LOG.at(path)
     if network.exists():
         read = read_jsonl(network)
@@ -110,6 +114,16 @@ def read_run(path: str | Path) -> RunLog:
         run.compute_runs += read.of_kind(kinds.RUN_STARTED)
         run.compute_ends += read.of_kind(kinds.RUN_SUMMARY)
         run.iterations += read.of_kind(kinds.ITERATION)
+    for job_log in sorted(path.rglob(kinds.JOB_LOG.name)):
+        read = read_jsonl(job_log)
+        _warn(run, read.problems)
+        for r in read.of_kind(kinds.JOB_LAUNCHED, kinds.JOB_STOPPING):
+            if r["kind"] == kinds.JOB_LAUNCHED.name and r.get("launch") == 1:
+                continue
+            what = f"job started again ({r.get('why')})" if r["kind"] == kinds.JOB_LAUNCHED.name else \
+                f"job stopped ({r.get('why')})"
+            run.events.append({"t_s": float(r["t_s"]), "what": what})
+    run.events.sort(key=lambda e: e["t_s"])
     _check_clocks(run)
     if not run.vehicles and not run.iterations:
         raise RunDirError(f"{path}: no NAC logs here (expected {kinds.AGENT_LOG.path}, autopilot logs or "

@@ -79,6 +79,7 @@ class FeedDistances:
         self.address, self.ids, self.timeout_s = address, vehicle_ids, timeout_s
         self.failures = 0
         self.state: dict = {}  # the last answer
+        self.boots: dict[int, str] = {}  # each worker's agent boot as this job first heard it
 
     def distances_m(self, iteration: int, elapsed_s: float) -> dict[int, float | None]:
         try:
@@ -92,11 +93,22 @@ class FeedDistances:
                 for rank, vehicle in enumerate(self.ids[1:], start=1)}
 
     def lost_ranks(self) -> set[int]:
-        """The workers whose agents the master's agent has lost (silent for its peers.timeout_s), in the last
-        answer: not sent work until heard again, sooner than the job's own deadlines would find them gone."""
+        """The workers whose agents the master's agent has lost (silent for its peers.timeout_s) in the last
+        answer, or hears with another boot than this job first heard (the companion restarted: its rank is gone,
+        and a send to the old connection is answered by a reset, which crashes UCX's TCP transport): not sent
+        work, sooner than the job's own deadlines would find them gone; the lost ones until heard again, the
+        restarted ones for good (the job's supervisor starts the job again with them)."""
         peers = self.state.get("peers") or {}
-        return {rank for rank, vehicle in enumerate(self.ids[1:], start=1)
-                if isinstance(peers.get(vehicle), dict) and peers[vehicle].get("lost") is True}
+        out = set()
+        for rank, vehicle in enumerate(self.ids[1:], start=1):
+            peer = peers.get(vehicle)
+            if not isinstance(peer, dict):
+                continue
+            boot = peer.get("boot")
+            first = self.boots.setdefault(rank, boot) if isinstance(boot, str) and boot else self.boots.get(rank)
+            if peer.get("lost") is True or (isinstance(boot, str) and boot and boot != first):
+                out.add(rank)
+        return out
 
     def measured_rates_bps(self, max_age_s: float) -> dict[int, float | None]:
         """Each worker's rate as the master's agent last measured it (its probes in the last answer), if no older

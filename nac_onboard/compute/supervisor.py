@@ -1,23 +1,24 @@
 """Keeping the fleet's MPI job going through lost and returning companions (issue 29).
 
-MPICH's launcher cannot keep a job whole when a companion goes: hydra's mpiexec ends the job when the connection
-to a companion's proxy closes (a crashed companion, or a rebooted one resetting it: measured on the kernel network,
-docs/compute.md), and a rank cannot be added to a running job. So the job is kept going by starting it again:
-- the master stops at the end of an iteration on SIGTERM (from here, or when mpiexec dies under it), with its
-  checkpoint and summary written (ended_by "stopped");
-- the supervisor starts the job again with `--resume` over the workers the master's agent hears, and no
-  iteration is lost or repeated: the checkpoint is the stop's own (a master killed outright loses what it did
-  since its last checkpoint, --checkpoint-s);
-- a worker heard again that the job does not have (a rebooted companion: its agent restarted as systemd does)
-  joins at the next start: the supervisor stops the master for it once the agent has been heard for
-  REJOIN_AFTER_S, so a companion that comes and goes at the edge of range does not restart the job each time.
-A job ended by anything else (its iterations, its duration, its end) is over. Launches, stops and waits are
-records in compute/job.jsonl.
+MPICH cannot keep a job whole when a companion goes: hydra's mpiexec ends every rank when a proxy's connection
+closes or resets (a companion's processes killed, or a rebooted one answering a stale connection), UCX's TCP
+transport crashes a sender whose peer reset, and a rank cannot be added to a running job (measured on the kernel
+network: docs/compute.md). So the job is kept going by starting it again:
+- the master stops at the end of an iteration on SIGTERM (from here, or when its proxy dies), its checkpoint and
+  summary written (ended_by "stopped"): the next launch starts at the next iteration, none lost or repeated (a
+  master killed outright loses what it did since its last checkpoint, --checkpoint-s);
+- a launch that ended without its end is started again with `--resume`, over the workers the master's agent
+  hears; one that is not set up (a worker unreachable), or finds no worker, waits longer each time;
+- a worker back (heard again after it was out of the job, or its rank failed, or heard with another boot of its
+  agent: a reboot) for REJOIN_AFTER_S has the master stopped, and joins at the next start; a worker out of range
+  that comes back with the same boot is the running job's to take back (it pings it).
+A launch ended by its iterations, its duration or its end is the job's end. Launches, stops and waits are records in
+compute/job.jsonl.
 
 The caller owns the processes: `start(workers, resume)` launches mpiexec for those workers (in a session of its
 own), `live_workers()` says whom the master's agent hears, with their agents' boots (None when it does not
-answer; nac_onboard.node.fleet_mpi.heard_workers), `now_s()` is the run's
-clock (simulated seconds); `poll()` is called from the caller's loop.
+answer; nac_onboard.node.fleet_mpi.heard_workers), `now_s()` is the run's clock (simulated seconds); `poll()` is
+called from the caller's loop.
 """
 
 from __future__ import annotations
@@ -39,7 +40,9 @@ from nac_onboard.flight_log import JsonlLog
 from nac_onboard.records import kinds
 
 log = logging.getLogger(__name__)
-REJOIN_AFTER_S = 3.0  # simulated: a returning worker's agent heard this long before the job is stopped for it
+# simulated: a returning worker heard this long before the job is stopped for it; longer than the agents' peer
+# timeout (3 s), so a worker left out of a start while its agent was still heard is found lost first, not taken back
+REJOIN_AFTER_S = 5.0
 STOP_WAIT_S = 30.0  # wall: a stopped master's iteration, checkpoint and summary; then it is killed
 WAIT_FIRST_S, WAIT_MAX_S = 1.0, 30.0  # simulated: the back-off while no worker is heard
 LOOK_EVERY_S = 0.25  # wall: how often the master's agent is asked whom it hears
@@ -78,7 +81,6 @@ class JobSupervisor:
         self._next_look = 0.0
         self._exclude: dict[str, str | None] = {}  # the last launch's unanswering workers (boot): not in the next,
         # unless heard since with another boot
-        self._gone: set[str] = set()  # workers out of the job that the master's agent has since lost
 
     # ---- the caller's side ------------------------------------------------------------------------------------
     def begin(self) -> None:
@@ -174,7 +176,6 @@ class JobSupervisor:
             return None
         self._wait_until_s = None
         self._heard_since.clear()
-        self._gone = {w for w in self.fleet_workers if w not in workers and heard is not None and w not in heard}
         self._launch(workers, self._why_next)
         return None
 
@@ -214,11 +215,11 @@ class JobSupervisor:
                 launch.summary = record
 
     def _check_rejoin(self, launch: Launch) -> None:
-        """A worker back for rejoin_after_s: stop the master, so that the next start takes it in. Back is heard
-        again after it was out of the job and lost to the master's agent, or after its rank failed, or with
-        another boot of its agent than this launch first heard (a reboot: its rank is gone with the old boot;
-        an agent restarted alone costs the job one restart). A worker the job has that stopped answering with the
-        same boot (out of range) is the job's to take back when it answers its pings."""
+        """A worker back, heard for rejoin_after_s without a break: stop the master, so that the next start takes
+        it in. Back is a worker out of the job, or whose rank failed, or heard with another boot of its agent than
+        this launch first heard (a reboot: its rank went with the old boot; an agent restarted alone costs the job
+        one restart). A worker the job has that stopped answering with the same boot (out of range) is the job's
+        to take back when it answers its pings."""
         if launch.master_pid is None or time.monotonic() < self._next_look:
             return
         self._next_look = time.monotonic() + LOOK_EVERY_S
@@ -226,11 +227,10 @@ class JobSupervisor:
         if heard is None:
             return
         now_s = self.now_s()
-        self._gone |= {w for w in self.fleet_workers if w not in launch.workers and w not in heard}
         for w, boot in heard.items():
             launch.boots.setdefault(w, boot)
-        rebooted = {w for w in launch.workers if w in heard and heard[w] != launch.boots.get(w)}
-        returning = {w for w in heard if w in self._gone or w in launch.failed or w in rebooted}
+        returning = {w for w in heard if w in self.fleet_workers and (
+            w not in launch.workers or w in launch.failed or heard[w] != launch.boots.get(w))}
         for w in list(self._heard_since):
             if w not in returning:
                 del self._heard_since[w]

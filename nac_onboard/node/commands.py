@@ -1,17 +1,23 @@
-"""The node commands of `nac-onboard`: doctor, mpi hostfile, mpi run."""
+"""The node commands of `nac-onboard`: doctor, mpi hostfile, mpi run (--keep-going)."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
+import os
+import signal
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from nac_onboard.agent.config import load_agent_config
-from nac_onboard.agent.state_feed import fetch_state
+from nac_onboard.agent.state_feed import StateFeedError, fetch_state
+from nac_onboard.clock import from_env
 from nac_onboard.compute.launch import mpiexec_path
+from nac_onboard.compute.supervisor import JobSupervisor
 from nac_onboard.errors import BadInput, OperationFailed
 from nac_onboard.node import doctor, fleet_mpi
 from nac_onboard.node.facts import read_facts
@@ -93,3 +99,74 @@ def run_job(feed: str, hostfile: str, program: list[str], timeout_s: float | Non
         raise OperationFailed(f"{command[0]} not found: install MPI (nac-onboard doctor)") from None
     except subprocess.TimeoutExpired:
         raise OperationFailed(f"the MPI job did not end within {timeout_s:g} s") from None
+
+
+def run_kept_job(feed: str, hostfile: str, program: list[str], timeout_s: float | None = None) -> int:
+    """`mpi run --keep-going`: the compute job kept going through lost and returning companions by the job's
+    supervisor (nac_onboard/compute/supervisor.py): started again from its checkpoint with the workers the agent
+    hears, `--vehicles`, `--fleet-workers` and `--resume` added to the program's arguments (the last given wins).
+    A worker whose MPI build is not the master's is left out by name, and the job goes on without it."""
+    out, task = _value_of(program, "--out"), _value_of(program, "--task")
+    if out is None or task is None:
+        raise BadInput("mpi run --keep-going: the program must be `nac-onboard compute` with --task and --out (the "
+                       "job's records and checkpoint are read from --out)")
+    nodes = job_from_feed(feed)
+    master, fleet = nodes[0], [n.id for n in nodes[1:]]
+
+    def start(workers: list[str], resume: bool) -> subprocess.Popen:
+        try:
+            heard = {n.id: n for n in fleet_mpi.job_nodes(fetch_state(feed), master.host)[0][1:]}
+        except (StateFeedError, OperationFailed):
+            heard = {n.id: n for n in nodes[1:]}
+        chosen = [master]
+        for worker in workers:
+            node = heard.get(worker)
+            if node is not None and node.mpi_build != master.mpi_build:
+                print(f"nac-onboard mpi: {worker} ({node.host}) runs MPI build {node.mpi_build!r}, not the master's "
+                      f"{master.mpi_build!r}: left out", file=sys.stderr)
+            elif node is not None:
+                chosen.append(node)
+        save_hostfile(chosen, hostfile, out=sys.stderr)
+        extra = ["--vehicles", ",".join(n.id for n in chosen), "--fleet-workers", ",".join(fleet)]
+        command = [mpiexec_path(), "-disable-auto-cleanup", "-f", hostfile, "-n", str(len(chosen)), *program, *extra,
+                   *(["--resume"] if resume else [])]
+        try:
+            return subprocess.Popen(command, start_new_session=True)
+        except FileNotFoundError:
+            raise OperationFailed(f"{command[0]} not found: install MPI (nac-onboard doctor)") from None
+
+    def live() -> dict[str, str] | None:
+        try:
+            return fleet_mpi.heard_workers(fetch_state(feed, 0.5))
+        except StateFeedError:
+            return None
+
+    os.makedirs(out, exist_ok=True)
+    supervisor = JobSupervisor(fleet, start, live, Path(out), task, from_env().now_s)
+    deadline = None if timeout_s is None else time.monotonic() + timeout_s
+    supervisor.begin()
+    try:
+        while (code := supervisor.poll()) is None:
+            if deadline is not None and time.monotonic() > deadline:
+                raise OperationFailed(f"the MPI job did not end within {timeout_s:g} s")
+            time.sleep(0.2)
+        return code
+    finally:
+        launch = supervisor.launch
+        if launch is not None and launch.proc.poll() is None:  # interrupted, or out of time: the job ends too
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(launch.proc.pid, signal.SIGTERM)
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                launch.proc.wait(10.0)
+        supervisor.stop()
+
+
+def _value_of(args: list[str], option: str) -> str | None:
+    """The last value given to `option` (as `--opt V` or `--opt=V`) in a program's arguments."""
+    value = None
+    for k, arg in enumerate(args):
+        if arg == option and k + 1 < len(args):
+            value = args[k + 1]
+        elif arg.startswith(option + "="):
+            value = arg.split("=", 1)[1]
+    return value

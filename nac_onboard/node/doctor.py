@@ -39,6 +39,11 @@ def assess(facts: Facts, role: str) -> list[Finding]:
     if facts.clock_synced is not True:
         out.append(Finding(False, f"clock {facts.clock_note}: the analysis merges vehicles by unix time, so run "
                                   "chrony on every companion, one serving time over the Wi-Fi (deploy/README.md)"))
+    if facts.agent_at_boot not in ("enabled", "static", "alias", "enabled-runtime"):
+        out.append(Finding(False, f"the agent does not start at boot (systemctl is-enabled nac-onboard: "
+                                  f"{facts.agent_at_boot}): a rebooted {role} rejoins the job once its agent is "
+                                  "heard again (deploy/install.sh enables it; the master's `nac-onboard mpi run "
+                                  "--keep-going` then starts the job again with it)"))
     if facts.iperf3 is None:
         out.append(Finding(False, "iperf3 is not installed: NAC's own probe works without it, but comparing "
                                   "against iperf3 needs it (apt-get install iperf3)"))
@@ -56,6 +61,7 @@ def report(facts: Facts, role: str, findings: list[Finding]) -> str:
         f"serial: {facts.serial_device}: {facts.serial_access}" if facts.serial_device
         else "serial: not checked (the autopilot is not on a serial port, or no --config)",
         f"disk:   {gib:.1f} GB free under {facts.disk_path}",
+        f"boot:   nac-onboard.service {facts.agent_at_boot}",
     ]
     lines += [f"{'MISSING' if f.needed else 'advice'}: {f.text}" for f in findings]
     needed = sum(f.needed for f in findings)

@@ -1,6 +1,6 @@
 """What this companion computer has, read off the machine: Python, glibc, the MPI build and its mpiexec, the
-clock's synchronisation, the autopilot's serial port, free disk. Each reading says what it found or why it could
-not tell; nothing here decides whether that is enough (doctor.py does)."""
+clock's synchronisation, the autopilot's serial port, free disk, whether the agent starts at boot. Each reading
+says what it found or why it could not tell; nothing here decides whether that is enough (doctor.py does)."""
 
 from __future__ import annotations
 
@@ -37,6 +37,7 @@ class Facts:
     disk_path: str = "."
     disk_free_bytes: int = 0
     iperf3: str | None = None
+    agent_at_boot: str = "unknown"  # `systemctl is-enabled nac-onboard.service`: enabled, disabled, not installed...
 
 
 def read_facts(serial_device: str | None = None, disk_path: str | Path = ".") -> Facts:
@@ -47,7 +48,8 @@ def read_facts(serial_device: str | None = None, disk_path: str | Path = ".") ->
     facts = Facts(machine=platform.machine(), os_name=os_name(), glibc=glibc_version(), board=board_model(),
                   python=platform.python_version(), python_path=sys.executable, mpi_build=mpi_build(),
                   mpiexec=mpiexec(), clock_synced=synced, clock_note=clock_note, disk_path=str(disk),
-                  disk_free_bytes=shutil.disk_usage(disk).free, iperf3=shutil.which("iperf3"))
+                  disk_free_bytes=shutil.disk_usage(disk).free, iperf3=shutil.which("iperf3"),
+                  agent_at_boot=agent_at_boot())
     if serial_device:
         facts.serial_device, facts.serial_access = serial_device, serial_access(serial_device)
     return facts
@@ -114,6 +116,22 @@ def clock_state() -> tuple[bool | None, str]:
         except (OSError, subprocess.TimeoutExpired, ValueError):
             note += "; chronyc did not answer"
     return synced, note
+
+
+def agent_at_boot() -> str:
+    """Whether systemd starts the agent at boot (a rebooted companion rejoins the job once its agent is heard)."""
+    systemctl = shutil.which("systemctl")
+    if systemctl is None:
+        return "unknown (no systemctl)"
+    try:
+        done = subprocess.run([systemctl, "is-enabled", "nac-onboard.service"], capture_output=True, text=True,
+                              timeout=5.0)
+    except (OSError, subprocess.TimeoutExpired) as err:
+        return f"unknown ({err})"
+    state = done.stdout.strip()
+    if state:
+        return state
+    return "not installed" if "No such file" in done.stderr else f"unknown ({done.stderr.strip()[:80]})"
 
 
 def serial_access(device: str) -> str:

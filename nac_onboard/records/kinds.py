@@ -245,7 +245,7 @@ ITERATION = Kind("iteration", COMPUTE_LOG, "one iteration; `workers` holds one l
     opt("duration_sim_s", "number", "s", "simulated time (absent: the analysis uses duration_s)"),
     req("workers", "object", "", "rank, vehicle, present, distance_m (m), rate_bps (bit/s), loss, absent (why: "
                                  "out_of_range, no_position, timeout, unresponsive, agent_lost: its agent unheard "
-                                 "by the master's), "
+                                 "by the master's, or heard restarted), "
                                  "bytes_down, bytes_up (bytes), down_s, up_s, "
                                  "compute_s (s)"),
     req("complete", "boolean", "", "every worker's block arrived"),

@@ -5,6 +5,7 @@ import io
 import json
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from nac_onboard.compute import forestfires, kernels
@@ -19,10 +20,10 @@ SPEEDUP = 2.0
 LEARNING_RATE = 0.05  # nac-onboard compute's default, which the scenario keeps
 REBOOT = """
 [[fault]]
-at_s = 6.0
+at_s = 5.0
 vehicle = "w1"
 kind = "reboot_companion"
-duration_s = 8.0
+duration_s = 6.0
 """
 
 
@@ -51,15 +52,17 @@ def replayed_weights(compute: list[dict]) -> np.ndarray:
 
 @pytest.mark.parametrize("network", ["sleep", pytest.param("kernel", marks=needs_kernel)])
 def test_a_rebooted_companion_is_trained_without_then_taken_back_and_no_step_is_lost(tmp_path, network):
-    """w1's companion is lost at 6 s (its Wi-Fi down, every process on it killed) and back at 14 s (its agent
+    """w1's companion is lost at 5 s (its Wi-Fi down, every process on it stopped) and back at 11 s (its agent
     restarted, as systemd would). The job trains on with w2 alone; once the master's agent hears w1 again, the
     supervisor stops the master at the end of an iteration and starts the job again from that checkpoint with both
     workers (on the sleep network mpiexec dies with the lost proxy first, and the job is started again from the
     checkpoint, without w1 once its agent is lost). w1's new rank computes within 10 simulated seconds of its
     start (measured: about 1 s of start-up at 2x here, some 3 s on a loaded machine, so 10 holds on 2 busy cores).
+    The scenario lasts 32 s: the return, the agent's start, 5 s of hearing it and the restart took up to 13
+    simulated seconds on a loaded machine (a clean-clone run), which 21 s leave room for.
     The weights at the end are gradient descent replayed over exactly the shards each iteration's record says
     arrived, so no step was lost or taken twice beyond what the records say."""
-    scenario = load_scenario(str(write_scenario(tmp_path / "scenario", duration_s=24.0, extra=REBOOT)))
+    scenario = load_scenario(str(write_scenario(tmp_path / "scenario", duration_s=32.0, extra=REBOOT)))
     console = io.StringIO()
     experiment = Experiment(scenario, tmp_path / "run", SPEEDUP, allocate_base_port(3, slots=5), out=console,
                             network=(network, "test"))
@@ -78,24 +81,30 @@ def test_a_rebooted_companion_is_trained_without_then_taken_back_and_no_step_is_
     iterations = [r for r in compute if r["kind"] == "iteration"]
     lost_at, back_at = (next(r["t_s"] for r in read_jsonl(result.run_dir / "experiment.json").of_kind("fault")
                              if r["state"] == state) for state in ("on", "off"))
-    without = [r for r in iterations if lost_at < r["start_s"] < back_at and r["workers"]["vehicle"][-1] == "w2"
-               and r["workers"]["present"][-1] and not (len(r["workers"]["vehicle"]) == 2
-                                                        and r["workers"]["present"][0])]
-    assert len(without) >= 10, "w2 trained on alone while w1 was away"
-    assert without[-1]["cost"] < without[0]["cost"]
+    restarted = read_jsonl(compute_dir / "rank-1.jsonl").of_kind("worker_started")[-1]
+    assert restarted["t_s"] > back_at, "w1's rank was started again after its companion came back"
+    alone = [r for r in iterations if lost_at < r["start_s"] < restarted["t_s"] and "w2" in r["workers"]["vehicle"]
+             and all(present == (vehicle == "w2") for vehicle, present in
+                     zip(r["workers"]["vehicle"], r["workers"]["present"], strict=True))]
+    assert len(alone) >= 10, "w2 trained on alone until w1's new rank was started"
+    same_rows = [r["cost"] for r in alone if r["rows_used"] == alone[0]["rows_used"]]  # costs over the same rows
+    assert same_rows[-1] < same_rows[0], "and its steps lowered the cost"
     assert any(a in ("agent_lost", "unresponsive", "timeout") for r in iterations
                for a in r["workers"]["absent"][:1]), "the records say how w1's loss was noticed"
 
-    restarted = read_jsonl(compute_dir / "rank-1.jsonl").of_kind("worker_started")[-1]
-    assert restarted["t_s"] > back_at, "w1's rank was started again after its companion came back"
-    computing = next(r for r in iterations if r["start_s"] > restarted["t_s"] and r["workers"]["vehicle"][0] == "w1"
-                     and r["workers"]["present"][0])
+    computing = next((r for r in iterations if r["start_s"] > restarted["t_s"] and r["workers"]["vehicle"][0] == "w1"
+                      and r["workers"]["present"][0]), None)
+    assert computing is not None, f"w1 restarted {(restarted['t_s'] - back_at) * SPEEDUP:.1f} s after its return: " \
+                                  "no iteration with it before the end"
     assert (computing["start_s"] - restarted["t_s"]) * SPEEDUP <= 10.0
 
     numbers = [r["iteration"] for r in iterations]
     resumed = [r["iteration"] for r in compute if r["kind"] == "resumed"]
     assert all(b == a + 1 or b in resumed for a, b in zip(numbers, numbers[1:], strict=False)), \
         "the count goes on, or starts again at a checkpoint"
+    events = pd.read_csv(result.run_dir / "analysis" / "events.csv")  # marked in the iteration-time and cost figures
+    assert {"reboot_companion on: w1", "reboot_companion off: w1"} <= set(events["what"])
+    assert events["what"].str.startswith("job started again").any() and events["iteration"].notna().all()
     saved = np.load(compute_dir / "results.npz")
     assert int(saved["iteration"]) == numbers[-1] + 1
     assert np.allclose(saved["weights"], replayed_weights(compute), rtol=1e-9, atol=1e-12)

@@ -3,16 +3,23 @@ hears, the MPI-build check before a job (a fake node that disagrees: exit 2 nami
 doctor naming a missing serial port."""
 
 import json
+import os
 import re
+import signal
 import socket
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
+import numpy as np
+
 from nac_onboard.agent.state_feed import fetch_state
+from nac_onboard.compute import forestfires, kernels
+from nac_onboard.flight_log import read_jsonl
 from nac_onboard.node.mpi_build import mpi_build
-from tests.conftest import free_port
+from tests.conftest import SHARED_DATA, free_port
 from tests.integration.agents import agent_toml, kind, wait_for_record
 
 NAC_ONBOARD = str(Path(sys.executable).parent / "nac-onboard")
@@ -47,6 +54,47 @@ def test_the_hostfile_comes_from_the_agents_and_the_job_runs_over_it(start_agent
     # the two ranks' lines reach mpiexec's stdout interleaved in any order, even mid-line
     assert sorted(re.findall(r"rank \d of \d", job.stdout)) == ["rank 0 of 2", "rank 1 of 2"], job.stdout
     assert hostfile.read_text().count("127.0.0.1:1") == 2
+
+
+def test_keep_going_starts_a_job_whose_master_was_killed_again_from_its_checkpoint(start_agent, tmp_path):
+    """`mpi run --keep-going` over the agents (issue 29): the master rank SIGKILLed mid-run (a brown-out of the master's
+    MPI process) ends that mpiexec; the supervisor starts the job again with --resume over the worker its agent
+    hears, and the job ends at its iterations. The weights are uninterrupted gradient descent's: the steps after the
+    last checkpoint (0.2 s) are taken again from it, the same steps, and none is lost."""
+    ports = [free_port(), free_port()]
+    configs = [agent_toml(name, role, k + 1, f"udpin:127.0.0.1:{free_port()}", tmp_path / "runs", ports[k],
+                          [ports[1 - k]]) for k, (name, role) in enumerate([("uav1", "master"), ("uav2", "worker")])]
+    for k, text in enumerate(configs):
+        start_agent(text, name=f"uav{k + 1}")
+    feed = configs[0].split("[state_feed]\nlisten = ")[1].split("\n")[0].strip('"')
+    wait_for_record(tmp_path / "runs" / "test" / "uav1" / "agent.jsonl", kind("peer_seen", peer="uav2"))
+    out, total = tmp_path / "compute", 3000
+    job = subprocess.Popen([NAC_ONBOARD, "mpi", "run", "--keep-going", "--feed", feed, "--hostfile",
+                            str(tmp_path / "hostfile"), "--timeout", "120", "--", NAC_ONBOARD, "compute", "--task",
+                            "linreg", "--iterations", str(total), "--out", str(out), "--emulate", "none",
+                            "--checkpoint-s", "0.2", "--data", str(SHARED_DATA / "forestfires.csv")],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not ((out / "results.npz").exists() and len(read_jsonl(out / "compute.jsonl").of_kind("iteration")) > 20):
+            assert time.monotonic() < deadline and job.poll() is None, "the job should be running"
+            time.sleep(0.05)
+        os.kill(read_jsonl(out / "compute.jsonl").of_kind("run_started")[0]["pid"], signal.SIGKILL)
+        _, stderr = job.communicate(timeout=120)
+    finally:
+        if job.poll() is None:
+            os.killpg(job.pid, signal.SIGKILL)
+            job.wait()
+    assert job.returncode == 0, stderr[-2000:]
+    launches = read_jsonl(out / "job.jsonl").of_kind("job_launched")
+    assert [(r["why"], r["workers"], r["resume"]) for r in launches] == [
+        ("start", ["uav2"], False), ("ended without its summary", ["uav2"], True)]
+    compute = read_jsonl(out / "compute.jsonl")
+    assert compute.of_kind("resumed")[0]["iteration"] == launches[1]["from_iteration"] > 0
+    assert compute.of_kind("run_summary")[-1]["iterations"] == total
+    x, y = forestfires.load(SHARED_DATA / "forestfires.csv")
+    w, _ = kernels.gradient_descent(x, y, np.zeros(x.shape[1]), 0.05, total)
+    assert np.allclose(np.load(out / "results.npz")["weights"], w, rtol=1e-9, atol=1e-12)
 
 
 def test_a_node_with_another_mpi_build_stops_the_job_before_it_starts(tmp_path):

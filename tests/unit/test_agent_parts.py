@@ -234,6 +234,12 @@ def test_the_state_feed_hands_the_masters_probes_to_the_mpi_job(monkeypatch):
                 {"w1": {"bits_per_second": 1e6, "age_s": True}}, {"w1": [1e6]}, ["w1"]):
         feed.state = {**answer, "probes": bad}
         assert feed.measured_rates_bps(max_age_s=5.0)[1] is None, bad
+    heard = {"self": {"id": "m"}, "peers": {"w2": {"id": "w2", "boot": "00000000000000aa", "lost": False}}}
+    monkeypatch.setattr(positions, "fetch_state", lambda address, timeout_s: heard)
+    feed.distances_m(1, 0.0)
+    assert feed.lost_ranks() == set()
+    heard["peers"]["w2"]["boot"] = "00000000000000bb"  # its companion rebooted: the rank of the old boot is gone
+    assert feed.lost_ranks() == {2}
 
 
 def test_systemd_notifier_speaks_the_notify_protocol(tmp_path):

@@ -15,7 +15,7 @@ GOOD = Facts(machine="aarch64", os_name="Ubuntu 22.04.4 LTS", glibc="2.35", boar
              python="3.10.12", python_path="/opt/nac/venv/bin/python", mpi_build=MPICH,
              mpiexec="/opt/nac/venv/bin/mpiexec", clock_synced=True, clock_note="synchronised (kernel)",
              serial_device="/dev/ttyTHS0", serial_access="ok", disk_path="/var/log/nac", disk_free_bytes=20 * 2**30,
-             iperf3="/usr/bin/iperf3")
+             iperf3="/usr/bin/iperf3", agent_at_boot="enabled")
 
 
 def needed(facts, role="worker"):
@@ -34,6 +34,8 @@ def test_a_complete_node_needs_nothing_and_each_missing_part_is_named():
     assert "MB free" in needed(dataclasses.replace(GOOD, disk_free_bytes=100 * 2**20))[0]
     unsynced = doctor.assess(dataclasses.replace(GOOD, clock_synced=False, clock_note="not synchronised"), "worker")
     assert [f.needed for f in unsynced] == [False] and "chrony" in unsynced[0].text, "advice, not a failure"
+    not_at_boot = doctor.assess(dataclasses.replace(GOOD, agent_at_boot="disabled"), "worker")
+    assert [f.needed for f in not_at_boot] == [False] and "rebooted worker rejoins" in not_at_boot[0].text
     text = doctor.report(GOOD, "worker", [])
     assert "glibc 2.35" in text and MPICH in text and "has what a worker needs" in text
 
