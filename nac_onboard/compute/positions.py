@@ -31,6 +31,8 @@ class FixedDistances:
     def distances_m(self, iteration: int, elapsed_s: float) -> dict[int, float | None]:
         return dict(self.distances)
 
+    restarted: frozenset = frozenset()  # no agents to restart
+
     def lost_ranks(self) -> set[int]:
         return set()  # no agents to lose
 
@@ -68,6 +70,8 @@ class ScriptedDistances:
             out[rank] = current
         return out
 
+    restarted: frozenset = frozenset()  # no agents to restart
+
     def lost_ranks(self) -> set[int]:
         return set()  # no agents to lose
 
@@ -80,6 +84,7 @@ class FeedDistances:
         self.failures = 0
         self.state: dict = {}  # the last answer
         self.boots: dict[int, str] = {}  # each worker's agent boot as this job first heard it
+        self.restarted: set[int] = set()  # workers heard with another boot since: their ranks are gone
 
     def distances_m(self, iteration: int, elapsed_s: float) -> dict[int, float | None]:
         try:
@@ -106,7 +111,9 @@ class FeedDistances:
                 continue
             boot = peer.get("boot")
             first = self.boots.setdefault(rank, boot) if isinstance(boot, str) and boot else self.boots.get(rank)
-            if peer.get("lost") is True or (isinstance(boot, str) and boot and boot != first):
+            if isinstance(boot, str) and boot and boot != first:
+                self.restarted.add(rank)
+            if peer.get("lost") is True or rank in self.restarted:
                 out.add(rank)
         return out
 

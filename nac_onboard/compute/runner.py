@@ -262,18 +262,20 @@ class Master:
         self._stalled_s = 0.0  # wall seconds this iteration spent on sends that missed their deadline
         self._next_checkpoint_s = 0.0
         self.stop_signal: str | None = None  # set by request_stop
+        self.agents_lost: set[int] = set()  # workers whose agents the master's agent lost or heard restarted, now
         self.checkpoint_iteration: int | None = None  # the iteration of the last whole checkpoint on disk
         self.end_at_s = options.end_at_s
 
     def link(self, distances: dict) -> IterationLinks:
         """Per worker: distance, emulated rate and whether it is in range this iteration."""
         links = IterationLinks(len(self.workers))
+        self.agents_lost = lost = self.source.lost_ranks() if self.source is not None else set()
         for k, rank in enumerate(self.workers):
             d = distances.get(rank) if distances else None
             links.distance_m[k] = d
             if rank in self.unresponsive:
                 links.absent[k] = "unresponsive"  # not waited for; pinged until it answers again
-            elif self.source is not None and rank in self.source.lost_ranks():
+            elif rank in lost:
                 links.absent[k] = "agent_lost"  # its agent unheard (the fleet's Wi-Fi): nothing of it is believed
             elif self.emulation is not None:
                 if d is None:
@@ -568,7 +570,7 @@ class Master:
                        elapsed_sim_s=self.clock.now_s() - t_run_sim, mean_duration_s=float(np.mean(d)),
                        p95_duration_s=float(np.percentile(d, 95)),
                        absent_iterations={str(r): n for r, n in t.absences.items()},
-                       stale_results=self.stale_results, lost_workers=sorted(self.unresponsive),
+                       stale_results=self.stale_results, lost_workers=sorted(self.unresponsive | self.agents_lost),
                        failed_workers=sorted(self.lost),
                        late_cpu_segments=self.stretch.late + sum(self.late_by_worker.values()), **self.task.final())
 
@@ -576,7 +578,8 @@ class Master:
     def finalizes(self) -> bool:
         """Whether MPI_Finalize can end the job: not with a rank that does not answer (it would wait for it), nor
         after SIGTERM (the launcher, which Finalize talks to, may be gone)."""
-        return not (self.unresponsive or self.lost or self._stuck or self.undrained or self.stop_signal)
+        return not (self.unresponsive or self.agents_lost or self.lost or self._stuck or self.undrained
+                    or self.stop_signal)
 
     def request_stop(self, signum: int, _frame) -> None:
         """SIGTERM (a supervisor restarting the job, or the launcher gone): the loop ends after this iteration and
@@ -589,10 +592,11 @@ class Master:
         finalizes = self.finalizes
         stop = message_buffer(work_header(KIND_STOP, iteration, extra_rows=0 if finalizes else 1), 0, self.pad)
         timeout_s = self.clock.wall_s(self.options.timeout_s)
+        restarted = self.source.restarted if self.source is not None else set()
         for rank in self.workers:
-            if rank in self.lost:
+            if rank in self.lost or rank in restarted:  # a send to a rebooted companion's old connection: a reset
                 continue
-            if rank in self.unresponsive:  # it may never take it: do not wait for that
+            if rank in self.unresponsive or rank in self.agents_lost:  # it may never take it: do not wait for that
                 request = self._isend(rank, stop)
                 if request is not None:
                     self._pings[rank] = (request, stop)
@@ -608,7 +612,7 @@ class Master:
         batches after the last decode, or any late answer (measured: 2 such in about 1 of 25 BPCC runs under
         load). A worker whose STOPPED_ANSWER does not come by the deadline leaves the master unable to finalize."""
         for rank in self.workers:
-            if rank in self.lost or rank in self.unresponsive:
+            if rank in self.lost or rank in self.unresponsive or rank in self.agents_lost:
                 continue
             while True:
                 buf = self.inbox.receive(deadline, source=rank)[1]
@@ -740,8 +744,8 @@ def main(argv: list[str] | None = None) -> int:
     # hydra's notice that a rank died: the job finds lost ranks by their silence and needs no handler for it
     signal.signal(signal.SIGUSR1, signal.SIG_IGN)
     # ranks run in sessions of their own (hydra's doing): if their proxy is killed, they go too; the master by
-    # SIGTERM, which stops it at the end of its iteration with its checkpoint and summary written (its launcher,
-    # mpiexec, dies when a lost companion's proxy connection closes: the job is restarted from there)
+    # SIGTERM, which stops it at the end of its iteration with its checkpoint and summary written (when mpiexec
+    # dies, the proxies kill their ranks themselves: the master then leaves its last checkpoint)
     die_with_parent(signal.SIGTERM if comm.Get_rank() == 0 else signal.SIGKILL)
     if comm.Get_size() < 2:
         sys.stderr.write("nac-onboard compute: needs at least 2 ranks (mpiexec -n N+1 ...): a master and a worker\n")

@@ -267,7 +267,8 @@ RUN_SUMMARY = Kind("run_summary", COMPUTE_LOG, "the job's end", (
     req("elapsed_s", "number", "s", "wall time"), req("elapsed_sim_s", "number", "s", "simulated time"),
     req("mean_duration_s", "number", "s", "mean iteration time"), req("p95_duration_s", "number", "s", "95th pct"),
     req("absent_iterations", "object", "", "iterations each rank missed"),
-    req("stale_results", "integer", "", "late answers dropped"), req("lost_workers", "list", "", "unresponsive ranks"),
+    req("stale_results", "integer", "", "late answers dropped"),
+    req("lost_workers", "list", "", "ranks unresponsive, or whose agents were lost, at the end"),
     req("failed_workers", "list", "", "ranks whose MPI calls failed"),
     opt("late_cpu_segments", "integer", "", "work segments (all ranks) this host did more slowly than the device "
                                             "profile on the run's clock: their timings depend on the speed-up"),

@@ -666,12 +666,12 @@ class Experiment:
     # ---- the end ---------------------------------------------------------------------------------------------
     def _shutdown(self, land: bool) -> None:
         self.stop_event.set()  # the progress followers stop reading
-        for index in list(self.frozen):
-            self._kill_frozen(index)
         # at the scenario's end the MPI job is finishing its own --duration-s: let it write its summary
         self._stop_mpi(grace_s=self.scenario.compute.timeout_s + 2.0 if land and self.scenario.compute else 0.0)
         if self.job is not None:
             self.job.stop()
+        for index in list(self.frozen):  # after the job's end: their connections reset when they die
+            self._kill_frozen(index)
         if self.feed_socket is not None:
             self.feed_socket.close()
         for t in self.pilots:

@@ -227,7 +227,9 @@ def test_do_set_home_moves_home_for_rtl_and_relative_altitude_and_the_protocol_v
     # a loaded machine the message can be a step or two older (a CI run: 0.32 m off a climb that was still settling)
     assert abs(position.relative_alt / 1000 - (position.alt / 1000 - (home.alt_m + 5.0))) < 0.002, \
         "height above the new home"
-    assert abs(gcs.recv("LOCAL_POSITION_NED", 2.0).z + 10.0) < 0.3, "the local frame stays where it was"
+    # a frame that moved with the home would be 5 m off; the climb, still settling at 10x on a loaded machine, was
+    # 0.31 m off in a clean-clone run
+    assert abs(gcs.recv("LOCAL_POSITION_NED", 2.0).z + 10.0) < 1.0, "the local frame stays where it was"
     assert gcs.download()[0].lat_deg == pytest.approx(new_home.lat_deg, abs=1e-7), "item 0 is the new home"
     assert gcs.set_mode("RTL") == M.MAV_RESULT_ACCEPTED
     assert gcs.recv("HEARTBEAT", 120.0, lambda m: not m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED) is not None
