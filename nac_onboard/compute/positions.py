@@ -98,16 +98,18 @@ class FeedDistances:
                 for rank, vehicle in enumerate(self.ids[1:], start=1)}
 
     def lost_ranks(self) -> set[int]:
-        """The workers whose agents the master's agent has lost (silent for its peers.timeout_s) in the last
-        answer, or hears with another boot than this job first heard (the companion restarted: its rank is gone,
-        and a send to the old connection is answered by a reset, which crashes UCX's TCP transport): not sent
-        work, sooner than the job's own deadlines would find them gone; the lost ones until heard again, the
-        restarted ones for good (the job's supervisor starts the job again with them)."""
+        """The workers whose agents the master's agent has lost (silent for its peers.timeout_s, or forgotten
+        since) in the last answer, or hears with another boot than this job first heard (the companion restarted:
+        its rank is gone, and a send to the old connection is answered by a reset, which crashes UCX's TCP
+        transport): not sent work, sooner than the job's own deadlines would find them gone; the lost ones until
+        heard again, the restarted ones for good (the job's supervisor starts the job again with them)."""
         peers = self.state.get("peers") or {}
         out = set()
         for rank, vehicle in enumerate(self.ids[1:], start=1):
             peer = peers.get(vehicle)
             if not isinstance(peer, dict):
+                if rank in self.boots and self.state:  # heard by this job, then forgotten by the agent (forget_s)
+                    out.add(rank)
                 continue
             boot = peer.get("boot")
             first = self.boots.setdefault(rank, boot) if isinstance(boot, str) and boot else self.boots.get(rank)

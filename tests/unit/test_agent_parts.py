@@ -240,6 +240,8 @@ def test_the_state_feed_hands_the_masters_probes_to_the_mpi_job(monkeypatch):
     assert feed.lost_ranks() == set()
     heard["peers"]["w2"]["boot"] = "00000000000000bb"  # its companion rebooted: the rank of the old boot is gone
     assert feed.lost_ranks() == {2}
+    del heard["peers"]["w2"]  # forgotten by the agent, silent longer than its forget_s: lost all the same
+    assert feed.lost_ranks() == {2}
 
 
 def test_systemd_notifier_speaks_the_notify_protocol(tmp_path):
