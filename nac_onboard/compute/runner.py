@@ -368,6 +368,14 @@ class Master:
             self.unresponsive.add(rank)
             self._next_ping_s[rank] = float("inf")  # MPI said it is gone: nothing to ping
 
+    def refuse(self, rank: int, why: str) -> None:
+        """A worker that would compute another problem (another data set, another task): it has ended itself (exit
+        2); the job goes on without it, never sending to it."""
+        self.lost[rank] = why
+        self.unresponsive.add(rank)
+        self._next_ping_s[rank] = float("inf")
+        self.log.write(kinds.WORKER_REFUSED, rank=rank, vehicle=self.options.vehicle_of(rank), why=why)
+
     def _reap(self) -> None:
         """Forget the sends that missed their deadline and have since completed or failed; note failed receives."""
         self._stuck = [item for item in self._stuck if not self._test(item[0], item[1])]
@@ -696,10 +704,11 @@ class Master:
         message = message_buffer(work_header(KIND_WARMUP), floats, self.pad)
         message[WORK_HEADER:] = 0.0
         deadline = t0 + self.options.timeout_s  # wall seconds: connections cost the machine's time, not the link's
-        for rank in self.workers:
+        workers = [rank for rank in self.workers if rank not in self.lost]  # refused ones have ended
+        for rank in workers:
             if not self._send_within(rank, message, deadline - time.monotonic()):
                 raise TimeoutError(f"worker {rank} did not take the warm-up within {self.options.timeout_s:g} s")
-        for rank in self.workers:
+        for rank in workers:
             if self.inbox.receive(deadline, source=rank)[0] is None:
                 raise TimeoutError(f"worker {rank} did not answer the warm-up within {self.options.timeout_s:g} s")
         return time.monotonic() - t0
@@ -726,6 +735,14 @@ def read_start_file(path: str) -> float | None:
     if value is not None and not (isinstance(value, (int, float)) and math.isfinite(value)):
         raise NacError(f"--start-file {path}: end_at_s must be a number, got {value!r}")
     return value
+
+
+def problem_of(options: ComputeOptions) -> str:
+    """What a rank would compute, in one line: the task, its sizes, seed, code and step, and its input files. Every
+    worker's must be the master's."""
+    o = options
+    return (f"task {o.task} (m {o.m}, n {o.n}, l {o.l}, seed {o.seed}, code k {o.code_k} s {o.code_s} r "
+            f"{o.code_redundancy:g}, learning rate {o.learning_rate:g}; {o.task_class.inputs_of(o)})")
 
 
 def end_without_finalize(code: int) -> None:
@@ -759,11 +776,20 @@ def main(argv: list[str] | None = None) -> int:
         # not `return 2`: python -m mpi4py turns a failing exit into MPI_Abort, and hydra, with every rank
         # aborting at once, now and then dies of SIGPIPE instead of passing the 2 on (1 of 7 runs, measured)
         end_without_finalize(2)
+    problems = comm.gather(problem_of(options), root=0)  # a companion back with another data set or NAC
+    agreed = comm.bcast([p == problems[0] for p in problems] if comm.Get_rank() == 0 else None, root=0)
+    if not agreed[comm.Get_rank()]:
+        sys.stderr.write(f"nac-onboard compute rank {comm.Get_rank()} ({options.vehicle_of(comm.Get_rank())}): "
+                         f"refused: this rank would compute {problem_of(options)}, the master another problem\n")
+        end_without_finalize(2)
     try:
         os.makedirs(options.out, exist_ok=True)
         if comm.Get_rank() == 0:
             with JsonlLog(os.path.join(options.out, kinds.COMPUTE_LOG.name)) as log:
                 master = Master(comm, MPI, options, log)
+                for rank, problem in enumerate(problems):
+                    if problem != problems[0]:
+                        master.refuse(rank, f"it would compute {problem}; the master {problems[0]}")
                 signal.signal(signal.SIGTERM, master.request_stop)
                 code = master.run()
             if not master.finalizes:

@@ -12,6 +12,7 @@ arrived.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import time
 from abc import ABC, abstractmethod
@@ -136,6 +137,24 @@ class Task(ABC):
     def final(self) -> dict:
         """The run summary's task fields."""
         return {}
+
+    @classmethod
+    def inputs_of(cls, options) -> str:
+        """This rank's input files, as a fingerprint every rank's must match (a companion back with another data
+        set computes another problem). Default: none."""
+        return "no input files"
+
+
+def file_sha256(path) -> str:
+    """A file's sha256 (hex), or what kept it from being read."""
+    digest = hashlib.sha256()
+    try:
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                digest.update(chunk)
+        return digest.hexdigest()
+    except OSError as err:
+        return f"unreadable ({err.strerror})"
 
 
 def timed(work: Callable[[], object], repeats: int = 3) -> float:

@@ -285,6 +285,11 @@ BLOCKS_PLANNED = Kind("blocks_planned", COMPUTE_LOG, "the master re-planned the 
 WORKER_LOST = Kind("worker_lost", COMPUTE_LOG, "an MPI call to a worker failed: it is not sent to again", (
     req("rank", "integer", "", "MPI rank"), req("vehicle", "string", "", "its vehicle"),
     req("error", "string", "", "MPI's error")))
+WORKER_REFUSED = Kind("worker_refused", COMPUTE_LOG, "a worker would compute another problem than the master's "
+                                                    "(another data set, task or size): it ended itself (exit 2), "
+                                                    "the job goes on without it", (
+    req("rank", "integer", "", "MPI rank"), req("vehicle", "string", "", "its vehicle"),
+    req("why", "string", "", "its problem and the master's, in words")))
 WORKER_UNRESPONSIVE = Kind("worker_unresponsive", COMPUTE_LOG, "a worker missed several iterations in a row", (
     req("rank", "integer", "", "MPI rank"), req("vehicle", "string", "", "its vehicle"),
     req("iteration", "integer", "", "when"), req("missed", "integer", "", "iterations missed in a row")))

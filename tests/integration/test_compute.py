@@ -447,3 +447,35 @@ def test_a_device_profile_gives_the_same_simulated_iterations_at_1x_and_4x(tmp_p
             assert device_s > 0.1, "the work took the device's time"
             ratios.append(r["duration_sim_s"] / device_s)
         assert abs(float(np.median(ratios)) - 1.0) < 0.10, (speedup, sorted(ratios))
+
+
+def test_a_worker_with_another_data_set_is_refused_by_name_and_the_job_goes_on(tmp_path):
+    """A companion back with another copy of the data (one value changed): its rank would compute another problem.
+    Every rank's problem (task, sizes, seed, code, step, the data's sha256) is gathered at the start; that worker
+    says so and exits 2, the master records it by name and trains on with the other, every step on its shard."""
+    other = tmp_path / "forestfires.csv"
+    lines = (SHARED_DATA / "forestfires.csv").read_text().splitlines(keepends=True)
+    lines[1] = lines[1].rstrip("\n") + ".5\n"  # the first fire's burnt area: 0 ha, here 0.5 ha
+    other.write_text("".join(lines))
+    assert other.read_bytes() != (SHARED_DATA / "forestfires.csv").read_bytes()
+    out = tmp_path / "out"
+    program = [sys.executable, "-m", "mpi4py", "-m", "nac_onboard.compute", "--task", "linreg", "--iterations", "30",
+               "--out", str(out), "--vehicles", "m,w1,w2"]
+    command = launch.mpiexec_command(["m", "w1", "w2"], tmp_path / "mpi")
+    at = command.index("-n")  # MPMD: ranks 0 and 1 on the shared data, rank 2 on the other copy
+    command = [*command[:at], *command[at + 2:], "-n", "2", *program, ":", "-n", "1", *program, "--data", str(other)]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120, env=ENV)
+    assert "rank 2 (w2): refused: this rank would compute task linreg" in done.stderr, done.stderr[-2000:]
+    assert "Traceback" not in done.stderr
+    read = read_jsonl(out / "compute.jsonl")
+    (refused,) = read.of_kind("worker_refused")
+    assert refused["rank"] == 2 and refused["vehicle"] == "w2" and "data sha256" in refused["why"]
+    assert read.of_kind("run_summary")[0]["iterations"] == 30
+    iterations = read.of_kind("iteration")
+    assert all(r["workers"]["present"] == [True, False] for r in iterations), "w1 alone, every iteration"
+    x, y = forestfires.load(SHARED_DATA / "forestfires.csv")
+    (a, b) = read.of_kind("run_started")[0]["shards"][0]
+    w = np.zeros(x.shape[1])
+    for _ in range(30):
+        w = w - 0.05 * kernels.combine_gradients([kernels.local_gradient(x[a:b], y[a:b], w)])[0]
+    assert np.allclose(np.load(out / "results.npz")["weights"], w, rtol=1e-9, atol=1e-12)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from nac_onboard.compute import forestfires, kernels
-from nac_onboard.compute.task import Answer, Task, timed
+from nac_onboard.compute.task import Answer, Task, file_sha256, timed
 from nac_onboard.errors import BadInput
 
 
@@ -27,6 +27,10 @@ class Linreg(Task):
     @classmethod
     def check(cls, options) -> None:
         forestfires.load(forestfires.find_csv(options.data))  # every value checked before MPI starts
+
+    @classmethod
+    def inputs_of(cls, options) -> str:
+        return f"data sha256 {file_sha256(forestfires.find_csv(options.data))}"
 
     def rows(self) -> int:
         return self.total_rows

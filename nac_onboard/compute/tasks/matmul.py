@@ -9,7 +9,7 @@ import os
 import numpy as np
 
 from nac_onboard.compute import kernels
-from nac_onboard.compute.task import Answer, Extra, Task, timed
+from nac_onboard.compute.task import Answer, Extra, Task, file_sha256, timed
 from nac_onboard.errors import BadInput
 
 
@@ -36,6 +36,10 @@ class Matmul(Task):
                 raise BadInput(f"--{name} must be >= 1")
         if options.a_path and not os.path.isfile(options.a_path):
             raise BadInput(f"--a {options.a_path}: no such file")
+
+    @classmethod
+    def inputs_of(cls, options) -> str:
+        return f"A sha256 {file_sha256(options.a_path)}" if options.a_path else "A from the seed"
 
     def rows(self) -> int:
         return len(self.a)
