@@ -23,6 +23,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from pathlib import Path
 
 from nac_onboard.errors import OperationFailed
 
@@ -38,6 +39,14 @@ def _prctl():
         return ctypes.CDLL(None, use_errno=True).prctl
     except (OSError, AttributeError):  # not Linux: the parent's own clean-up has to do
         return None
+
+
+def process_running(pid: int) -> bool:
+    """Whether process pid runs (a zombie does not: a process that is not our child may be reaped late)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
 
 
 def die_with_parent(signum: int = signal.SIGKILL) -> None:

@@ -776,11 +776,12 @@ def main(argv: list[str] | None = None) -> int:
         # not `return 2`: python -m mpi4py turns a failing exit into MPI_Abort, and hydra, with every rank
         # aborting at once, now and then dies of SIGPIPE instead of passing the 2 on (1 of 7 runs, measured)
         end_without_finalize(2)
-    problems = comm.gather(problem_of(options), root=0)  # a companion back with another data set or NAC
+    problem = problem_of(options)
+    problems = comm.gather(problem, root=0)  # a companion back with another data set or NAC
     agreed = comm.bcast([p == problems[0] for p in problems] if comm.Get_rank() == 0 else None, root=0)
     if not agreed[comm.Get_rank()]:
         sys.stderr.write(f"nac-onboard compute rank {comm.Get_rank()} ({options.vehicle_of(comm.Get_rank())}): "
-                         f"refused: this rank would compute {problem_of(options)}, the master another problem\n")
+                         f"refused: this rank would compute {problem}, the master another problem\n")
         end_without_finalize(2)
     try:
         os.makedirs(options.out, exist_ok=True)

@@ -34,6 +34,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from nac_onboard.child_process import process_running
 from nac_onboard.compute.checkpoint import checkpoint_path, load_checkpoint
 from nac_onboard.errors import BadInput
 from nac_onboard.flight_log import JsonlLog
@@ -94,7 +95,7 @@ class JobSupervisor:
             return self._retry()
         self._read_records(launch)
         if launch.proc.poll() is None:
-            if launch.master_pid and not _alive(launch.master_pid):  # mpiexec would wait on for the workers
+            if launch.master_pid and not process_running(launch.master_pid):  # mpiexec would wait on for the workers
                 with contextlib.suppress(ProcessLookupError):
                     os.killpg(launch.proc.pid, signal.SIGTERM)
             elif self._stopping is None:
@@ -102,7 +103,7 @@ class JobSupervisor:
             elif time.monotonic() - self._stopping[2] > STOP_WAIT_S:
                 self._kill_master(launch)
             return None
-        if launch.master_pid and _alive(launch.master_pid):  # mpiexec gone, the master still writing its summary
+        if launch.master_pid and process_running(launch.master_pid):  # mpiexec gone, the master writing its summary
             if self._stopping is None:
                 self._stopping = ("launcher lost", [], time.monotonic())
             elif time.monotonic() - self._stopping[2] > STOP_WAIT_S:
@@ -250,10 +251,3 @@ class JobSupervisor:
         with contextlib.suppress(ProcessLookupError, TypeError):
             os.kill(launch.master_pid, signal.SIGKILL)
 
-
-def _alive(pid: int) -> bool:
-    """Running (a zombie is not: the master is not this process's child, and may be reaped late)."""
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except (OSError, IndexError):
-        return False

@@ -30,7 +30,7 @@ from pathlib import Path
 from missions.model import MavCmd
 from nac_onboard import clock
 from nac_onboard.agent.state_feed import StateFeedError, fetch_state
-from nac_onboard.child_process import AgentProcess, ChildStartError, die_with_parent_preexec
+from nac_onboard.child_process import AgentProcess, ChildStartError, die_with_parent_preexec, process_running
 from nac_onboard.compute.device import load_device_profile
 from nac_onboard.compute.options import options_from_argv
 from nac_onboard.compute.supervisor import JobSupervisor
@@ -588,7 +588,7 @@ class Experiment:
             rank = self.master_pid if vehicle.role == "master" else self._rank_pid(vehicle.id)
             proxy = _parent_if(rank, "hydra_pmi_proxy") if rank else None
             pids += [p for p in (rank, proxy) if p and p not in pids]
-            if rank and _alive(rank):
+            if rank and process_running(rank):
                 stopped.append("rank")
             self.rank_pids.pop(vehicle.id, None)  # a rank started again has another pid
         if self.air is None:
@@ -756,16 +756,6 @@ def _parent_if(pid: int, name: str) -> int | None:
         return ppid if Path(f"/proc/{ppid}/comm").read_text().strip() == name else None
     except (OSError, ValueError, IndexError):
         return None
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def default_run_dir(scenario: Scenario) -> Path:
