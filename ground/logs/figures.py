@@ -142,6 +142,35 @@ def _margins(fig) -> None:
     fig.subplots_adjust(left=0.1 if len(fig.axes) == 1 else 0.06, right=0.97, bottom=0.11, top=0.92, wspace=0.18)
 
 
+def draw_iteration_time_distribution(runs: list[RunTables], path: Path) -> Path:
+    """The runs' iteration times as distributions on one axes (the share of iterations done within each time), so
+    a comparison shows the whole spread, tail included, not only a median: a straggler shows as the tail."""
+    import numpy as np
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.8))
+    ax.set(title="Iteration time distribution", xlabel="iteration duration (s, simulated)",
+           ylabel="share of iterations done within")
+    drawn = False
+    for run in runs:
+        durations = np.sort(run.iterations["duration_s"].dropna().to_numpy(float)) if not run.iterations.empty else []
+        durations = durations[durations > 0] if len(durations) else durations
+        if len(durations):
+            share = np.arange(1, len(durations) + 1) / len(durations)
+            ax.step(durations, share, where="post", label=f"{run.name}: {len(durations)} timed iterations")
+            drawn = True
+    if drawn:
+        ax.set_xscale("log")
+        ax.legend(fontsize="small")
+    else:
+        _empty(ax, "compute iterations")
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3, which="both")
+    _margins(fig)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
 def draw_calibration(probes, model, path: Path) -> Path:
     """Measured probes against the fitted radio's median and 95 % band by distance."""
     import numpy as np

@@ -223,6 +223,8 @@ def compare_runs(run_a: str | Path, run_b: str | Path, out: str | Path, master: 
     for name in [n for n in figures.FIGURES if any(figures.ONLY_WITH_DATA.get(n, bool)(t) for t in tables)]:
         path = figures.draw(name, tables, out / f"{name}.png")
         report += [f"![{name.replace('_', ' ')}]({_relative(path, report_path.parent)})", ""]
+    path = figures.draw_iteration_time_distribution(tables, out / "iteration_time_distribution.png")
+    report += [f"![iteration time distribution]({_relative(path, report_path.parent)})", ""]
     for t in tables:
         report += [f"## Throughput vs distance: {t.name}", "", markdown_table(t.throughput_by_distance), ""]
     report_path.write_text("\n".join(report))

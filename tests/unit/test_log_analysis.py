@@ -9,6 +9,7 @@ import shutil
 import struct
 from pathlib import Path
 
+import matplotlib.image
 import numpy as np
 import pytest
 
@@ -102,6 +103,23 @@ def test_a_reanalysis_replaces_the_runs_own_report_and_leaves_no_second_one(tmp_
     assert (run / "report.md").read_text().startswith("# flight-3: a NAC run\n")
     assert not (run / "analysis" / "report.md").exists() and (run / "analysis" / "distances.csv").is_file()
     assert capsys.readouterr().out.startswith(f"{run / 'report.md'}: ")
+
+
+def test_a_comparison_draws_both_runs_iteration_time_distributions_on_one_axes(tmp_path):
+    """The distribution figure is the comparison's own (one axes, both runs): a run without iterations is drawn
+    as such, not left out, and the figure is linked from the report."""
+    without = tmp_path / "without-compute"
+    shutil.copytree(GOLDEN, without)
+    shutil.rmtree(without / "compute")
+    for other, pixels_of_two_curves in ((GOLDEN, True), (without, False)):
+        out = tmp_path / f"cmp-{other.name}"
+        assert cli.main(["logs", "compare", str(GOLDEN), str(other), "--out", str(out)]) == 0
+        png = out / "iteration_time_distribution.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert "](iteration_time_distribution.png)" in (out / "report.md").read_text()
+        image = matplotlib.image.imread(png)
+        orange = (image[..., 0] > 0.9) & (image[..., 1] > 0.4) & (image[..., 1] < 0.6) & (image[..., 2] < 0.2)
+        assert bool(orange.sum() > 50) == pixels_of_two_curves, "the second run's curve (matplotlib's second colour)"
 
 
 def test_an_empty_or_missing_directory_is_exit_2_with_a_sentence(tmp_path, capsys):
