@@ -7,8 +7,10 @@ Variants, each a whole run (simulator, agents, MPI job, probes):
   htb             a rate class per pair, probes in classes of their own (the kernel network's default air)
   medium          every frame through the 802.11 medium: one FIFO queue per station, channel access, retries
   medium-probes   the same, with the probes back to back (iperf3-style, continuous) in the stations' queues
-  medium-probes-device  the same, with every rank's work 100 times this host's CPU time (an illustrative
-                  profile: no sourced Jetson figure exists; `nac-onboard bench` measures one)
+  medium-probes-tx2  the same, with every rank's work at a Jetson TX2's CPU time (the shipped profile: this
+                  host's single-thread 7-Zip score over the TX2's published one; `nac-onboard cpu-score`)
+  medium-probes-device  the same, with every rank's work 100 times this host's CPU time (an illustration of a
+                  much slower companion, not a device)
 Printed per variant: iterations, iterations per simulated minute, the median iteration and the iterations a
 200 s static flight would hold at that pace, with the ratio to the research's 640. Needs root (namespaces).
 """
@@ -28,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ground.logs.findings import PAPER_STATIC_ITERATIONS, PAPER_STATIC_S
+from nac_onboard.compute.device import device_path, load_device_profile
 from nac_onboard.flight_log import read_jsonl
 from nac_onboard.records import kinds
 from sitl.experiment.runner import Outcome, run_scenario
@@ -38,7 +41,8 @@ from sitl.network.netns import NetworkUnavailable, check_kernel_network
 import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-VARIANTS = ("htb", "medium", "medium-probes", "medium-probes-device")  # each adds one mechanism to the one before
+VARIANTS = ("htb", "medium", "medium-probes", "medium-probes-tx2", "medium-probes-device")  # each adds one
+# mechanism to the one before (the last two: two companion CPUs instead of this host's)
 SMOKE = {"duration_s": 4.0, "speedup": 4.0, "variants": ["medium-probes"]}
 ILLUSTRATIVE_SLOWDOWN = 100.0
 ISOLATED_PROBE_S = 0.5  # the probes apart: 0.5 s every 2 s, the flight scenarios' schedule before issue 28
@@ -54,6 +58,10 @@ def variant(name: str, folder: Path, duration_s: float):
     back_to_back = name.startswith("medium-probes")
     scenario = dataclasses.replace(scenario, throughput=dataclasses.replace(
         probes, duration_s=probes.period_s if back_to_back else ISOLATED_PROBE_S))
+    if name.endswith("-tx2"):
+        scenario = dataclasses.replace(scenario, compute=dataclasses.replace(
+            scenario.compute, device=str(device_path("jetson-tx2"))))
+        load_device_profile("jetson-tx2", measure_host=True)  # this host's score, measured once before the run
     if name.endswith("-device"):
         device = folder / "illustrative.toml"
         device.write_text(f'[device]\nname = "illustrative-{ILLUSTRATIVE_SLOWDOWN:g}x"\n'

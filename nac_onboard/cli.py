@@ -76,6 +76,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--data", help="linreg: forestfires.csv (default $NAC_DATA_DIR, then the user cache)")
     bench.add_argument("--device-ms", type=number_arg(0, 1e6, low_open=True, unit="ms"), dest="device_ms",
                        help="the figure this command printed on the companion: prints the slowdown for its profile")
+    sub.add_parser("cpu-score", help="measure this machine's single-thread CPU score (7z b -mmt1, sbc-bench's "
+                                     "method, about a minute) and keep it: shipped device profiles compare against it")
     data = sub.add_parser("data", help="the Forest Fires data set")
     dsub = data.add_subparsers(dest="action", required=True, metavar="ACTION")
     fetch = dsub.add_parser("fetch", help="download the UCI archive, check the CSV's sha256, keep it in the cache")
@@ -133,6 +135,16 @@ def run(args) -> int:
         return commands.run_job(args.feed, args.hostfile, program, args.timeout_s)
     if args.command == "bench":
         return bench_command(args)
+    if args.command == "cpu-score":
+        from nac_onboard.compute import cpu_score
+        from nac_onboard.compute.device import SHIPPED, load_device_profile, shipped_devices
+
+        score = cpu_score.measure_and_cache()
+        print(f"this host: 7-Zip single-thread rating {score:g} MIPS (kept for this CPU)")
+        for name in shipped_devices():
+            device = load_device_profile(SHIPPED / f"{name}.toml")
+            print(f"{name}: {device.cpu_score_mips:g} MIPS: slowdown {device.slowdown:.3g}")
+        return 0
     if args.command == "data":
         from nac_onboard.compute import forestfires
 

@@ -6,13 +6,15 @@ a job that computes on a Jetson that is 6 times slower than this host takes the 
 seconds, at 1x as at any speed-up up to about the slowdown: above that the host's own time is longer than the
 device's, the segment comes out late, and the run counts it (`late_cpu_segments`).
 
-The slowdown is the device's CPU time over this host's for the job's work. It is measured, not looked up: `nac-onboard
-bench` times the task's work here and on the companion, and the ratio goes into a profile file with who
-measured it and where (NAC ships no Jetson figures: none we could find measures this work).
+The slowdown is the device's CPU time over this host's for the job's work. A profile gives it either as measured
+(`slowdown`: `nac-onboard bench` times the task's work here and on the companion) or as the device's single-thread
+CPU score (`cpu_score_mips`, 7-Zip's rating by sbc-bench's method), divided into this host's own score
+(`cpu_score`). NAC ships Jetson profiles of the second kind (`devices/`), each with its published source.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass
@@ -20,8 +22,11 @@ from pathlib import Path
 
 import tomllib
 
+from nac_onboard.compute import cpu_score
 from nac_onboard.errors import BadInput
 from nac_onboard.inputs import MAX_CONFIG_BYTES, check_regular_file
+
+log = logging.getLogger(__name__)
 
 SLOWDOWN_RANGE = (1.0, 1000.0)  # a companion slower than this host (down to a microcontroller's ~1000x); a faster
 # one cannot be emulated by holding results back, so 1.0 (no stretch) is the floor
@@ -32,14 +37,31 @@ class DeviceProfile:
     name: str
     slowdown: float  # the device's CPU seconds per CPU second of this host, for the job's work
     source: str  # who measured it, on what, how
+    cpu_score_mips: float | None = None  # the device's 7-Zip single-thread rating, where the slowdown comes from it
 
 
 HOST = DeviceProfile("host", 1.0, "this machine: no stretch")
+SHIPPED = Path(__file__).with_name("devices")  # the Jetson profiles NAC ships, by name (jetson-tx2, ...)
+FIELDS = ("name", "slowdown", "cpu_score_mips", "source")
 
 
-def load_device_profile(path: str | Path) -> DeviceProfile:
-    """A [device] table: name, slowdown (in SLOWDOWN_RANGE) and source (required: a figure without one is not used)."""
-    path = Path(path)
+def shipped_devices() -> list[str]:
+    return sorted(p.stem for p in SHIPPED.glob("*.toml"))
+
+
+def device_path(value: str | Path, base: Path | None = None) -> Path:
+    """A profile named on a command line or in a scenario: a file (relative to base), else a shipped profile's name."""
+    path = Path(base or ".") / value
+    if not path.exists() and str(value) in shipped_devices():
+        return SHIPPED / f"{value}.toml"
+    return path
+
+
+def load_device_profile(path: str | Path, measure_host: bool = False) -> DeviceProfile:
+    """A [device] table: name, source (required: a figure without one is not used), and either slowdown (in
+    SLOWDOWN_RANGE) or cpu_score_mips (the slowdown is then this host's score over it, measured once per machine if
+    measure_host, at least 1). A shipped profile's name is taken for a path that does not exist."""
+    path = device_path(path)
     check_regular_file(path, "device profile", MAX_CONFIG_BYTES)
     try:
         table = tomllib.loads(path.read_text(encoding="utf-8"))
@@ -47,21 +69,36 @@ def load_device_profile(path: str | Path) -> DeviceProfile:
         raise BadInput(f"{path}: not TOML ({err})") from err
     device = table.get("device")
     if not isinstance(device, dict):
-        raise BadInput(f"{path}: expected a [device] table with name, slowdown and source")
-    name, source, slowdown = device.get("name"), device.get("source"), device.get("slowdown")
+        raise BadInput(f"{path}: expected a [device] table with name, source and slowdown or cpu_score_mips")
+    name, source = device.get("name"), device.get("source")
     if not isinstance(name, str) or not name.strip():
         raise BadInput(f"{path}: [device] name: expected a non-empty string")
     if not isinstance(source, str) or not source.strip():
         raise BadInput(f"{path}: [device] source: expected who measured the slowdown, on what and how")
-    low, high = SLOWDOWN_RANGE
-    if isinstance(slowdown, bool) or not isinstance(slowdown, int | float) or not math.isfinite(slowdown) \
-            or not low <= slowdown <= high:
-        raise BadInput(f"{path}: [device] slowdown: expected a number in {low:g}..{high:g} (the device's CPU "
-                       f"seconds per CPU second of this host), got {slowdown!r}")
-    unknown = sorted(set(device) - {"name", "slowdown", "source"})
+    unknown = sorted(set(device) - set(FIELDS))
     if unknown:
-        raise BadInput(f"{path}: [device] has unknown fields {unknown}; expected name, slowdown, source")
-    return DeviceProfile(name.strip(), float(slowdown), source.strip())
+        raise BadInput(f"{path}: [device] has unknown fields {unknown}; expected {', '.join(FIELDS)}")
+    if ("slowdown" in device) == ("cpu_score_mips" in device):
+        raise BadInput(f"{path}: [device]: expected exactly one of slowdown (measured for this job) and "
+                       f"cpu_score_mips (the device's 7-Zip single-thread rating)")
+    if "slowdown" in device:
+        slowdown = _number(path, "slowdown", device["slowdown"], SLOWDOWN_RANGE,
+                           "the device's CPU seconds per CPU second of this host")
+        return DeviceProfile(name.strip(), slowdown, source.strip())
+    score = _number(path, "cpu_score_mips", device["cpu_score_mips"], cpu_score.CPU_SCORE_RANGE,
+                    "7-Zip's single-thread rating in MIPS, sbc-bench's method")
+    host = cpu_score.host_cpu_score_mips(measure_if_missing=measure_host)
+    if host < score:
+        log.info("%s: the device's CPU score %g is above this host's %g: no stretch", path, score, host)
+    return DeviceProfile(name.strip(), max(1.0, host / score), source.strip(), score)
+
+
+def _number(path: Path, field: str, value, bounds: tuple[float, float], meaning: str) -> float:
+    low, high = bounds
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) \
+            or not low <= value <= high:
+        raise BadInput(f"{path}: [device] {field}: expected a number in {low:g}..{high:g} ({meaning}), got {value!r}")
+    return float(value)
 
 
 class CpuStretch:

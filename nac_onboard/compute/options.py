@@ -176,8 +176,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pad-bits", type=number_arg(0, 1e9, unit="bits"), default=0.0,
                    help="append this many bits of zeros to every message (a transfer's overhead, as real bytes)")
     p.add_argument("--device", default="host",
-                   help="the companion's CPU: 'host' (this machine's speed) or a device profile TOML ([device] name, "
-                        "slowdown, source): each rank's work then takes that device's time")
+                   help="the companion's CPU: 'host' (this machine's speed), a shipped profile (jetson-tx2, "
+                        "jetson-xavier-nx, jetson-orin-nano, jetson-orin-nx) or a device profile TOML ([device] name, "
+                        "source, slowdown or cpu_score_mips): each rank's work then takes that device's time")
     p.add_argument("--device-of", action="append", default=[], metavar="VEHICLE=PROFILE",
                    help="one companion's own device profile (repeatable): a slow companion among the rest")
     return p

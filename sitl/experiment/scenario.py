@@ -32,6 +32,7 @@ from pathlib import Path
 from missions import MissionFileError, load_mission
 from missions.geo import Home
 from missions.model import Mission
+from nac_onboard.compute.device import device_path as resolve_device_path
 from nac_onboard.compute.device import load_device_profile
 from nac_onboard.compute.options import ComputeOptions
 from nac_onboard.compute.tasks import all_tasks
@@ -323,10 +324,11 @@ def _companion_mah(table: dict, where: str, vehicle_id: str) -> float | None:
 
 
 def _device_path(value: str, scenario_path: Path, where: str) -> str:
-    """A device profile named in a scenario: relative to it, checked now (a bad profile: exit 2 naming its field)."""
-    device_path = scenario_path.parent / value
+    """A device profile named in a scenario: a file relative to it or a shipped profile's name (jetson-tx2...),
+    checked now (a bad profile: exit 2 naming its field); this host's CPU score is measured once if it needs it."""
+    device_path = resolve_device_path(value, scenario_path.parent)
     try:
-        load_device_profile(device_path)
+        load_device_profile(device_path, measure_host=True)
     except BadInput as err:
         raise ScenarioError(f"{where}: device: {err}") from None
     return str(device_path.resolve())

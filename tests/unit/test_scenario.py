@@ -270,6 +270,21 @@ def test_a_scenarios_device_profile_is_checked_and_reaches_the_ranks(tmp_path):
     assert args[args.index("--device") + 1] == scenario.compute.device
 
 
+def test_a_shipped_jetson_profile_is_named_in_a_scenario_and_a_file_of_that_name_comes_first(tmp_path, monkeypatch):
+    """`device = 'jetson-tx2'` is the shipped profile (the ranks get its file) unless the scenario's folder holds a
+    file of that name; its slowdown is this host's CPU score over the TX2's."""
+    from nac_onboard.compute.device import SHIPPED, load_device_profile
+
+    monkeypatch.setenv("NAC_HOST_CPU_SCORE", "3954")
+    path = tmp_path / "s.toml"
+    path.write_text(TWO + "[compute]\ntask = 'linreg'\ndevice = 'jetson-tx2'\n")
+    scenario = load_scenario(str(path))
+    assert scenario.compute.device == str((SHIPPED / "jetson-tx2.toml").resolve())
+    assert load_device_profile(scenario.compute.device).slowdown == pytest.approx(2.0)
+    (tmp_path / "jetson-tx2").write_text('[device]\nname = "ours"\nslowdown = 3\nsource = "our bench"\n')
+    assert load_scenario(str(path)).compute.device == str((tmp_path / "jetson-tx2").resolve())
+
+
 def test_one_companions_own_device_and_the_allocation_keys_reach_the_ranks(tmp_path):
     """[[vehicle]] device gives that companion its own profile (checked now, named by the vehicle), and [compute]'s
     BPCC and re-planning keys reach the job's options: the options the ranks parse hold them all."""
