@@ -4,7 +4,8 @@
 Layout (sitl.network.air builds it): every companion namespace has one interface, `air0`, on a bridge in an
 `air` namespace. Traffic from station i to station j leaves the bridge through j's port, where an HTB class per
 source (i -> j) holds the pair's rate; nftables in the bridge drops the pair's loss. With a shared medium the
-access point (the master, as in the research's testbed) spends one airtime budget on everything it receives (a
+access point (the master, as in the research's testbed) relays what one station sends another (the pair is shaped
+as its two hops through it: `through_the_ap`), and spends one airtime budget on everything it receives (a
 parent class over its port's pair classes) and on everything it sends (the same on its own `air0`): concurrent
 transfers through it split the budget, each guaranteed an equal part and borrowing what the others leave.
 Probe traffic from the access point to a station's throughput port has its own class at the pair's rate,
@@ -62,6 +63,8 @@ def air_state(radio: AirRadio, t_s: float, ecef_m: np.ndarray, ap: int | None, s
     # class for what it sends at its rate: at a few kbit/s one queued packet costs seconds of debt, and the link
     # would stay silent that long after coming back into range.
     floor = radio.radio.model.min_rate_bps or OUT_OF_RANGE_BPS
+    if ap is not None and n > 2:
+        rate, loss = through_the_ap(rate, loss, ap)
     budget = None
     if sharing and ap is not None and n > 1:
         budget = float(max(np.delete(rate[ap], ap).max(), floor))
@@ -70,6 +73,22 @@ def air_state(radio: AirRadio, t_s: float, ecef_m: np.ndarray, ap: int | None, s
               "fallback_per": radio.matrix(sample.fallback_per, 1.0)}
     return AirState(radio.matrix(distance), rate, loss, budget, floor, radio.matrix(sample.snr_db),
                     radio.matrix(sample.mcs, -1), frames)
+
+
+def through_the_ap(rate_bps: np.ndarray, loss: np.ndarray, ap: int) -> tuple[np.ndarray, np.ndarray]:
+    """Two stations' pair in an infrastructure network: station-to-station frames go up to the access point and
+    down from it (IEEE 802.11's infrastructure BSS), so the pair gets the two hops' air time in series, 1 / (1/up +
+    1/down), loses what either hop loses, and is out of range only if a hop is. Their own distance does not matter:
+    two workers on either side of the master talk through it, as the MPI job's start-up needs every pair to."""
+    up, down = rate_bps[:, ap], rate_bps[ap, :]
+    both = (up[:, None] > 0) & (down[None, :] > 0)
+    up_s_per_bit, down_s_per_bit = 1.0 / np.where(up > 0, up, np.inf), 1.0 / np.where(down > 0, down, np.inf)
+    relayed = np.where(both, 1.0 / (up_s_per_bit[:, None] + down_s_per_bit[None, :] + 1e-300), 0.0)
+    relayed_loss = np.where(both, 1.0 - (1.0 - loss[:, ap][:, None]) * (1.0 - loss[ap, :][None, :]), 1.0)
+    stations = np.ones(len(up), dtype=bool)
+    stations[ap] = False
+    pairs = stations[:, None] & stations[None, :] & ~np.eye(len(up), dtype=bool)
+    return np.where(pairs, relayed, rate_bps), np.where(pairs, relayed_loss, loss)
 
 
 def with_replay(state: AirState, ids: list[str], rate_of, t_s: float) -> AirState:

@@ -188,3 +188,29 @@ def test_the_telemetry_radio_loses_more_frames_further_out_and_lower_down():
     assert sik.range_m(3.0) < sik.range_m(30.0), "two-ray: a low antenna hears less far"
     assert sik.received_dbm(500.0, 30.0) == pytest.approx(
         20.0 + 4.0 - 25.0 - air_link.two_ray_db(500.0, 1.5, 30.0, 915.0))
+
+
+def test_two_workers_talk_through_the_access_point_not_over_their_own_distance():
+    """Infrastructure mode: a worker pair is shaped as its two hops through the master (the access point). Two
+    workers 30 m apart on either side of the master (past wifi-flight's range directly, 15 m from the master each)
+    still reach each other, at the two hops' rate in series and either hop's loss; one out of the master's range
+    reaches nobody. (The MPI job's start-up needs every pair: an ad hoc pair out of range hung it.)"""
+    from sitl.network.shaping import air_state, through_the_ap
+
+    rate = np.array([[0.0, 30e6, 10e6], [30e6, 0.0, 0.0], [10e6, 0.0, 0.0]])
+    loss = np.array([[0.0, 0.1, 0.2], [0.1, 0.0, 1.0], [0.2, 1.0, 0.0]])
+    relayed, relayed_loss = through_the_ap(rate, loss, ap=0)
+    assert relayed[1, 2] == relayed[2, 1] == pytest.approx(7.5e6) and relayed_loss[1, 2] == pytest.approx(0.28)
+    assert (relayed[0] == rate[0]).all() and (relayed_loss[:, 0] == loss[:, 0]).all(), "the AP's own pairs stay"
+    rate[0, 2] = rate[2, 0] = 0.0
+    relayed, relayed_loss = through_the_ap(rate, loss, ap=0)
+    assert relayed[1, 2] == 0.0 and relayed_loss[1, 2] == 1.0, "out of the AP's range: out of everyone's"
+
+    positions = np.array([[0.0, 0.0, 0.0], [-15.0, 0.0, 0.0], [15.0, 0.0, 0.0]])
+    direct = air_link.AirRadio(PRESETS["wifi-flight"], 3, seed=1)
+    _, sample = direct.step(0.0, positions)
+    assert not direct.matrix(sample.in_range)[1, 2], "30 m: out of range on their own"
+    state = air_state(air_link.AirRadio(PRESETS["wifi-flight"], 3, seed=1), 0.0, positions, ap=0, sharing=True)
+    assert state.rate_bps[1, 2] > 0 and state.loss[1, 2] < 1.0
+    ad_hoc = air_state(air_link.AirRadio(PRESETS["wifi-flight"], 3, seed=1), 0.0, positions, ap=None, sharing=False)
+    assert ad_hoc.rate_bps[1, 2] == 0.0
