@@ -71,6 +71,10 @@ def air_state(radio: AirRadio, t_s: float, ecef_m: np.ndarray, ap: int | None, s
     frames = {"phy_bps": radio.matrix(np.where(sample.in_range, sample.phy_bps, 0.0)),
               "per": radio.matrix(sample.per, 1.0), "fallback_bps": radio.matrix(sample.fallback_bps),
               "fallback_per": radio.matrix(sample.fallback_per, 1.0)}
+    if ap is not None and n > 2:  # the frame-level medium sends a worker pair's frames once, at its two hops' rate
+        frames["phy_bps"], frames["per"] = through_the_ap(frames["phy_bps"], frames["per"], ap)
+        frames["fallback_bps"], frames["fallback_per"] = through_the_ap(frames["fallback_bps"],
+                                                                        frames["fallback_per"], ap)
     return AirState(radio.matrix(distance), rate, loss, budget, floor, radio.matrix(sample.snr_db),
                     radio.matrix(sample.mcs, -1), frames)
 

@@ -193,8 +193,8 @@ def test_the_telemetry_radio_loses_more_frames_further_out_and_lower_down():
 def test_two_workers_talk_through_the_access_point_not_over_their_own_distance():
     """Infrastructure mode: a worker pair is shaped as its two hops through the master (the access point). Two
     workers 30 m apart on either side of the master (past wifi-flight's range directly, 15 m from the master each)
-    still reach each other, at the two hops' rate in series and either hop's loss; one out of the master's range
-    reaches nobody. (The MPI job's start-up needs every pair: an ad hoc pair out of range hung it.)"""
+    still reach each other, at the two hops' rate in series and either hop's loss, on either air; one out of the
+    master's range reaches nobody. (The MPI job's start-up needs every pair: an ad hoc pair out of range hung it.)"""
     from sitl.network.shaping import air_state, through_the_ap
 
     rate = np.array([[0.0, 30e6, 10e6], [30e6, 0.0, 0.0], [10e6, 0.0, 0.0]])
@@ -212,5 +212,7 @@ def test_two_workers_talk_through_the_access_point_not_over_their_own_distance()
     assert not direct.matrix(sample.in_range)[1, 2], "30 m: out of range on their own"
     state = air_state(air_link.AirRadio(PRESETS["wifi-flight"], 3, seed=1), 0.0, positions, ap=0, sharing=True)
     assert state.rate_bps[1, 2] > 0 and state.loss[1, 2] < 1.0
+    up, down = state.frames["phy_bps"][1, 0], state.frames["phy_bps"][0, 2]
+    assert state.frames["phy_bps"][1, 2] == pytest.approx(1 / (1 / up + 1 / down)), "the frame-level air's too"
     ad_hoc = air_state(air_link.AirRadio(PRESETS["wifi-flight"], 3, seed=1), 0.0, positions, ap=None, sharing=False)
     assert ad_hoc.rate_bps[1, 2] == 0.0
