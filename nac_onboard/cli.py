@@ -136,15 +136,7 @@ def run(args) -> int:
     if args.command == "bench":
         return bench_command(args)
     if args.command == "cpu-score":
-        from nac_onboard.compute import cpu_score
-        from nac_onboard.compute.device import SHIPPED, load_device_profile, shipped_devices
-
-        score = cpu_score.measure_and_cache()
-        print(f"this host: 7-Zip single-thread rating {score:g} MIPS (kept for this CPU)")
-        for name in shipped_devices():
-            device = load_device_profile(SHIPPED / f"{name}.toml")
-            print(f"{name}: {device.cpu_score_mips:g} MIPS: slowdown {device.slowdown:.3g}")
-        return 0
+        return cpu_score_command()
     if args.command == "data":
         from nac_onboard.compute import forestfires
 
@@ -172,6 +164,18 @@ def bench_command(args) -> int:
         low, high = SLOWDOWN_RANGE
         print(f"slowdown = {args.device_ms:g} / {result.cpu_s * 1e3:.4g} = {slowdown:.3g}"
               + ("" if low <= slowdown <= high else f" (outside {low:g}..{high:g}: a device profile cannot use it)"))
+    return 0
+
+
+def cpu_score_command() -> int:
+    from nac_onboard.compute import cpu_score
+    from nac_onboard.compute.device import SHIPPED, load_device_profile, shipped_devices
+
+    score = cpu_score.measure_and_cache()
+    print(f"this host: 7-Zip single-thread rating {score:g} MIPS (kept for this CPU)")
+    for name in shipped_devices():
+        device = load_device_profile(SHIPPED / f"{name}.toml")
+        print(f"{name}: {device.cpu_score_mips:g} MIPS: slowdown {device.slowdown:.3g}")
     return 0
 
 

@@ -152,8 +152,8 @@ def draw_iteration_time_distribution(runs: list[RunTables], path: Path) -> Path:
            ylabel="share of iterations done within")
     drawn = False
     for run in runs:
-        durations = np.sort(run.iterations["duration_s"].dropna().to_numpy(float)) if not run.iterations.empty else []
-        durations = durations[durations > 0] if len(durations) else durations
+        durations = np.empty(0) if run.iterations.empty else run.iterations["duration_s"].dropna().to_numpy(float)
+        durations = np.sort(durations[durations > 0])  # a log axis
         if len(durations):
             share = np.arange(1, len(durations) + 1) / len(durations)
             ax.step(durations, share, where="post", label=f"{run.name}: {len(durations)} timed iterations")

@@ -58,9 +58,8 @@ def measure() -> tuple[float, str]:
     sevenzip = shutil.which("7z") or shutil.which("7za") or shutil.which("7zr")
     if sevenzip is None:
         raise OperationFailed("no 7z: install p7zip-full (apt-get install p7zip-full) to measure this host's CPU score")
-    core = max(os.sched_getaffinity(0))
-    command = ["taskset", "-c", str(core), sevenzip, "b", "-mmt1"] if shutil.which("taskset") else [sevenzip, "b",
-                                                                                                      "-mmt1"]
+    pin = ["taskset", "-c", str(max(os.sched_getaffinity(0)))] if shutil.which("taskset") else []
+    command = [*pin, sevenzip, "b", "-mmt1"]
     try:
         done = subprocess.run(command, capture_output=True, text=True, timeout=MEASURE_TIMEOUT_S, check=False)
     except subprocess.TimeoutExpired:

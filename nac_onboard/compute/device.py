@@ -9,7 +9,8 @@ device's, the segment comes out late, and the run counts it (`late_cpu_segments`
 The slowdown is the device's CPU time over this host's for the job's work. A profile gives it either as measured
 (`slowdown`: `nac-onboard bench` times the task's work here and on the companion) or as the device's single-thread
 CPU score (`cpu_score_mips`, 7-Zip's rating by sbc-bench's method), divided into this host's own score
-(`cpu_score`). NAC ships Jetson profiles of the second kind (`devices/`), each with its published source.
+(`nac_onboard.compute.cpu_score`). NAC ships Jetson profiles of the second kind (`devices/`), each with its
+published source.
 """
 
 from __future__ import annotations
