@@ -122,6 +122,9 @@ def _network_line(network: dict | None) -> str:
                "probes share the queues)")
     else:
         air = "; the master's airtime shared" if kernel and network.get("sharing") else ""
+    tcp = network.get("congestion_control")
+    if kernel and tcp:
+        air += "; the companions' TCP: " + ("this host's default" if tcp == "host" else tcp)
     return f"{network.get('mode')} ({network.get('why', '')}{air})"
 
 

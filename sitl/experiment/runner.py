@@ -161,7 +161,8 @@ class Experiment:
                            speedup=self.speedup, speedup_note=self._speedup_note(), duration_s=self.scenario.duration_s,
                            network={"mode": self.network, "why": self.network_why,
                                     "sharing": self.scenario.network.sharing, "air": self.scenario.network.air,
-                                    "period_s": self.scenario.network.period_s},
+                                    "period_s": self.scenario.network.period_s,
+                                    "congestion_control": self.scenario.network.congestion_control},
                            radio={"name": self.radio.name, "describe": self.radio.describe(),
                                   "sources": self.radio.sources},
                            links=f"replay:{self.replay.source}" if self.replay else "model",
@@ -316,9 +317,11 @@ class Experiment:
         try:
             if s.network.air == "medium":
                 air = MediumAir(ids, ids.index(s.master.id), s.network.sharing, probe_ports, self.speedup,
-                                s.network.queue_packets, self.clock_path)
+                                s.network.queue_packets, self.clock_path,
+                                congestion_control=s.network.congestion_control)
             else:
-                air = AirNetwork(ids, ids.index(s.master.id), s.network.sharing, probe_ports, self.speedup)
+                air = AirNetwork(ids, ids.index(s.master.id), s.network.sharing, probe_ports, self.speedup,
+                                 s.network.congestion_control)
             if self.watchdog is not None:  # before they exist: a SIGKILL while they are being made leaves none
                 self.watchdog.watch_namespaces(air.prefix)
             self.air = air.create()

@@ -12,6 +12,7 @@
     [throughput]  period_s = 2.0  duration_s = 0.5  interval_s = 0.1
     [network]  period_s = 0.1  sharing = true   # the kernel network's shaper and the access point's airtime
                air = "htb"  queue_packets = 1000  # or "medium": the 802.11 medium frame by frame (issue 28)
+               congestion_control = "host"        # the companions' TCP: this machine's, or "cubic" (a Jetson's)
     [energy]  companion = "jetson-tx2"  radio = "wifi-router"  companion_mah = 1300   # the companions' side
     [[vehicle]]  id = "master"  role = "master"  mission = "paper-flight-moving/master.plan"  # companion_mah = 500
                  device = "slow.toml"           # this companion's own device profile (a slow one among the rest)
@@ -98,6 +99,9 @@ class ProbePlan:
 
 
 AIRS = ("htb", "medium")
+# host: this machine's default, untouched (BBR where this was written); cubic: a Jetson's, Linux's default since
+# 2.6.19 (CONFIG_DEFAULT_TCP_CONG), which Ubuntu and NVIDIA's L4T keep: it fills a transmit queue BBR keeps short
+CONGESTION_CONTROLS = ("cubic", "reno", "bbr", "host")
 
 
 @dataclass(frozen=True)
@@ -108,6 +112,10 @@ class NetworkPlan:
     # carrying every frame through the 802.11 medium: queues, channel access, retries; sitl/network/medium_air.py)
     air: str = "htb"
     queue_packets: int = ranged(DEFAULT_QUEUE_PACKETS, 1, 100_000)  # each station's transmit queue ("medium")
+    # the companions' TCP congestion control (kernel network): "host" (this machine's default, e.g. BBR) or one named,
+    # as "cubic", a Jetson's (Linux's default), which the research's flight scenarios set: its window grows on the
+    # wall clock, so a sped-up run's CUBIC is not the 1x run's (docs/radio.md)
+    congestion_control: str = "host"
 
 
 @dataclass(frozen=True)
@@ -370,6 +378,9 @@ def _network(table: dict, where: str) -> NetworkPlan:
     plan = to_dataclass(NetworkPlan, table, where, ScenarioError, table="network")
     if plan.air not in AIRS:
         raise ScenarioError(f"{where}: air must be one of {', '.join(AIRS)}, got {plan.air!r}")
+    if plan.congestion_control not in CONGESTION_CONTROLS:
+        raise ScenarioError(f"{where}: congestion_control must be one of {', '.join(CONGESTION_CONTROLS)}, got "
+                            f"{plan.congestion_control!r}")
     if not 0.01 <= plan.period_s <= 10.0:
         raise ScenarioError(f"{where}: period_s must be within 0.01..10 simulated seconds, got {plan.period_s}")
     return plan

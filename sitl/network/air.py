@@ -30,6 +30,29 @@ NFT_TABLE = "nacair"
 CARRIER_TIMEOUT_S = 5.0
 CARRIER_POLL_S = 0.02  # a carrier comes within microseconds of a successful set up: polled, not awaited
 TCP_RTO_MIN_US, TCP_RTO_MAX_MS = 200_000, 120_000  # Linux's defaults
+CONGESTION_CONTROL_PROC = Path("/proc/sys/net/ipv4")
+
+
+def allow_congestion_control(name: str) -> bool:
+    """Whether station namespaces can default to `name`: Linux lets a namespace other than the host's default only
+    to an algorithm on the host's allowed list (tcp_set_default_congestion_control), so it is added there if the
+    kernel has it. The list only permits: no socket's algorithm changes, the host's default stays."""
+    try:
+        available = (CONGESTION_CONTROL_PROC / "tcp_available_congestion_control").read_text().split()
+        allowed_path = CONGESTION_CONTROL_PROC / "tcp_allowed_congestion_control"
+        allowed = allowed_path.read_text().split()
+        if name in allowed:
+            return True
+        if name not in available:
+            log.warning("this kernel has no %s congestion control: the companions' TCP is this host's default", name)
+            return False
+        allowed_path.write_text(" ".join([*allowed, name]) + "\n")
+        log.info("added %s to the host's allowed TCP congestion controls (the companions' default)", name)
+        return True
+    except OSError as err:
+        log.warning("cannot give the companions %s congestion control (%s): their TCP is this host's default", name,
+                    err)
+        return False
 
 
 class CommandStream:
@@ -85,10 +108,12 @@ class Station:
 
 class AirNetwork:
     def __init__(self, vehicle_ids: list[str], ap: int | None, sharing: bool,
-                 probe_ports: list[int | None] | None = None, speedup: float = 1.0):
+                 probe_ports: list[int | None] | None = None, speedup: float = 1.0,
+                 congestion_control: str = "host"):
         if not 1 <= len(vehicle_ids) <= MAX_STATIONS:
             raise netns.NetworkError(f"a kernel network holds 1-{MAX_STATIONS} vehicles, not {len(vehicle_ids)}")
         self.speedup = speedup
+        self.congestion_control = congestion_control  # "host" once create() finds the kernel cannot give it
         self.prefix = netns.new_prefix()
         tag = self.prefix.rsplit("-", 1)[1]
         self.air_ns = f"{self.prefix}-air"
@@ -123,6 +148,8 @@ class AirNetwork:
                   "".join(f"netns add {name}\n" for name in self.namespaces))
 
     def _build(self) -> None:
+        if self.congestion_control != "host" and not allow_congestion_control(self.congestion_control):
+            self.congestion_control = "host"
         self._add_namespaces()
         links = ["link add air type bridge", "link set air up", "link set lo up"]
         moves = []
@@ -180,11 +207,13 @@ class AirNetwork:
         """TCP's timers on the simulator's clock: its retransmission timeouts (and their back-off after a link
         comes back into range) divided by the speed-up, as the links' rates are multiplied by it. Slow start
         is not restarted after idle: each iteration's transfer follows a pause, and restarting would cost
-        round trips whose number does not scale."""
+        round trips whose number does not scale. And the congestion control a scenario names for the companions."""
         rto_min_us = max(round(TCP_RTO_MIN_US / self.speedup), 1000)
         rto_max_ms = min(max(round(TCP_RTO_MAX_MS / self.speedup), 1000), TCP_RTO_MAX_MS)
         settings = ["net.ipv4.tcp_slow_start_after_idle=0", f"net.ipv4.tcp_rto_min_us={rto_min_us}",
                     f"net.ipv4.tcp_rto_max_ms={rto_max_ms}"]
+        if self.congestion_control != "host":
+            settings.insert(0, f"net.ipv4.tcp_congestion_control={self.congestion_control}")
         present = [item for item in settings if Path("/proc/sys", *item.split("=")[0].split(".")).exists()]
         if len(present) < len(settings):  # tcp_rto_max_ms came with Linux 6.15, tcp_rto_min_us a little before
             log.warning("this kernel cannot set %s: TCP's timers stay on the wall clock",

@@ -33,8 +33,9 @@ READY_TIMEOUT_S = 10.0
 class MediumAir(AirNetwork):
     def __init__(self, vehicle_ids: list[str], ap: int | None, sharing: bool,
                  probe_ports: list[int | None] | None = None, speedup: float = 1.0,
-                 queue_packets: int = DEFAULT_QUEUE_PACKETS, clock_path: Path | None = None, seed: int = 0):
-        super().__init__(vehicle_ids, ap, sharing, probe_ports, speedup)
+                 queue_packets: int = DEFAULT_QUEUE_PACKETS, clock_path: Path | None = None, seed: int = 0,
+                 congestion_control: str = "host"):
+        super().__init__(vehicle_ids, ap, sharing, probe_ports, speedup, congestion_control)
         self.queue_packets, self.clock_path, self.seed = queue_packets, clock_path, seed
         self.line: subprocess.Popen | None = None
         self.counters: dict | None = None  # the delay line's last counters

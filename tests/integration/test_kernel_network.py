@@ -65,13 +65,15 @@ def shortened(name: str, folder: Path, duration_s: float, channel: str = "", max
     """A shipped scenario with a shorter duration, its missions read from where they are shipped; `channel`:
     lines added to its [channel] table; max_speedup: for tests of mechanics, not of results; probe_period_s: its
     probes' period instead of the scenario's (more probes in a short run). On the htb air, with its probes apart
-    (0.5 s every period): what these tests measure is the shaper's rates and the runner's mechanics, at 4x too,
-    which the frame-level air of the shipped flight scenarios does not hold on this machine."""
+    (0.5 s every period) and this host's TCP: what these tests measure is the shaper's rates and the runner's
+    mechanics, at 4x too, which the frame-level air and the CUBIC of the shipped flight scenarios do not hold on
+    this machine (CUBIC's window grows on the wall clock)."""
     text = (SCENARIOS / f"{name}.toml").read_text()
-    text = re.sub(r"^\[network\]\nair = .*\n", "", text, count=1, flags=re.M)
+    text = re.sub(r"^\[network\]\nair = .*\n(congestion_control = .*\n)?", "", text, count=1, flags=re.M)
     text = re.sub(r"^(\[throughput\]\nperiod_s = .*\n)duration_s = .*$", r"\g<1>duration_s = 0.5", text, count=1,
                   flags=re.M)
-    assert "air =" not in text and "duration_s = 0.5" in text, "the htb air, probes apart"
+    assert "air =" not in text and "congestion_control" not in text and "duration_s = 0.5" in text, \
+        "the htb air, probes apart, this host's TCP"
     text = re.sub(r"^duration_s = .*$", f"duration_s = {duration_s}", text, count=1, flags=re.M)
     if probe_period_s is not None:
         text = re.sub(r"^(\[throughput\]\n)period_s = .*$", rf"\g<1>period_s = {probe_period_s}", text, count=1,
@@ -145,6 +147,24 @@ def test_a_station_interface_without_a_carrier_is_set_up_again_before_use():
     finally:
         air.close()
     assert not any(n.startswith(air.prefix) for n in netns.namespaces())
+
+
+@needs_kernel
+def test_the_companions_tcp_is_a_jetsons_cubic_and_the_hosts_default_stays():
+    """Each station's namespace defaults to CUBIC (a Jetson's, Linux's default), whatever this host uses, and the
+    host's own default is not changed; "host" leaves a namespace at the host's."""
+    host = Path("/proc/sys/net/ipv4/tcp_congestion_control").read_text().strip()
+    for wanted, expected in (("cubic", "cubic"), ("host", host)):
+        air = AirNetwork(["m", "w1"], ap=0, sharing=True, congestion_control=wanted).create()
+        try:
+            for station in air.stations:
+                shown = netns.run(["ip", "netns", "exec", station.netns, "sysctl", "-n",
+                                   "net.ipv4.tcp_congestion_control"], "test")
+                assert shown.strip() == expected, (wanted, station.vehicle_id)
+        finally:
+            air.close()
+    assert Path("/proc/sys/net/ipv4/tcp_congestion_control").read_text().strip() == host
+
 
 def test_a_dead_runs_namespaces_are_found_and_removed():
     if _kernel_network_missing():

@@ -95,6 +95,8 @@ def test_the_shipped_scenarios_load_with_the_research_geometry():
     ("name = '../escape'\n" + TWO, "name (it names the run directory): expected an id"),
     (TWO.replace("duration_s = 10", "duration_s = inf"), "duration_s: expected a finite number"),
     (TWO + "[network]\nair = 'ether'\n", "air must be one of htb, medium, got 'ether'"),
+    (TWO + "[network]\ncongestion_control = 'vegas'\n",
+     "congestion_control must be one of cubic, reno, bbr, host, got 'vegas'"),
     (TWO + "[network]\nair = 'medium'\nqueue_packets = 0\n", "network.queue_packets: expected an integer within "
                                                                "[1, 100000], got 0"),
     (TWO + "[compute]\ntask = 'linreg'\ndevice = 'no-such-device.toml'\n",
