@@ -134,6 +134,8 @@ class AirNetwork:
 
     def create(self) -> AirNetwork:
         """Build everything, or remove what was built and raise NetworkError."""
+        if self.congestion_control != "host" and not allow_congestion_control(self.congestion_control):
+            self.congestion_control = "host"
         try:
             self._build()
         except Exception:
@@ -148,8 +150,6 @@ class AirNetwork:
                   "".join(f"netns add {name}\n" for name in self.namespaces))
 
     def _build(self) -> None:
-        if self.congestion_control != "host" and not allow_congestion_control(self.congestion_control):
-            self.congestion_control = "host"
         self._add_namespaces()
         links = ["link add air type bridge", "link set air up", "link set lo up"]
         moves = []

@@ -23,6 +23,7 @@ from sitl.experiment.runner import Outcome, run_scenario
 from sitl.experiment.scenario import load_scenario
 from sitl.network import netns
 from sitl.network.air import AirNetwork
+from sitl.network.medium_air import MediumAir
 from sitl.network.shaper import Shaper
 from tests.conftest import SHARED_DATA, allocate_base_port
 from tests.integration.console import Console, as_at_a_terminal
@@ -150,20 +151,31 @@ def test_a_station_interface_without_a_carrier_is_set_up_again_before_use():
 
 
 @needs_kernel
-def test_the_companions_tcp_is_a_jetsons_cubic_and_the_hosts_default_stays():
-    """Each station's namespace defaults to CUBIC (a Jetson's, Linux's default), whatever this host uses, and the
-    host's own default is not changed; "host" leaves a namespace at the host's."""
-    host = Path("/proc/sys/net/ipv4/tcp_congestion_control").read_text().strip()
-    for wanted, expected in (("cubic", "cubic"), ("host", host)):
-        air = AirNetwork(["m", "w1"], ap=0, sharing=True, congestion_control=wanted).create()
-        try:
-            for station in air.stations:
-                shown = netns.run(["ip", "netns", "exec", station.netns, "sysctl", "-n",
-                                   "net.ipv4.tcp_congestion_control"], "test")
-                assert shown.strip() == expected, (wanted, station.vehicle_id)
-        finally:
-            air.close()
-    assert Path("/proc/sys/net/ipv4/tcp_congestion_control").read_text().strip() == host
+@pytest.mark.exclusive  # takes CUBIC off the host's allowed list for a moment: no other run may be starting
+@pytest.mark.parametrize("air_class", [AirNetwork, MediumAir])
+def test_the_companions_tcp_is_a_jetsons_cubic_and_the_hosts_default_stays(air_class):
+    """On either air, each station's namespace defaults to the congestion control named (CUBIC, a Jetson's),
+    whatever this host uses, even when the host's allowed list lacks it (as on a fresh machine whose default is
+    another); the host's own default is not changed; "host" leaves a namespace at the host's. The allowed list is
+    put back as it was."""
+    proc = Path("/proc/sys/net/ipv4")
+    host, allowed = (proc / "tcp_congestion_control").read_text().strip(), (proc / "tcp_allowed_congestion_control")
+    before = allowed.read_text().strip()
+    if host != "cubic":
+        allowed.write_text(" ".join(name for name in before.split() if name != "cubic") + "\n")
+    try:
+        for wanted, expected in (("cubic", "cubic"), ("host", host)):
+            air = air_class(["m", "w1"], ap=0, sharing=True, congestion_control=wanted).create()
+            try:
+                for station in air.stations:
+                    shown = netns.run(["ip", "netns", "exec", station.netns, "sysctl", "-n",
+                                       "net.ipv4.tcp_congestion_control"], "test")
+                    assert shown.strip() == expected, (wanted, station.vehicle_id)
+            finally:
+                air.close()
+        assert (proc / "tcp_congestion_control").read_text().strip() == host
+    finally:
+        allowed.write_text(before + "\n")
 
 
 def test_a_dead_runs_namespaces_are_found_and_removed():
