@@ -135,14 +135,9 @@ def run_kept_job(feed: str, hostfile: str, program: list[str], timeout_s: float 
         except FileNotFoundError:
             raise OperationFailed(f"{command[0]} not found: install MPI (nac-onboard doctor)") from None
 
-    def live() -> dict[str, str] | None:
-        try:
-            return fleet_mpi.heard_workers(fetch_state(feed, 0.5))
-        except StateFeedError:
-            return None
-
     os.makedirs(out, exist_ok=True)
-    supervisor = JobSupervisor(fleet, start, live, Path(out), task, from_env().now_s)
+    supervisor = JobSupervisor(fleet, start, lambda: fleet_mpi.workers_heard_at(feed, 0.5), Path(out), task,
+                               from_env().now_s)
     deadline = None if timeout_s is None else time.monotonic() + timeout_s
     supervisor.begin()
     try:

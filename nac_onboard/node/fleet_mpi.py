@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass
 
+from nac_onboard.agent.state_feed import StateFeedError, fetch_state
 from nac_onboard.errors import BadInput, OperationFailed
 from nac_onboard.node.mpi_build import UNKNOWN_PREFIX
 
@@ -50,6 +51,15 @@ def heard_workers(state: dict) -> dict[str, str]:
     """The workers the agent hears now (not lost): id -> the boot of its agent (another boot: it restarted)."""
     return {peer_id: str(peer.get("boot", "")) for peer_id, peer in (state.get("peers") or {}).items()
             if isinstance(peer, dict) and not peer.get("lost") and peer.get("role") == "worker"}
+
+
+def workers_heard_at(feed: str, timeout_s: float, sock=None) -> dict[str, str] | None:
+    """heard_workers from the agent's state feed at `feed` (host:port), None if it does not answer: what the job's
+    supervisor asks (nac_onboard.compute.supervisor)."""
+    try:
+        return heard_workers(fetch_state(feed, timeout_s, sock=sock))
+    except StateFeedError:
+        return None
 
 
 def check_builds(nodes: list[Node]) -> str:

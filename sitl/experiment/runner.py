@@ -29,8 +29,13 @@ from pathlib import Path
 
 from missions.model import MavCmd
 from nac_onboard import clock
-from nac_onboard.agent.state_feed import StateFeedError, fetch_state
-from nac_onboard.child_process import AgentProcess, ChildStartError, die_with_parent_preexec, process_running
+from nac_onboard.child_process import (
+    AgentProcess,
+    ChildStartError,
+    die_with_parent_preexec,
+    proc_stat,
+    process_running,
+)
 from nac_onboard.compute.device import load_device_profile
 from nac_onboard.compute.options import options_from_argv
 from nac_onboard.compute.supervisor import JobSupervisor
@@ -40,7 +45,7 @@ from nac_onboard.link.iperf3 import iperf3_server
 from nac_onboard.mavlink.client import CommandError, LinkError, VehicleClient
 from nac_onboard.mavlink.dialect import M
 from nac_onboard.mavlink.mission_transfer import MissionError
-from nac_onboard.node.fleet_mpi import heard_workers
+from nac_onboard.node.fleet_mpi import workers_heard_at
 from nac_onboard.radio.files import save_channel, save_replay
 from nac_onboard.radio.replay import ReplayError, ReplayLinks
 from nac_onboard.records import Kind, kinds
@@ -461,11 +466,7 @@ class Experiment:
 
     def _workers_heard(self) -> dict[str, str] | None:
         """The workers the master's agent hears now (its state feed), as the fleet's supervisor asks it."""
-        try:
-            state = fetch_state(f"127.0.0.1:{self.ports.feed()}", timeout_s=0.2, sock=self.feed_socket)
-        except StateFeedError:
-            return None
-        return heard_workers(state)
+        return workers_heard_at(f"127.0.0.1:{self.ports.feed()}", 0.2, self.feed_socket)
 
     def _watch(self) -> None:
         pending = sorted(self.scenario.faults, key=lambda f: f.at_s)
@@ -552,7 +553,6 @@ class Experiment:
     def _companion(self, index: int, up: bool) -> None:
         """lose_companion / reboot_companion: the vehicle's companion computer gone, or back."""
         if not up:
-            self.companions_down.add(index)
             self._lose_companion(index)
             return
         self.companions_down.discard(index)
@@ -577,6 +577,7 @@ class Experiment:
         and the rank's proxy are frozen (SIGSTOP) until it reboots or the run ends, and then killed (its stale
         connections reset then, as a rebooted computer's do). Returns what stopped."""
         vehicle = self.scenario.vehicles[index]
+        self.companions_down.add(index)
         stopped = []
         if self.air is not None:
             self.air.silence(index)
@@ -615,7 +616,6 @@ class Experiment:
 
     def _companion_off(self, index: int, now_s: float) -> None:
         vehicle = self.scenario.vehicles[index]
-        self.companions_down.add(index)
         stopped = self._lose_companion(index)
         self._note_fault(vehicle.id, FaultKind.LOSE_COMPANION, True)
         self.energy_log.write(kinds.BATTERY_EMPTY, t_sim_s=round(now_s, 3), vehicle=vehicle.id, pack="companion",
@@ -755,7 +755,7 @@ class Experiment:
 def _parent_if(pid: int, name: str) -> int | None:
     """pid's parent process, if its name is `name` (a rank's hydra proxy)."""
     try:
-        ppid = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+        ppid = int(proc_stat(pid)[1])
         return ppid if Path(f"/proc/{ppid}/comm").read_text().strip() == name else None
     except (OSError, ValueError, IndexError):
         return None
