@@ -1,5 +1,6 @@
 """`nac-onboard compute` under a real `mpiexec` (the mpich wheel), ranks pinned to cores as DESIGN.md 7 asks."""
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -14,6 +15,7 @@ import numpy as np
 import pytest
 
 from nac_onboard import clock
+from nac_onboard.child_process import process_running
 from nac_onboard.compute import forestfires, kernels, launch
 from nac_onboard.compute.tasks.matmul import matmul_inputs
 from nac_onboard.flight_log import read_jsonl
@@ -201,7 +203,9 @@ def test_matmul_reassigns_an_absent_workers_rows(tmp_path):
 
 @contextmanager
 def job(*args: str, ranks: int = 3):
-    """The job (3 ranks unless told) in its own session, killed with all its ranks if the test leaves it running."""
+    """The job (3 ranks unless told) in its own session, killed with all its ranks if the test leaves it running.
+    Its master is in a session of hydra's: stopped by its proxy's end (SIGTERM), it finishes its iteration and
+    writes its last checkpoint and summary, and the fixture waits for that before the test reads the files."""
     proc = subprocess.Popen(mpi_command(ranks, *args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV,
                             start_new_session=True)
     try:
@@ -214,6 +218,29 @@ def job(*args: str, ranks: int = 3):
             except subprocess.TimeoutExpired:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait()
+        if "--out" in args:
+            _wait_for_masters(Path(args[args.index("--out") + 1]))
+
+
+def _wait_for_masters(out: Path, timeout_s: float = 30.0) -> None:
+    """Every master this job started (its run_started pids) ended, killed after timeout_s."""
+    path = out / kinds.COMPUTE_LOG.name
+    pids = [r["pid"] for r in read_jsonl(path).of_kind(kinds.RUN_STARTED)] if path.exists() else []
+    deadline = time.monotonic() + timeout_s
+    for pid in pids:
+        while _a_master(pid) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if _a_master(pid):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+
+
+def _a_master(pid: int) -> bool:
+    """pid runs and is a compute rank still (not a process that took an ended master's pid)."""
+    try:
+        return process_running(pid) and b"nac_onboard.compute" in Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return False
 
 
 def wait_until(condition, proc, timeout_s: float = 30.0) -> None:
