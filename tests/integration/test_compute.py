@@ -453,7 +453,9 @@ def test_a_device_profile_gives_the_same_simulated_iterations_at_1x_and_4x(tmp_p
     10 % on the median of 8, at 1x and at 4x alike, and no segment came out late. The bound holds on a loaded
     machine: the stretch counts each rank's own CPU time, which other processes do not change, and what is not
     stretched, MPI's messages (about 2 ms of wall time an iteration, 8 ms simulated at 4x), is under 5 % of it.
-    Two runs are not compared directly: CPU time itself varies from iteration to iteration by some 20 %."""
+    Two runs are not compared directly: CPU time itself varies from iteration to iteration by some 20 %, and under
+    a loaded CI run one segment took 3.6 ms of CPU instead of 0.3 (3.6 s on the device), so a worker can outlast the
+    5 s timeout: such an iteration's duration is the timeout's, and it is left out of the median."""
     device = tmp_path / "slow.toml"
     device.write_text('[device]\nname = "slow"\nslowdown = 1000\nsource = "a test figure"\n')
     for speedup in (1.0, 4.0):
@@ -470,9 +472,12 @@ def test_a_device_profile_gives_the_same_simulated_iterations_at_1x_and_4x(tmp_p
         assert summary["late_cpu_segments"] == 0, summary
         ratios = []
         for r in records(out, "iteration"):
+            if not all(w["present"] for w in per_worker(r)):
+                continue  # its duration is the timeout's (a worker's stretched segment outlasted it), not the work's
             device_s = r["master_compute_s"] + max(w["compute_s"] for w in per_worker(r))
             assert device_s > 0.1, "the work took the device's time"
             ratios.append(r["duration_sim_s"] / device_s)
+        assert len(ratios) >= 6, "iterations with both workers: the median is of at least 6"
         assert abs(float(np.median(ratios)) - 1.0) < 0.10, (speedup, sorted(ratios))
 
 
