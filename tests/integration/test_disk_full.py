@@ -3,6 +3,7 @@ was lost (it once exited on ENOSPC, and systemd restarted it into the same failu
 job's checkpoint: that checkpoint is skipped, training goes on."""
 
 import os
+import signal
 import subprocess
 import time
 
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 
 from nac_onboard.agent.state_feed import fetch_state
+from nac_onboard.child_process import process_running
 from nac_onboard.compute import forestfires
 from nac_onboard.flight_log import RETRY_S, read_jsonl
 from tests.conftest import free_port
@@ -108,6 +110,11 @@ def test_a_checkpoint_into_a_full_disk_is_skipped_and_training_goes_on(small_dis
         (small_disk / "filler").unlink()
         wait_job(lambda: int(np.load(results)["iteration"]) > failed[-1]["iteration"], proc)
         assert proc.poll() is None
+        # stopped as its supervisor stops it (SIGTERM: the last checkpoint written whole), not killed mid-write by
+        # its proxy, which would leave a partial file whatever the disk (it checkpoints every 0.1 s)
+        master, = read_jsonl(tmp_path / "compute.jsonl").of_kind("run_started")
+        os.kill(master["pid"], signal.SIGTERM)
+        wait_until(lambda: not process_running(master["pid"]), 30.0, "the master stops")
     checkpoint = np.load(results)
     assert checkpoint["weights"].shape == (len(forestfires.FEATURES),) and np.isfinite(checkpoint["weights"]).all()
     assert not partial.exists()
