@@ -19,27 +19,34 @@ from tests.integration.test_compute import iterations_logged, job, run_mpi, wait
 # decode does not wait for anyway. The exit-2 test does not: starved, hydra's mpiexec now and then dies of SIGPIPE
 # when every rank ends at once, instead of passing their 2 on (1 of 6 runs beside a busy core, measured).
 beside_the_exclusive_tests = pytest.mark.niced
-# how long a 1.5-2 s job may take to end there: the idle class gets no CPU while an exclusive test keeps both cores
+# how long each step of a job may take there: the idle class gets no CPU while an exclusive test keeps both cores
 # busy (a clean-clone run saw a killed-worker BPCC job end, exit 255 from hydra's teardown, just after 60 s)
 IDLE_CLASS_WAIT_S = 180
 
 
-def _kill_worker_midway(out: Path, proc, rank: int) -> int:
-    """SIGKILL worker `rank` once 20 iterations are logged; the iterations logged by then."""
-    wait_until(lambda: iterations_logged(out) >= 20, proc)
+def _kill_worker_midway_then_stop(out: Path, proc, rank: int) -> int:
+    """SIGKILL worker `rank` once 20 iterations are logged, then, 12 iterations later, stop the master as its
+    supervisor does (SIGTERM: it ends its iteration and writes its summary); the iterations logged at the kill.
+    The job's duration is only an upper bound: a job that ended on its own clock could end, starved in the idle
+    class, before the test had killed anyone (a clean-clone run found the worker already gone)."""
+    wait_until(lambda: iterations_logged(out) >= 20, proc, IDLE_CLASS_WAIT_S)
     worker = read_jsonl(out / f"rank-{rank}.jsonl").of_kind("worker_started")[0]
     os.kill(worker["pid"], signal.SIGKILL)
-    return iterations_logged(out)
+    killed_at = iterations_logged(out)
+    wait_until(lambda: iterations_logged(out) > killed_at + 12, proc, IDLE_CLASS_WAIT_S)
+    master, = read_jsonl(out / "compute.jsonl").of_kind("run_started")
+    os.kill(master["pid"], signal.SIGTERM)
+    proc.wait(timeout=IDLE_CLASS_WAIT_S)
+    return killed_at
 
 
 def _coded_matmul_with_a_worker_killed(tmp_path, task: str, rank: int):
-    """matmul (A 12 x 50, B 50 x 2, seed 5) by `task` on 3 workers for 1.5 s, worker `rank` killed midway: its
+    """matmul (A 12 x 50, B 50 x 2, seed 5) by `task` on 3 workers, worker `rank` killed midway: its
     records, its summary and the iterations logged at the kill; every iteration complete, some 10 after the kill."""
-    with job("--task", task, "--m", "12", "--n", "50", "--l", "2", "--seed", "5", "--duration-s", "1.5",
+    with job("--task", task, "--m", "12", "--n", "50", "--l", "2", "--seed", "5", "--duration-s", "600",
              "--timeout-s", "10", "--save-results", "--checkpoint-s", "0.5", "--out", str(tmp_path),
              ranks=4) as proc:
-        killed_at = _kill_worker_midway(tmp_path, proc, rank)
-        proc.wait(timeout=IDLE_CLASS_WAIT_S)
+        killed_at = _kill_worker_midway_then_stop(tmp_path, proc, rank)
     read = read_jsonl(tmp_path / "compute.jsonl")
     summary = read.of_kind("run_summary")
     assert summary, proc.stderr.read().decode()[-2000:]
@@ -62,10 +69,9 @@ def test_mds_matmul_decodes_a_times_b_every_iteration_with_a_worker_killed(tmp_p
 def test_gradient_coded_training_with_a_worker_killed_follows_uncoded_training_with_everyone(tmp_path):
     """Three workers, s = 1: after worker 2 is killed the master still recovers the full gradient every
     iteration, so the cost curve and the weights are single-process gradient descent's over all the rows."""
-    with job("--task", "linreg_gc", "--code-s", "1", "--duration-s", "2", "--timeout-s", "10",
+    with job("--task", "linreg_gc", "--code-s", "1", "--duration-s", "600", "--timeout-s", "10",
              "--checkpoint-s", "0.5", "--out", str(tmp_path), ranks=4) as proc:
-        killed_at = _kill_worker_midway(tmp_path, proc, 2)
-        proc.wait(timeout=IDLE_CLASS_WAIT_S)
+        killed_at = _kill_worker_midway_then_stop(tmp_path, proc, 2)
     read = read_jsonl(tmp_path / "compute.jsonl")
     summary = read.of_kind("run_summary")
     assert summary, proc.stderr.read().decode()[-2000:]
