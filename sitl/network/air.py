@@ -84,6 +84,12 @@ class CommandStream:
     def close(self) -> None:
         end_fed_process(self.proc)
 
+    def abandon(self) -> None:
+        """Ended without applying what it still holds, its namespace about to be deleted: `nft -i` spends a
+        second of CPU after the end of its input (1.1 s measured, nftables 1.0.6), on every run's teardown."""
+        self.proc.kill()
+        end_fed_process(self.proc)
+
 
 def end_fed_process(proc: subprocess.Popen, timeout_s: float = 5.0) -> None:
     """A process fed on stdin ends at its input's end: close it and wait, then kill what did not end in time."""
@@ -244,7 +250,7 @@ class AirNetwork:
     def close(self) -> None:
         for stream in (self.air_tc, self.ap_tc, self.nft):
             if stream is not None:
-                stream.close()
+                stream.abandon()
         self.air_tc = self.ap_tc = self.nft = None
         for name in reversed(self.created):
             netns.delete_namespace(name)
