@@ -167,7 +167,7 @@ def fly_the_readme_and_files_examples(sh: Shell) -> None:
 def run_and_read_an_experiment(sh: Shell) -> None:
     scenario = write_scenario(sh.folder, duration_s=14.0)  # w1 from 5 m to 33 m: calibrate needs the spread (8 s: not)
     scenario.rename(sh.folder / "my.toml")
-    sh.run("nac-sitl experiment my.toml --speedup 2 --out runs/try1", timeout_s=180)
+    sh.run("nac-sitl experiment my.toml --speedup 4 --out runs/try1", timeout_s=180)
     assert (sh.folder / "runs" / "try1" / "report.md").exists()
     sh.run("nac-ground logs analyze runs/try1")
     for alias in ("static", "moving", "range-sweep-X", "paper-sim-moving-X"):
