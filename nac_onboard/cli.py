@@ -169,12 +169,12 @@ def bench_command(args) -> int:
 
 def cpu_score_command() -> int:
     from nac_onboard.compute import cpu_score
-    from nac_onboard.compute.device import SHIPPED, load_device_profile, shipped_devices
+    from nac_onboard.compute.device import load_device_profile, shipped_devices
 
     score = cpu_score.measure_and_cache()
     print(f"this host: 7-Zip single-thread rating {score:g} MIPS (kept for this CPU)")
     for name in shipped_devices():
-        device = load_device_profile(SHIPPED / f"{name}.toml")
+        device = load_device_profile(name)
         print(f"{name}: {device.cpu_score_mips:g} MIPS: slowdown {device.slowdown:.3g}")
     return 0
 

@@ -81,9 +81,6 @@ class CommandStream:
         except (OSError, ValueError) as err:  # a broken pipe; a closed one (the network is being removed)
             raise netns.NetworkError(f"{self.what}: {err}") from None
 
-    def close(self) -> None:
-        end_fed_process(self.proc)
-
     def abandon(self) -> None:
         """Ended without applying what it still holds, its namespace about to be deleted: `nft -i` spends a
         second of CPU after the end of its input (1.1 s measured, nftables 1.0.6), on every run's teardown."""
