@@ -201,15 +201,26 @@ def _fine_timer_slack() -> None:
         pass
 
 
-DELAY_LINE_NICE = -10  # the air is the clock every station's traffic runs on: on a busy host it takes the CPU
-# before the stations' processes (weight 9,548 against 1,024 at nice 0), as an emulator's core should; an ordinary
-# priority, not a real-time one, so a busy delay line cannot starve the host
+DELAY_LINE_FIFO_PRIORITY = 1  # SCHED_FIFO's lowest: the air is the clock every station's traffic runs on, so
+# it runs the moment a frame is due. At nice -10 it waited on the run queue for 4.6 s of a 41 s run of
+# paper-flight-static at 4x (95 us a wake-up on average) and 14-24 % of its deliveries were late; at nice -20 12 %;
+# at SCHED_FIFO 0.1 s and 2.4-2.8 % (docs/benchmarks.md). It sleeps in select() between frames, and Linux's
+# real-time throttling (sched_rt_runtime_us, 95 % of each second by default) keeps a CPU for the host whatever it
+# does. The last stretch of a wait spun on the clock is bounded by EARLY_S.
+DELAY_LINE_NICE = -10  # without the right to SCHED_FIFO: before the stations' processes (weight 9,548 against
+# 1,024 at nice 0)
 
 
 def _before_the_stations() -> None:
+    """The delay line's scheduling: SCHED_FIFO, else nice -10, else the stations' own (lateness is counted)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(DELAY_LINE_FIFO_PRIORITY))
+        return
+    except (OSError, AttributeError):
+        pass
     try:
         os.setpriority(os.PRIO_PROCESS, 0, DELAY_LINE_NICE)
-    except OSError:  # without CAP_SYS_NICE the air keeps the stations' priority, and lateness is counted
+    except OSError:
         pass
 
 

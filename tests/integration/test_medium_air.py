@@ -3,6 +3,7 @@ line, every packet carried through the 802.11 medium model. Real namespaces, TUN
 
 import io
 import json
+import os
 import socket
 import statistics
 import subprocess
@@ -111,9 +112,13 @@ def test_a_small_message_waits_behind_a_bulk_flow_in_its_stations_queue():
 
 @needs_kernel
 def test_the_delay_line_and_its_devices_go_with_the_network_and_a_bad_update_is_refused():
+    """The delay line runs at a real-time priority (as root): frames are due on the clock, whatever else runs.
+    Its TUN devices go with it, a malformed link update is refused with the shape expected, and it ends with the
+    network."""
     air = MediumAir(["a", "b", "c"], ap=0, sharing=True).create()
     line = air.line
     try:
+        assert os.sched_getscheduler(line.pid) == os.SCHED_FIFO
         shown = subprocess.run([*air.exec_prefix(2), "ip", "-j", "link", "show", "air0"], capture_output=True,
                                text=True, timeout=10).stdout
         assert "tun" in shown or json.loads(shown)[0]["ifname"] == "air0"
