@@ -34,6 +34,7 @@ MAX_DATAGRAM_BYTES = 1200  # below a typical MTU once IP/UDP headers are added
 # speed-up than this core can step), frames wait up to this long to share datagrams: 200 links at 100 vehicles
 # cost a quarter of the time in send() with a datagram per link every 20 steps.
 BEHIND_FLUSH_S = 0.05
+KEEPING_UP_S = 0.05  # wall: a world this close behind its pacing line is keeping up (a loaded host wakes it late)
 
 
 class SitlError(OperationFailed):
@@ -172,6 +173,7 @@ class Sitl:
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._speedup = config.speedup  # set_speedup changes it while running
+        self._pacing = (time.monotonic(), 0.0, config.speedup)  # the line run() paces by: (wall0, sim0, speedup)
         self._thread: threading.Thread | None = None
         self._selector = selectors.DefaultSelector()
         self._sockets: list[socket.socket] = []
@@ -343,6 +345,16 @@ class Sitl:
     def t_s(self) -> float:
         return self.world.t_s
 
+    def paced_t_s(self) -> float:
+        """Simulated time now, for the run's shared clock: on the line the loop paces the world by while the world
+        keeps up with it, the world's own time when it has fallen behind. The world moves in steps of dt_s (10 ms),
+        so its time read at an arbitrary moment lags the line by up to a step: published that way, every reader's
+        clock jumped by up to 10 simulated milliseconds at each re-read, and a delay line's deliveries with it."""
+        wall0, sim0, speedup = self._pacing
+        on_line = sim0 + (time.monotonic() - wall0) * speedup
+        world_s = self.t_s
+        return on_line if world_s >= on_line - KEEPING_UP_S * speedup - self.config.dt_s else world_s
+
     @property
     def homes(self) -> list[Home]:
         return self.world.homes
@@ -382,10 +394,12 @@ class Sitl:
         dt = self.config.dt_s
         speedup = self._speedup
         wall0, sim0 = time.monotonic(), self.t_s
+        self._pacing = (wall0, sim0, speedup)
         flushed_s = wall0
         while not self._stop.is_set():
             if self._speedup != speedup:  # a new pace from here on
                 speedup, wall0, sim0 = self._speedup, time.monotonic(), self.t_s
+                self._pacing = (wall0, sim0, speedup)
             with self._lock:
                 target = sim0 + (time.monotonic() - wall0) * speedup
                 steps = 0
@@ -401,6 +415,7 @@ class Sitl:
                 if target - self.t_s > 0.5 * speedup:  # fell behind by half a second: slip, don't spiral
                     self.stats["overruns"] += 1
                     wall0, sim0 = time.monotonic(), self.t_s
+                    self._pacing = (wall0, sim0, speedup)
                 now = time.monotonic()
                 for protocol in self.protocols:
                     protocol.poll_transfers(now)

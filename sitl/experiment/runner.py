@@ -347,7 +347,7 @@ class Experiment:
         """The simulator's clock for every process of the run ($NAC_SIM_CLOCK), at its measured pace: with many
         vehicles it can fall behind the speed-up asked for."""
         while not self._clock_stop.wait(CLOCK_PUBLISH_S):
-            sim_s = self.sim.t_s
+            sim_s = self.sim.paced_t_s()
             try:
                 clock.publish(str(self.clock_path), self.pace.add(sim_s), sim_s)
             except OSError as err:

@@ -462,3 +462,24 @@ def test_second_ground_station_is_denied_without_disturbing_the_first(start_sitl
         assert first.upload(items) == M.MAV_MISSION_ACCEPTED
     finally:
         second.close()
+
+
+def test_the_runs_clock_reads_the_pacing_line_while_the_world_keeps_up_and_the_world_when_it_falls_behind(
+        start_sitl):
+    """The clock an experiment publishes for every process (paced_t_s) is read off the line the loop paces the
+    world by, not the world's last 10 ms step: read every millisecond it is almost never a whole step, where the
+    world's time always is. Held back (its lock taken for 0.3 wall seconds, 1.2 simulated at 4x, past the
+    0.21 s the loop is allowed), the world falls behind and the clock is the world's own time, so no process runs
+    ahead of the vehicles. No timing bound: whole steps against anything else."""
+    sim = start_sitl(speedup=4.0)
+    dt_s = sim.config.dt_s
+    readings = []
+    for _ in range(50):
+        readings.append(sim.paced_t_s())
+        time.sleep(0.001)
+    assert readings == sorted(readings)
+    whole_steps = [t for t in readings if abs(t / dt_s - round(t / dt_s)) < 1e-6]
+    assert len(whole_steps) < 10, whole_steps
+    with sim._lock:
+        time.sleep(0.3)
+        assert sim.paced_t_s() == sim.t_s
