@@ -5,8 +5,8 @@ formulas.
 
 Per pair and step (time step dt, the pair's motion since the last step):
   SNR (dB)   = P_t - PL(d, h_a, h_b) + shadowing + fading - noise
-  shadowing  log-normal, correlated over the distance the pair's ends moved (Gudmundson 1991):
-             s' = rho s + sqrt(1 - rho^2) sigma w, rho = exp(-moved / d_corr); a static pair keeps its offset
+  shadowing  log-normal, correlated over the distance the pair's ends moved (Gudmundson 1991): a function of that
+             distance, not of how often the pair is stepped (PathShadowing); a static pair keeps its offset
   fading     Rician power |h|^2, h = sqrt(K/(K+1)) + sqrt(1/(K+1)) g, g complex Gaussian correlated in time by
              Clarke's rho = J0(2 pi f_D dt), f_D = (speed of both ends, at least a hover's) / wavelength
   rate       Shannon (the research's) or an 802.11n MCS: the rate adaptation picks, from an estimate of the SNR
@@ -158,6 +158,72 @@ class Sample:
     fallback_per: np.ndarray | None = None  # its frame error rate
 
 
+SHADOW_GRID_STEPS = 20  # grid points per decorrelation distance: linear interpolation between two points
+# exp(-1/20) correlated keeps 98.8 % of sigma halfway between them (variance (1 + rho) / 2)
+
+
+class PathShadowing:
+    """Gudmundson's shadowing as a function of how far a pair's ends have moved: an AR(1) sequence on a grid of
+    d_corr / SHADOW_GRID_STEPS along that path, s[k+1] = rho s[k] + sqrt(1 - rho^2) sigma w[k+1], interpolated
+    linearly. Each w[k] is a hash of (seed, pair, k), so the offset after a path is the same however the path was
+    stepped. Stepped per update with fresh draws, as it was, a hovering pair's offset was whatever the updates
+    during its climb had drawn, and the updates' timing changes with the host's load and the speed-up: the same
+    static flight saw a 57 or a 32 Mbit/s link (MCS 7 or 4) from run to run."""
+
+    def __init__(self, sigma_db: float, decorrelation_m: float, pairs: int, seed: int):
+        self.sigma_db, self.seed = sigma_db, np.uint64(seed)
+        self.grid_m = decorrelation_m / SHADOW_GRID_STEPS
+        self.rho = math.exp(-1.0 / SHADOW_GRID_STEPS)
+        self.pair = np.arange(pairs, dtype=np.uint64)
+        self.travelled_m = np.zeros(pairs)
+        self.index = np.zeros(pairs, dtype=np.int64)  # the grid point at or before travelled_m
+        self.here = sigma_db * self._w(np.zeros(pairs, dtype=np.int64))
+        self.ahead = self._next(self.here, np.ones(pairs, dtype=np.int64))
+        self.db = self.here.copy()
+
+    def _w(self, k: np.ndarray) -> np.ndarray:
+        """Standard normal draws for grid points k (pairs first; Box-Muller over two splitmix64 hashes)."""
+        pair = self.pair.reshape((-1,) + (1,) * (k.ndim - 1))
+        counter = k.astype(np.uint64) * np.uint64(2)
+        u = [(hashed_u64(self.seed, pair, counter + np.uint64(half)) >> np.uint64(11)).astype(float) * 2.0 ** -53
+             for half in (0, 1)]
+        return np.sqrt(-2.0 * np.log1p(-u[0])) * np.cos(2.0 * math.pi * u[1])
+
+    def _next(self, value: np.ndarray, k: np.ndarray) -> np.ndarray:
+        return self.rho * value + math.sqrt(1 - self.rho ** 2) * self.sigma_db * self._w(k)
+
+    def advance(self, moved_m) -> None:
+        if self.sigma_db <= 0:
+            return
+        self.travelled_m = self.travelled_m + np.maximum(np.asarray(moved_m, float), 0.0)
+        target = np.floor(self.travelled_m / self.grid_m).astype(np.int64)
+        passed = target - self.index
+        if passed.max(initial=0) > 0:
+            rounds = int(passed.max())
+            w = self._w(self.index[:, None] + 2 + np.arange(rounds)[None, :])  # every new point's draw at once
+            keep = math.sqrt(1 - self.rho ** 2) * self.sigma_db
+            for r in range(rounds):  # one grid point a round, for every pair that passed that many
+                behind = passed > r
+                fresh = self.rho * self.ahead + keep * w[:, r]
+                self.here = np.where(behind, self.ahead, self.here)
+                self.ahead = np.where(behind, fresh, self.ahead)
+            self.index = target
+        self.db = self.here + (self.travelled_m / self.grid_m - self.index) * (self.ahead - self.here)
+
+
+def hashed_u64(seed: np.uint64, stream: np.ndarray, counter: np.ndarray) -> np.ndarray:
+    """A counter-based uniform 64-bit value per element (splitmix64's finaliser, twice, over the seed, the stream
+    and the counter, each spread by its own odd constant): the same for the same inputs on every host."""
+    with np.errstate(over="ignore"):
+        x = (seed + np.asarray(stream, dtype=np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+             + np.asarray(counter, dtype=np.uint64) * np.uint64(0xD1B54A32D192ED03))
+        for _ in range(2):
+            x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+            x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+            x = x ^ (x >> np.uint64(31))
+    return x
+
+
 class Radio:
     """The time-varying part of a set of pairs (shadowing, fading, rate adaptation), stepped by the caller.
     model is a nac_onboard.radio.channel.ChannelModel."""
@@ -165,10 +231,14 @@ class Radio:
     def __init__(self, model, pairs: int, seed: int | None = None):
         self.model, self.pairs = model, pairs
         self.rng = np.random.default_rng(model.seed if seed is None else seed)
-        sigma = model.shadowing_sigma_db
-        self.shadow_db = self.rng.normal(0.0, sigma, pairs) if sigma > 0 else np.zeros(pairs)
+        self.shadowing = PathShadowing(model.shadowing_sigma_db, model.shadowing_decorrelation_m, pairs,
+                                       int(self.rng.integers(2 ** 63)))
         self.scatter = complex_normal(self.rng, pairs)
         self.snr_estimate_db: np.ndarray | None = None
+
+    @property
+    def shadow_db(self) -> np.ndarray:
+        return self.shadowing.db
 
     def step(self, dt_s: float, distance_m, height_a_m=None, height_b_m=None, moved_m=None,
              speed_mps=None) -> Sample:
@@ -177,10 +247,7 @@ class Radio:
         distance_m = np.asarray(distance_m, float)
         moved = np.zeros(self.pairs) if moved_m is None else np.asarray(moved_m, float)
         speed = np.zeros(self.pairs) if speed_mps is None else np.asarray(speed_mps, float)
-        if m.shadowing_sigma_db > 0 and dt_s > 0:
-            rho = np.exp(-moved / m.shadowing_decorrelation_m)
-            self.shadow_db = rho * self.shadow_db + np.sqrt(1 - rho ** 2) * self.rng.normal(0, m.shadowing_sigma_db,
-                                                                                             self.pairs)
+        self.shadowing.advance(moved)
         fade_db = np.zeros(self.pairs)
         if m.fading:
             if dt_s > 0:

@@ -80,7 +80,7 @@ def test_gudmundson_shadowing_decorrelates_with_the_distance_moved():
     sigma, d_corr, step_m = 4.0, 10.0, 2.0
     r = air_link.Radio(model(shadowing_sigma_db=sigma, shadowing_decorrelation_m=d_corr), 1, seed=3)
     values = []
-    for _ in range(20_000):
+    for _ in range(8_000):
         r.step(0.1, [10.0], moved_m=[step_m])
         values.append(r.shadow_db[0])
     s = np.array(values)
@@ -129,11 +129,17 @@ def _probe_std_mbps(moving: bool, seconds: int = 400, seed: int = 2) -> tuple[fl
 
 
 def test_a_static_link_varies_a_little_and_a_moving_one_more():
-    static_std, static_d = _probe_std_mbps(moving=False)
-    moving_std, moving_d = _probe_std_mbps(moving=True)
-    assert static_d == pytest.approx(moving_d)
-    assert 0 < static_std < moving_std
-    assert moving_std > 1.5 * static_std
+    """Pooled over four seeded pairs: how much one static link's probes vary depends on where its one shadowing
+    draw puts its SNR against the MCS thresholds (2.0-5.5 Mbit/s over these seeds), while the circling one
+    crosses some 27 decorrelation lengths in its 200 s. Seeded: the same figures on every host."""
+    static, moving = [], []
+    for seed in range(4):
+        static_std, static_d = _probe_std_mbps(moving=False, seconds=200, seed=seed)
+        moving_std, moving_d = _probe_std_mbps(moving=True, seconds=200, seed=seed)
+        assert static_d == pytest.approx(moving_d)
+        static.append(static_std)
+        moving.append(moving_std)
+    assert min(static) > 0 and np.mean(moving) > 1.25 * np.mean(static), (static, moving)
 
 
 def test_sleep_emulation_steps_each_pair_and_charges_a_timeout_for_a_lost_packet():
@@ -216,3 +222,17 @@ def test_two_workers_talk_through_the_access_point_not_over_their_own_distance()
     assert state.frames["phy_bps"][1, 2] == pytest.approx(1 / (1 / up + 1 / down)), "the frame-level air's too"
     ad_hoc = air_state(air_link.AirRadio(PRESETS["wifi-flight"], 3, seed=1), 0.0, positions, ap=None, sharing=False)
     assert ad_hoc.rate_bps[1, 2] == 0.0
+
+
+def test_shadowing_after_a_path_does_not_depend_on_how_often_it_was_stepped():
+    """The same 6 m climb stepped 60 times or 7 times, unevenly, ends at the same offset (it used to be whatever
+    the steps had drawn), and a pair that did not move keeps its first one."""
+    wifi = model(shadowing_sigma_db=4.0, shadowing_decorrelation_m=5.0)
+    fine, coarse = air_link.Radio(wifi, 2, seed=9), air_link.Radio(wifi, 2, seed=9)
+    for _ in range(60):
+        fine.step(0.05, [10.0, 10.0], moved_m=[0.1, 0.0])
+    for step_m in (0.3, 1.7, 0.05, 2.0, 0.95, 0.5, 0.5):
+        coarse.step(0.4, [10.0, 10.0], moved_m=[step_m, 0.0])
+    assert fine.shadow_db == pytest.approx(coarse.shadow_db, abs=1e-9)
+    assert fine.shadow_db[1] == air_link.Radio(wifi, 2, seed=9).shadow_db[1]
+    assert abs(fine.shadow_db[0] - fine.shadow_db[1]) > 1e-3, "the climbing pair's offset moved"
