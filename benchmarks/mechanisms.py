@@ -8,7 +8,9 @@ Variants, each a whole run (simulator, agents, MPI job, probes):
   medium          every frame through the 802.11 medium: one FIFO queue per station, channel access, retries
   medium-probes-host-tcp  the same, with the probes back to back (iperf3-style, continuous) in the stations'
                   queues, the companions' TCP this host's default (BBR here)
-  medium-probes   the same, the companions' TCP a Jetson's (CUBIC, Linux's default: the scenarios' own)
+  medium-probes   the same, the companions' TCP Reno (the flight scenarios' own: it keeps its results at 4x)
+  medium-probes-cubic  the same with a Jetson's TCP instead, CUBIC (Linux's default; its window grows with the
+                  wall clock, so it is measured at 1x only)
   medium-probes-tx2  the same, with every rank's work at a Jetson TX2's CPU time (the shipped profile: this
                   host's single-thread 7-Zip score over the TX2's published one; `nac-onboard cpu-score`)
   medium-probes-device  the same, with every rank's work 100 times this host's CPU time (an illustration of a
@@ -43,9 +45,9 @@ from sitl.network.netns import NetworkUnavailable, check_kernel_network
 import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-VARIANTS = ("htb", "medium", "medium-probes-host-tcp", "medium-probes", "medium-probes-tx2",
-            "medium-probes-device")  # each adds one mechanism to the one before (the last two: two companion CPUs
-# instead of this host's)
+VARIANTS = ("htb", "medium", "medium-probes-host-tcp", "medium-probes", "medium-probes-cubic", "medium-probes-tx2",
+            "medium-probes-device")  # up to medium-probes each adds one mechanism to the one before; the last three
+# each change medium-probes in one way: a Jetson's TCP, or a companion's CPU instead of this host's
 SMOKE = {"duration_s": 4.0, "speedup": 4.0, "variants": ["medium-probes"]}
 ILLUSTRATIVE_SLOWDOWN = 100.0
 ISOLATED_PROBE_S = 0.5  # the probes apart: 0.5 s every 2 s, the flight scenarios' schedule before issue 28
@@ -56,7 +58,8 @@ def variant(name: str, folder: Path, duration_s: float):
     scenario = load_scenario("paper-flight-static")
     scenario = dataclasses.replace(scenario, duration_s=duration_s)
     air = "htb" if name == "htb" else "medium"
-    tcp = "host" if name in ("htb", "medium", "medium-probes-host-tcp") else "cubic"
+    tcp = "host" if name in ("htb", "medium", "medium-probes-host-tcp") else (
+        "cubic" if name.endswith("-cubic") else "reno")
     scenario = dataclasses.replace(scenario, network=dataclasses.replace(scenario.network, air=air,
                                                                          congestion_control=tcp))
     probes = scenario.throughput

@@ -1,7 +1,7 @@
 """`make demo`: the research's flight test in SITL, moving then static, and the comparison of the two; `make
 coded-demo` (`--pair coded`): the same straggler flight with the uncoded and the gradient-coded task (issue 30).
 
-    python -m sitl.experiment.demo [--pair research|coded] [--speedup 1] [--out runs/demo-ID] [--base-port 14550]
+    python -m sitl.experiment.demo [--pair research|coded] [--speedup X] [--out runs/demo-ID] [--base-port 14550]
 
 Each scenario is a full `nac-sitl experiment` (simulator, one agent per vehicle, missions, MPI job, report);
 the comparison's report.md (RUN/report.md) checks the research's findings against the two runs' numbers.
@@ -23,15 +23,15 @@ SCENARIOS = ("paper-flight-moving", "paper-flight-static")
 PAIRS = {"research": SCENARIOS, "coded": ("uncoded-edge", "coded-edge")}  # make demo, make coded-demo
 
 
-def run_demo(out: Path, speedup: float, base_port: int, stream=None,
+def run_demo(out: Path, speedup: float | None, base_port: int, stream=None,
              stop: threading.Event | None = None, pair: str = "research") -> int:
     stream = sys.stdout if stream is None else stream  # the stdout of now, not of import time
     scenarios = [load_scenario(name) for name in PAIRS[pair]]
-    speedup = min([speedup, *(s.max_speedup for s in scenarios)])
     results = []
     for scenario in scenarios:
         print(f"\n=== {scenario.name}: {scenario.description}", file=stream, flush=True)
-        result = run_scenario(scenario, out / scenario.name, speedup, base_port, stream, stop)
+        pace = min(scenario.default_speedup if speedup is None else speedup, scenario.max_speedup)
+        result = run_scenario(scenario, out / scenario.name, pace, base_port, stream, stop)
         results.append(result)
         if result.outcome is Outcome.INTERRUPTED:
             break
@@ -53,7 +53,8 @@ def run_demo(out: Path, speedup: float, base_port: int, stream=None,
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m sitl.experiment.demo", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--speedup", type=float, default=1.0, help="capped by each scenario's max_speedup")
+    parser.add_argument("--speedup", type=float, default=None,
+                        help="every scenario's (default: each its own default_speedup), capped by its max_speedup")
     parser.add_argument("--out", type=Path, default=Path("runs") / f"demo-{time.strftime('%Y%m%dT%H%M%S')}")
     parser.add_argument("--base-port", type=int, default=14550)
     parser.add_argument("--pair", choices=list(PAIRS), default="research",

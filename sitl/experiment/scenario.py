@@ -12,7 +12,7 @@
     [throughput]  period_s = 2.0  duration_s = 0.5  interval_s = 0.1
     [network]  period_s = 0.1  sharing = true   # the kernel network's shaper and the access point's airtime
                air = "htb"  queue_packets = 1000  # or "medium": the 802.11 medium frame by frame (issue 28)
-               congestion_control = "host"        # the companions' TCP: this machine's, or "cubic" (a Jetson's)
+               congestion_control = "host"        # the companions' TCP: this machine's, "cubic" (a Jetson's) or "reno"
     [energy]  companion = "jetson-tx2"  radio = "wifi-router"  companion_mah = 1300   # the companions' side
     [[vehicle]]  id = "master"  role = "master"  mission = "paper-flight-moving/master.plan"  # companion_mah = 500
                  device = "slow.toml"           # this companion's own device profile (a slow one among the rest)
@@ -112,9 +112,9 @@ class NetworkPlan:
     # carrying every frame through the 802.11 medium: queues, channel access, retries; sitl/network/medium_air.py)
     air: str = "htb"
     queue_packets: int = ranged(DEFAULT_QUEUE_PACKETS, 1, 100_000)  # each station's transmit queue ("medium")
-    # the companions' TCP congestion control (kernel network): "host" (this machine's default, e.g. BBR) or one named,
-    # as "cubic", a Jetson's (Linux's default), which the research's flight scenarios set: its window grows on the
-    # wall clock, so a sped-up run's CUBIC is not the 1x run's (docs/radio.md)
+    # the companions' TCP congestion control (kernel network): "host" (this machine's default, e.g. BBR) or one named:
+    # "cubic", a Jetson's (Linux's default), whose window grows on the wall clock, so a sped-up run's CUBIC is not
+    # the 1x run's; "reno", whose window grows per acknowledgement, which the flight scenarios set (docs/radio.md)
     congestion_control: str = "host"
 
 
