@@ -174,6 +174,7 @@ class Sitl:
         self._stop = threading.Event()
         self._speedup = config.speedup  # set_speedup changes it while running
         self._pacing = (time.monotonic(), 0.0, config.speedup)  # the line run() paces by: (wall0, sim0, speedup)
+        self._paced_s = 0.0
         self._thread: threading.Thread | None = None
         self._selector = selectors.DefaultSelector()
         self._sockets: list[socket.socket] = []
@@ -353,7 +354,9 @@ class Sitl:
         wall0, sim0, speedup = self._pacing
         on_line = sim0 + (time.monotonic() - wall0) * speedup
         world_s = self.t_s
-        return on_line if world_s >= on_line - KEEPING_UP_S * speedup - self.config.dt_s else world_s
+        now_s = on_line if world_s >= on_line - KEEPING_UP_S * speedup - self.config.dt_s else world_s
+        self._paced_s = max(self._paced_s, now_s)  # a world that falls behind holds the clock, never takes it back
+        return self._paced_s
 
     @property
     def homes(self) -> list[Home]:

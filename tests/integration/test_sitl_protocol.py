@@ -467,10 +467,11 @@ def test_second_ground_station_is_denied_without_disturbing_the_first(start_sitl
 def test_the_runs_clock_reads_the_pacing_line_while_the_world_keeps_up_and_the_world_when_it_falls_behind(
         start_sitl):
     """The clock an experiment publishes for every process (paced_t_s) is read off the line the loop paces the
-    world by, not the world's last 10 ms step: read every millisecond it is almost never a whole step, where the
-    world's time always is. Held back (its lock taken for 0.3 wall seconds, 1.2 simulated at 4x, past the
-    0.21 s the loop is allowed), the world falls behind and the clock is the world's own time, so no process runs
-    ahead of the vehicles. No timing bound: whole steps against anything else."""
+    world by, not the world's last 10 ms step: read every millisecond it is seldom a whole step (only while a
+    loaded host holds the world back), where the world's time always is. Held back (its lock taken for 0.3 wall
+    seconds, 1.2 simulated at 4x, past the 0.21 s the loop is allowed), the world falls behind and the clock holds
+    at the world's own time, so no process runs ahead of the vehicles. It never goes back. No timing bound: whole
+    steps against anything else."""
     sim = start_sitl(speedup=4.0)
     dt_s = sim.config.dt_s
     readings = []
@@ -479,7 +480,9 @@ def test_the_runs_clock_reads_the_pacing_line_while_the_world_keeps_up_and_the_w
         time.sleep(0.001)
     assert readings == sorted(readings)
     whole_steps = [t for t in readings if abs(t / dt_s - round(t / dt_s)) < 1e-6]
-    assert len(whole_steps) < 10, whole_steps
+    assert len(whole_steps) < 25, whole_steps
     with sim._lock:
         time.sleep(0.3)
-        assert sim.paced_t_s() == sim.t_s
+        held = sim.paced_t_s()
+        assert held == max(sim.t_s, readings[-1])
+    assert sim.paced_t_s() >= held
