@@ -396,13 +396,11 @@ class Sitl:
         """Run until stop() (blocks the calling thread)."""
         dt = self.config.dt_s
         speedup = self._speedup
-        wall0, sim0 = time.monotonic(), self.t_s
-        self._pacing = (wall0, sim0, speedup)
+        wall0, sim0, speedup = self._pace_from_now(speedup)
         flushed_s = wall0
         while not self._stop.is_set():
             if self._speedup != speedup:  # a new pace from here on
-                speedup, wall0, sim0 = self._speedup, time.monotonic(), self.t_s
-                self._pacing = (wall0, sim0, speedup)
+                wall0, sim0, speedup = self._pace_from_now(self._speedup)
             with self._lock:
                 target = sim0 + (time.monotonic() - wall0) * speedup
                 steps = 0
@@ -417,8 +415,7 @@ class Sitl:
                     self.signing.save()  # at most once a second
                 if target - self.t_s > 0.5 * speedup:  # fell behind by half a second: slip, don't spiral
                     self.stats["overruns"] += 1
-                    wall0, sim0 = time.monotonic(), self.t_s
-                    self._pacing = (wall0, sim0, speedup)
+                    wall0, sim0, speedup = self._pace_from_now(speedup)
                 now = time.monotonic()
                 for protocol in self.protocols:
                     protocol.poll_transfers(now)
@@ -431,6 +428,11 @@ class Sitl:
                         self.stats["io_errors"] += 1
                         log.exception("error reading %s", key.data[0])
                     self.flush()
+
+    def _pace_from_now(self, speedup: float) -> tuple[float, float, float]:
+        """A new pacing line from the world's time now (run()'s, and what paced_t_s reads)."""
+        self._pacing = (time.monotonic(), self.t_s, speedup)
+        return self._pacing
 
     def set_speedup(self, speedup: float) -> None:
         """Run at `speedup` from now on: the experiment runner lands the vehicles this way once nothing is recorded.

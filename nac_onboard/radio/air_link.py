@@ -177,8 +177,9 @@ class PathShadowing:
         self.pair = np.arange(pairs, dtype=np.uint64)
         self.travelled_m = np.zeros(pairs)
         self.index = np.zeros(pairs, dtype=np.int64)  # the grid point at or before travelled_m
+        self.keep = math.sqrt(1 - self.rho ** 2) * sigma_db  # the innovation's scale
         self.here = sigma_db * self._w(np.zeros(pairs, dtype=np.int64))
-        self.ahead = self._next(self.here, np.ones(pairs, dtype=np.int64))
+        self.ahead = self.rho * self.here + self.keep * self._w(np.ones(pairs, dtype=np.int64))
         self.db = self.here.copy()
 
     def _w(self, k: np.ndarray) -> np.ndarray:
@@ -189,9 +190,6 @@ class PathShadowing:
              for half in (0, 1)]
         return np.sqrt(-2.0 * np.log1p(-u[0])) * np.cos(2.0 * math.pi * u[1])
 
-    def _next(self, value: np.ndarray, k: np.ndarray) -> np.ndarray:
-        return self.rho * value + math.sqrt(1 - self.rho ** 2) * self.sigma_db * self._w(k)
-
     def advance(self, moved_m) -> None:
         if self.sigma_db <= 0:
             return
@@ -201,10 +199,9 @@ class PathShadowing:
         if passed.max(initial=0) > 0:
             rounds = int(passed.max())
             w = self._w(self.index[:, None] + 2 + np.arange(rounds)[None, :])  # every new point's draw at once
-            keep = math.sqrt(1 - self.rho ** 2) * self.sigma_db
             for r in range(rounds):  # one grid point a round, for every pair that passed that many
                 behind = passed > r
-                fresh = self.rho * self.ahead + keep * w[:, r]
+                fresh = self.rho * self.ahead + self.keep * w[:, r]
                 self.here = np.where(behind, self.ahead, self.here)
                 self.ahead = np.where(behind, fresh, self.ahead)
             self.index = target
