@@ -102,6 +102,7 @@ def _probes_line(probes: dict | None, network: dict | None) -> str:
     period_s, duration_s = probes.get("period_s", 0), probes.get("duration_s", 0)
     schedule = "back to back (continuous, as iperf3's tests)" if duration_s >= period_s else \
         f"{duration_s:g} s every {period_s:g} s ({100 * duration_s / period_s:.0f} % of the time)"
+    schedule += ", every worker at once (a client per link)" if probes.get("concurrent") else ", one worker at a time"
     tool = "iperf3" if probes.get("tool") == "iperf3" else "nac-onboard's probe"
     network = network or {}
     if network.get("mode") != "kernel":

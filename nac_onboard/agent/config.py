@@ -98,6 +98,9 @@ class ThroughputSection:
     port: int = 5201
     probe: bool = False  # the master probes; workers only serve
     period_s: float = 10.0  # one round of probes (every target once) starts every period_s
+    # true: one schedule per target, all at once (one iperf3 client per link: a probe that stalls holds up no other
+    # link's, and each link is measured over the same seconds); false: the targets in turn, round by round
+    concurrent: bool = False
     duration_s: float = 1.0
     bytes: int = 0  # > 0: send this many bytes instead of for duration_s
     interval_s: float = 0.5

@@ -1,5 +1,10 @@
 """The master's probe schedule: every period, one throughput probe to each worker, logged with positions.
 
+The workers are probed in turn (a round starts every period_s), or, with `concurrent`, each on a schedule of its
+own at the same time as the others, as one iperf3 client per link would: a probe to a worker out of range that
+waits out its timeouts then holds up no other worker's, and every link carries its probe traffic in the same
+seconds.
+
 A probe occupies a path for duration_s out of every period_s (the duty cycle), and rate_bps can cap it further,
 so the compute traffic sharing the Wi-Fi is not starved. Each record is the iperf3-shaped result of
 `throughput.probe` plus who probed whom, both positions at the start and end of the probe and their distances.
@@ -50,6 +55,7 @@ class ProbeScheduler:
         self.targets, self.snapshot = targets, snapshot  # [(id, host, port)] to probe; where everyone is now
         self.out, self.stop_event = out, stop
         self.rounds = 0
+        self._listed: set[str] = set()  # concurrent: the targets of the last round (repr), each with a schedule
         self.latest: dict[str, tuple[float, float]] = {}  # peer -> (monotonic end, bits/s; 0: failed)
         self.emulation = emulation  # SITL: pace each probe at the channel model's rate for the pair's distance
         self.clock = clock or Clock()
@@ -68,8 +74,10 @@ class ProbeScheduler:
 
     def _run(self) -> None:
         """Rounds until stopped. No probe, target list or answer can end the schedule: an exception from one
-        probe is logged as a probe_failed record and the round goes on to the next target."""
+        probe is logged as a probe_failed record and the round goes on to the next target. Concurrent: each
+        round starts a schedule for every target that has none, and ends those of targets no longer listed."""
         next_round = time.monotonic()
+        schedules: dict[str, threading.Thread] = {}
         while not self.stop_event.wait(max(next_round - time.monotonic(), 0.0)):
             next_round += self.clock.wall_s(self.settings.period_s)
             try:
@@ -77,12 +85,33 @@ class ProbeScheduler:
             except Exception:
                 log.exception("throughput probes: the target list failed; trying again next round")
                 targets = []
+            if self.settings.concurrent:
+                self._listed = {repr(target) for target in targets}
+                for target in targets:
+                    key = repr(target)
+                    if key not in schedules or not schedules[key].is_alive():
+                        schedules[key] = threading.Thread(target=self._run_one, args=(target, key), daemon=True,
+                                                          name=f"throughput-probes {key}"[:60])
+                        schedules[key].start()
+                targets = []
             for target in targets:
                 if self.stop_event.is_set():
                     return
                 self._probe_guarded(target)
             self.rounds += 1
             next_round = max(next_round, time.monotonic())
+        # each schedule ends at its next wait; a probe under way ends by its own deadlines (connect 3 s, length,
+        # the server's grace 5 s, the answer's margin 3 s)
+        deadline = time.monotonic() + self.clock.wall_s(self.settings.duration_s) + 12.0
+        for schedule in schedules.values():
+            schedule.join(max(deadline - time.monotonic(), 0.0))
+
+    def _run_one(self, target, key: str) -> None:
+        """One target's probes, one every period_s, until stopped or no longer listed."""
+        next_probe = time.monotonic()
+        while key in self._listed and not self.stop_event.wait(max(next_probe - time.monotonic(), 0.0)):
+            next_probe = max(next_probe + self.clock.wall_s(self.settings.period_s), time.monotonic())
+            self._probe_guarded(target)
 
     def _probe_guarded(self, target) -> None:
         try:

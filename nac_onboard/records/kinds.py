@@ -372,7 +372,8 @@ EXPERIMENT = Kind("experiment", EXPERIMENT_LOG, "the experiment's settings, at i
     req("duration_s", "number", "s", "simulated duration"),
     req("network", "object", "", "mode (kernel or sleep), why, sharing, period_s"),
     req("radio", "object", "", "name, describe, sources"), req("links", "string", "", "model or replay:FILE"),
-    opt("probes", "object", "", "the scenario's [throughput]: period_s, duration_s, interval_s, tool (null: none)"),
+    opt("probes", "object", "",
+        "the scenario's [throughput]: period_s, duration_s, interval_s, tool, concurrent (null: none)"),
     req("vehicles", "list", "", "each {id, role}"),
     req("missions", "object", "", "vehicle -> [[lat_deg, lon_deg], ...] of its mission"),
 ))

@@ -62,7 +62,7 @@ def agent_config(scenario: Scenario, index: int, run_dir: Path, ports: Ports,
     if master and scenario.throughput:
         p = scenario.throughput
         throughput.update(probe=True, period_s=p.period_s, duration_s=p.duration_s, interval_s=p.interval_s,
-                          tool=p.tool,
+                          tool=p.tool, concurrent=p.concurrent,
                           emulate_channel="" if addresses else str(run_channel_path(run_dir)),
                           targets=[f"{scenario.vehicles[k].id}={air[k]}:{ports.throughput(k)}" for k in others
                                    if scenario.vehicles[k].role == "worker"])

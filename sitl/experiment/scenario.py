@@ -96,6 +96,7 @@ class ProbePlan:
     duration_s: float = ranged(0.5, 0.0, 3600.0, low_open=True, unit="s")
     interval_s: float = ranged(0.1, 0.05, 3600.0, unit="s")  # agents refuse finer intervals
     tool: str = "nac"  # or "iperf3": the real iperf3 between the namespaces (kernel network only)
+    concurrent: bool = False  # each worker probed on its own schedule, all at once (one client per link); else in turn
 
 
 AIRS = ("htb", "medium")

@@ -74,8 +74,9 @@ def shortened(name: str, folder: Path, duration_s: float, channel: str = "", max
     text = re.sub(r"^\[network\]\nair = .*\n(congestion_control = .*\n)?", "", text, count=1, flags=re.M)
     text = re.sub(r"^(\[throughput\]\nperiod_s = .*\n)duration_s = .*$", r"\g<1>duration_s = 0.5", text, count=1,
                   flags=re.M)
-    assert "air =" not in text and "congestion_control" not in text and "duration_s = 0.5" in text, \
-        "the htb air, probes apart, this host's TCP"
+    text = re.sub(r"^concurrent = .*\n", "", text, count=1, flags=re.M)
+    assert "air =" not in text and "congestion_control" not in text and "duration_s = 0.5" in text \
+        and "\nconcurrent =" not in text, "the htb air, probes apart and one worker at a time, this host's TCP"
     text = re.sub(r"^duration_s = .*$", f"duration_s = {duration_s}", text, count=1, flags=re.M)
     if probe_period_s is not None:
         text = re.sub(r"^(\[throughput\]\n)period_s = .*$", rf"\g<1>period_s = {probe_period_s}", text, count=1,

@@ -457,3 +457,49 @@ def test_the_probe_schedule_goes_on_after_a_probe_raises_or_a_server_answers_wro
     assert "port must be" in first_two[0]["error"] and first_two[0]["port"] == 70000
     assert first_two[1]["error_kind"] == "server" and "sum_received" in first_two[1]["error"]
     assert first_two[2]["end"]["sum_received"]["bytes"] > 0 and "error" not in first_two[2]
+
+
+def test_concurrent_probes_go_on_to_the_other_workers_while_one_probe_stalls(tmp_path, hostile):
+    """In turn, a probe to a worker whose path stalls holds every other worker's probe for its length + the
+    server's grace + the answer's margin (8 s here): no probe traffic at all in those seconds. With
+    `concurrent`, each worker has its own schedule, so the genuine server is probed again and again while the
+    stalled probe waits out its deadlines (as one iperf3 client per link would)."""
+    genuine = ThroughputServer("127.0.0.1", free_port()).start()
+    stalled = hostile(stall=True)
+    own = OwnState("m", "master", 1, 47.0, 8.0, 500.0, None, None, "", True)
+    settings_ = ThroughputSection(probe=True, period_s=0.2, duration_s=0.1, interval_s=0.05, concurrent=True)
+    stop = threading.Event()
+    targets = [("stalled", "127.0.0.1", stalled.port), ("w", "127.0.0.1", genuine.port)]
+    try:
+        with _WatchedLog(tmp_path / "throughput.jsonl") as out:
+            scheduler = ProbeScheduler(settings_, "m", lambda: targets, lambda: AgentSnapshot(0.0, own), out,
+                                       stop).start()
+            assert out.third_genuine.wait(30.0), "the other worker's probes waited for the stalled one"
+            stalled_ended_by_then = out.stalled_ended
+            stop.set()
+            scheduler.join(20.0)
+            assert not scheduler.alive
+    finally:
+        stop.set()
+        genuine.stop()
+    assert stalled.stalled.is_set() and not stalled_ended_by_then
+    ended = [r for r in read_jsonl(tmp_path / "throughput.jsonl").records if r.get("server") == "stalled"]
+    assert ended and ended[0]["error_kind"] == "link"  # it ended by its deadline, logged as a link failure
+
+
+class _WatchedLog(JsonlLog):
+    """The probe log, telling the test when the genuine server's third good probe is written."""
+
+    def __init__(self, path):
+        super().__init__(path)
+        self.genuine, self.stalled_ended, self.third_genuine = 0, False, threading.Event()
+
+    def write(self, kind, t_s=None, **fields):
+        record = super().write(kind, t_s, **fields)
+        if fields.get("server") == "stalled":
+            self.stalled_ended = True
+        elif fields.get("server") == "w" and "error" not in fields:
+            self.genuine += 1
+            if self.genuine == 3:
+                self.third_genuine.set()
+        return record

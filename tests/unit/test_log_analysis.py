@@ -18,7 +18,7 @@ from ground.logs.analysis import analyze
 from ground.logs.autopilot_logs import dataflash_positions, read_tlog, tlog_positions, ulog_positions
 from ground.logs.calibration import CalibrationError, fit_channel
 from ground.logs.findings import beside_the_research, research_findings
-from ground.logs.report import analyze_run
+from ground.logs.report import _probes_line, analyze_run
 from ground.logs.runlog import read_run
 from nac_onboard.flight_log import TlogWriter
 from nac_onboard.mavlink.dialect import M
@@ -258,6 +258,21 @@ def test_the_runs_beside_the_research_with_ratios():
         "the gap said as a factor, and where the mechanisms are measured"
 
 
+def test_time_per_10_beside_the_research_compares_the_nearer_and_the_farther_half_of_the_blocks():
+    """With iterations of tenths of a second a far 2 m bin holds a block or two (the shipped moving flight), so the
+    row splits the farthest-flown worker's blocks at their median distance: 7 near blocks and 7 far ones."""
+    import pandas as pd
+
+    run = analyze(read_run(GOLDEN))
+    distance_m = [6.0 + i for i in range(14)]
+    run.time_per_10 = pd.DataFrame({"worker": "w2", "first_iteration": range(0, 140, 10), "t_rel_s": distance_m,
+                                    "distance_m": distance_m, "time_per_10_s": [2.0] * 7 + [4.0] * 7})
+    run.summary.update(time_per_10_spearman={"w2": 0.87}, max_distance_m={"w2": 19.0})
+    row = [line for line in beside_the_research(run, copy.deepcopy(run)) if "against w2's distance" in line]
+    assert row == ["| time per 10 iterations against w2's distance (golden-run) | rises (its Fig. 14(b)) | Spearman "
+                   "rho 0.87; median 2 s at 6-12 m (7 blocks) and 4 s at 13-19 m (7 blocks) | - |"]
+
+
 def test_the_coded_pair_is_judged_on_its_median_iteration_with_costs_and_bytes_beside():
     """The golden run as the uncoded half, and a copy whose iterations took half the time, all complete, with half
     the bytes, as the coded half (issue 30's make coded-demo): the median, the complete share, the bytes per
@@ -328,3 +343,14 @@ def test_iperf3_json_beside_autopilot_logs_becomes_probes_with_distances(tmp_pat
     assert probe["distance_m"] == pytest.approx(20.0, abs=0.1)
     assert probe["throughput_mbps"] == pytest.approx(result["end"]["sum_received"]["bits_per_second"] / 1e6)
     assert any("iperf3-w1.2.json" in p and "never connected" in p for p in t.problems), t.problems
+
+
+def test_the_report_says_which_probes_ran_and_where_their_traffic_went():
+    """The research measured during its training flights; a reader comparing with it must know whether the
+    probes shared the job's queues, how often they ran and whether the workers were probed at once or in turn."""
+    medium = {"mode": "kernel", "air": "medium"}
+    line = _probes_line({"period_s": 2.0, "duration_s": 2.0, "tool": "nac", "concurrent": True}, medium)
+    assert "back to back" in line and "every worker at once" in line and "same stations' queues" in line
+    line = _probes_line({"period_s": 2.0, "duration_s": 0.5, "tool": "iperf3"}, {"mode": "kernel", "air": "htb"})
+    assert line.startswith("iperf3, 0.5 s every 2 s (25 % of the time), one worker at a time")
+    assert "rate class of their own" in line
