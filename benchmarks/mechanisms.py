@@ -7,8 +7,9 @@ Variants, each a whole run (simulator, agents, MPI job, probes):
   htb             a rate class per pair, probes in classes of their own (the kernel network's default air)
   medium          every frame through the 802.11 medium: one FIFO queue per station, channel access, retries
   medium-probes-host-tcp  the same, with the probes back to back (iperf3-style, continuous) in the stations'
-                  queues, the companions' TCP this host's default (BBR here)
+                  queues, both workers at once (a client per link), the companions' TCP this host's default (BBR)
   medium-probes   the same, the companions' TCP Reno (the flight scenarios' own: it keeps its results at 4x)
+  medium-probes-in-turn  the same with the workers probed one at a time (the flight scenarios' schedule before)
   medium-probes-cubic  the same with a Jetson's TCP instead, CUBIC (Linux's default; its window grows with the
                   wall clock, so it is measured at 1x only)
   medium-probes-tx2  the same, with every rank's work at a Jetson TX2's CPU time (the shipped profile: this
@@ -45,12 +46,12 @@ from sitl.network.netns import NetworkUnavailable, check_kernel_network
 import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-VARIANTS = ("htb", "medium", "medium-probes-host-tcp", "medium-probes", "medium-probes-cubic", "medium-probes-tx2",
-            "medium-probes-device")  # up to medium-probes each adds one mechanism to the one before; the last three
-# each change medium-probes in one way: a Jetson's TCP, or a companion's CPU instead of this host's
+VARIANTS = ("htb", "medium", "medium-probes-host-tcp", "medium-probes", "medium-probes-in-turn", "medium-probes-cubic",
+            "medium-probes-tx2", "medium-probes-device")  # up to medium-probes each adds one mechanism to the one
+# before; the rest each change medium-probes in one way: the probes in turn, a Jetson's TCP, or a companion's CPU
 SMOKE = {"duration_s": 4.0, "speedup": 4.0, "variants": ["medium-probes"]}
 ILLUSTRATIVE_SLOWDOWN = 100.0
-ISOLATED_PROBE_S = 0.5  # the probes apart: 0.5 s every 2 s, the flight scenarios' schedule before issue 28
+ISOLATED_PROBE_S = 0.5  # the probes apart: 0.5 s every 2 s, one worker at a time, the schedule before issue 28
 
 
 def variant(name: str, folder: Path, duration_s: float):
@@ -65,7 +66,8 @@ def variant(name: str, folder: Path, duration_s: float):
     probes = scenario.throughput
     back_to_back = name.startswith("medium-probes")
     scenario = dataclasses.replace(scenario, throughput=dataclasses.replace(
-        probes, duration_s=probes.period_s if back_to_back else ISOLATED_PROBE_S))
+        probes, duration_s=probes.period_s if back_to_back else ISOLATED_PROBE_S,
+        concurrent=back_to_back and not name.endswith("-in-turn")))
     if name.endswith("-tx2"):
         scenario = dataclasses.replace(scenario, compute=dataclasses.replace(
             scenario.compute, device=str(device_path("jetson-tx2"))))
