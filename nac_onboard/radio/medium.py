@@ -81,10 +81,13 @@ class Frame:
     enqueued_s: float
     segments: int = 1
     first_sent_s: float | None = None
-    tries: list[int] = field(default_factory=list)  # per segment not yet through: failed tries so far
+    tries: list[int] = field(default_factory=list)  # per segment still to send: failed tries so far
+    pending: list[int] = field(default_factory=list)  # those segments' places in the run, in step with tries
+    lost: list[int] = field(default_factory=list)  # places of the segments that failed every try
 
     def __post_init__(self):
         self.tries = [0] * self.segments
+        self.pending = list(range(self.segments))
 
     @property
     def segment_bytes(self) -> int:
@@ -96,6 +99,7 @@ class Delivery:
     frame: Frame
     dst: int
     delivered_s: float
+    lost_segments: tuple[int, ...] = ()  # a run's segments that failed every try (the rest got through)
 
     @property
     def queue_s(self) -> float:
@@ -109,7 +113,7 @@ class MediumStats:
     delivered: int = 0
     segments_delivered: int = 0  # packets delivered, an offload run counted as the packets it stands for
     queue_drops: int = 0  # tail drops at a full queue
-    retry_drops: int = 0  # frames that failed every try
+    retry_drops: int = 0  # packets that failed every try (a run's segments each count)
     exchanges: int = 0
     collisions: int = 0
     busy_s: float = 0.0  # airtime used, collisions and acknowledgements included
@@ -263,26 +267,31 @@ class Medium:
         through = 0
         for frame, sent in batch:
             frame.first_sent_s = start_s if frame.first_sent_s is None else frame.first_sent_s
-            kept = []
-            for k, tries in enumerate(frame.tries):
+            kept, pending = [], []
+            for k, (tries, place) in enumerate(zip(frame.tries, frame.pending, strict=True)):
                 if k >= sent:
                     kept.append(tries)
+                    pending.append(place)
                 elif collided or self.rng.random() < per:
-                    kept.append(tries + 1)
+                    if tries + 1 > self.retry_limit:
+                        frame.lost.append(place)
+                    else:
+                        kept.append(tries + 1)
+                        pending.append(place)
                 else:
                     through += 1
-            frame.tries = kept
+            frame.tries, frame.pending = kept, pending
         # in the queue's order, as the receiver's reorder buffer releases them: a frame through (or lost) behind
         # one still being retried waits for it
-        while queue and queue[0].dst == dst and not (queue[0].tries and max(queue[0].tries) <= self.retry_limit):
+        while queue and queue[0].dst == dst and not queue[0].tries:
             frame = queue.popleft()
             self.queued[src] -= frame.segments
-            if frame.tries:  # a segment failed every try: the packet (a run: all of it) is lost
-                self.stats.retry_drops += 1
-            else:
-                self._done.append(Delivery(frame, dst, data_end))
+            # what failed every try is lost, each MPDU on its own: of a run, only those segments
+            self.stats.retry_drops += len(frame.lost)
+            if len(frame.lost) < frame.segments:
+                self._done.append(Delivery(frame, dst, data_end, tuple(sorted(frame.lost))))
                 self.stats.delivered += 1
-                self.stats.segments_delivered += frame.segments
+                self.stats.segments_delivered += frame.segments - len(frame.lost)
         # no block ack came back (nothing got through): the window doubles; any acknowledgement resets it
         self.cw[src] = t.cw_min if through else min(2 * self.cw[src] + 1, t.cw_max)
         return end

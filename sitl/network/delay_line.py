@@ -39,6 +39,8 @@ TUNSETIFF, TUNSETOFFLOAD, IFF_TUN, IFF_NO_PI, IFF_VNET_HDR = 0x400454CA, 0x40045
 TUN_F_CSUM, TUN_F_TSO4 = 0x01, 0x02
 VNET_HDR = struct.Struct("<BBHHHH")  # virtio_net_hdr: flags, gso_type, hdr_len, gso_size, csum_start, csum_offset
 VNET_GSO_NONE = 0
+VNET_F_NEEDS_CSUM = 1  # the checksum is partial (the stack's offload): a receiving stack trusts it
+TCP_FIN, TCP_PSH, TCP_CWR = 0x01, 0x08, 0x80
 PR_SET_TIMERSLACK = 29
 MAX_WAIT_S = 0.05  # wall: the longest select() sleeps, so stdin and the counters are served
 # Wall seconds a timed wake-up is begun early and the rest spun on the clock; also how far ahead (times the pace)
@@ -72,6 +74,43 @@ def segments_of(header: bytes, ip_bytes: int) -> int:
     return max(1, -(-(ip_bytes - hdr_len) // gso_size))
 
 
+def surviving_segments(packet: bytes, lost: tuple[int, ...]) -> list[bytes]:
+    """A TCP segmentation offload run (read with its virtio_net_hdr) as the packets of its segments but the lost
+    ones, each with its own virtio_net_hdr, as the sender's NIC would have cut them: IP total length and ID, TCP
+    sequence number, FIN and PSH on the last segment only, CWR on the first only. Their checksums stay partial
+    (NEEDS_CSUM: offset of the TCP header, its checksum field), as the run's was, which a receiving stack trusts."""
+    v = VNET_HDR.size
+    gso_size = VNET_HDR.unpack_from(packet)[3]
+    ip = packet[v:]
+    ihl = (ip[0] & 0x0F) * 4
+    headers_len = ihl + (ip[ihl + 12] >> 4) * 4  # from the headers themselves: hdr_len is the stack's linear part
+    headers, payload = ip[:headers_len], ip[headers_len:]
+    ip_id, = struct.unpack_from("!H", ip, 4)
+    seq, = struct.unpack_from("!I", ip, ihl + 4)
+    flags = ip[ihl + 13]
+    count = -(-len(payload) // gso_size)
+    out = []
+    for k in range(count):
+        if k in lost:
+            continue
+        chunk = payload[k * gso_size:(k + 1) * gso_size]
+        h = bytearray(headers)
+        struct.pack_into("!HH", h, 2, headers_len + len(chunk), (ip_id + k) & 0xFFFF)
+        struct.pack_into("!H", h, 10, 0)
+        struct.pack_into("!H", h, 10, _ip_checksum(bytes(h[:ihl])))
+        struct.pack_into("!I", h, ihl + 4, (seq + k * gso_size) & 0xFFFFFFFF)
+        h[ihl + 13] = flags & ~((TCP_FIN | TCP_PSH) if k < count - 1 else 0) & ~(TCP_CWR if k else 0)
+        out.append(VNET_HDR.pack(VNET_F_NEEDS_CSUM, VNET_GSO_NONE, headers_len, 0, ihl, 16) + bytes(h) + chunk)
+    return out
+
+
+def _ip_checksum(header: bytes) -> int:
+    total = sum(struct.unpack(f"!{len(header) // 2}H", header))
+    while total >> 16:
+        total = (total & 0xFFFF) + (total >> 16)
+    return ~total & 0xFFFF
+
+
 class DelayLine:
     def __init__(self, namespaces: list[str], addresses: list[str], queue_packets: int, retry_limit: int,
                  seed: int, out=None):
@@ -81,7 +120,7 @@ class DelayLine:
         self.fds = [open_tun(ns) for ns in namespaces]
         self.out = sys.stdout if out is None else out  # the stdout of now, not of import time
         self.counters = {"packets_in": 0, "not_ipv4": 0, "unknown_destination": 0, "late": 0, "max_late_s": 0.0,
-                         "updates": 0, "bad_updates": 0}
+                         "updates": 0, "bad_updates": 0, "runs_cut": 0}
         self.queue_s: list[float] = []  # since the last counters line
         self.air_s: list[float] = []
         self._stop = False
@@ -158,10 +197,15 @@ class DelayLine:
                 self.counters["max_late_s"] = max(self.counters["max_late_s"], late)
             self.queue_s.append(delivery.queue_s)
             self.air_s.append(delivery.delivered_s - delivery.frame.first_sent_s)
-            try:
-                os.write(self.fds[delivery.dst], delivery.frame.item)
-            except OSError:  # the receiver's air0 is down or its queue full: the packet is lost there
-                self.counters["write_failed"] = self.counters.get("write_failed", 0) + 1
+            packets = [delivery.frame.item]
+            if delivery.lost_segments:
+                packets = surviving_segments(delivery.frame.item, delivery.lost_segments)
+                self.counters["runs_cut"] += 1
+            for packet in packets:
+                try:
+                    os.write(self.fds[delivery.dst], packet)
+                except OSError:  # the receiver's air0 is down or its queue full: the packet is lost there
+                    self.counters["write_failed"] = self.counters.get("write_failed", 0) + 1
         return now
 
     def _update(self, line: bytes) -> None:

@@ -23,12 +23,12 @@ from tests.integration.test_kernel_network import needs_iperf3, needs_kernel
 PHY_BPS = 30e6  # MCS 4 of 20 MHz 802.11n with the long guard interval is 39 Mbit/s: a mid-range link
 
 
-def links(air: MediumAir, phy_bps: float) -> None:
+def links(air: MediumAir, phy_bps: float, per: float = 0.0) -> None:
     n = len(air.stations)
     rates = np.full((n, n), phy_bps)
     np.fill_diagonal(rates, 0.0)
-    air.apply(SimpleNamespace(frames={"phy_bps": rates, "per": np.zeros((n, n)), "fallback_bps": rates,
-                                      "fallback_per": np.zeros((n, n))}), 1.0)
+    air.apply(SimpleNamespace(frames={"phy_bps": rates, "per": np.full((n, n), per), "fallback_bps": rates,
+                                      "fallback_per": np.full((n, n), per)}), 1.0)
 
 
 class Echo:
@@ -112,6 +112,40 @@ def test_a_small_message_waits_behind_a_bulk_flow_in_its_stations_queue():
 
 
 @needs_kernel
+@needs_kernel
+@needs_iperf3
+def test_a_run_delivered_in_part_reaches_the_receiver_as_the_segments_that_got_through():
+    """At a frame error rate of 0.6 each segment is lost after its 8 tries with p = 0.6^8 = 1.7 %, so a bulk
+    flow's offload runs arrive whole or in part. The parts are cut into the segments that got through and the
+    receiving stack takes them: the sender retransmits about what the air lost (retry_drops), where a run dropped
+    whole, or cut segments it refused, would cost it the run's other segments too (runs here hold several; the
+    bound allows each lost segment twice and 20 more, for the retransmissions the air also lost and a timeout's)."""
+    air = MediumAir(["a", "b"], ap=0, sharing=True).create()
+    server = None
+    try:
+        links(air, PHY_BPS, per=0.6)
+        a, b = air.stations
+        server = subprocess.Popen([*air.exec_prefix(1), "iperf3", "-s", "-1", "-B", b.address],
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(0.3)  # iperf3 -s prints nothing before it listens; its client retries below if it is early
+        bulk = subprocess.run([*air.exec_prefix(0), "iperf3", "-c", b.address, "-t", "3", "--json",
+                               "--connect-timeout", "2000"], capture_output=True, text=True, timeout=30)
+        report = json.loads(bulk.stdout)
+        deadline = time.monotonic() + 5.0
+        while (air.counters or {}).get("runs_cut", 0) == 0 and time.monotonic() < deadline:
+            time.sleep(0.1)  # the delay line's counters come once a wall second
+        counters = air.counters
+    finally:
+        if server is not None:
+            server.kill()
+            server.wait(5)
+        air.close()
+    retransmits = report["end"]["sum_sent"]["retransmits"]
+    assert counters["runs_cut"] > 0 and counters["retry_drops"] > 0, counters
+    assert report["end"]["sum_received"]["bytes"] > 0
+    assert retransmits <= 2 * counters["retry_drops"] + 20, (retransmits, counters)
+
+
 def test_the_delay_line_and_its_devices_go_with_the_network_and_a_bad_update_is_refused():
     """The delay line runs at a real-time priority where this host allows one (else at nice -10): frames are due
     on the clock, whatever else runs. Its TUN devices go with it, a malformed link update is refused with the shape
