@@ -54,8 +54,10 @@ def trains_through_link_loss(moving: RunTables) -> str:
     if partial.empty:
         return f"Link loss: no worker was out of range in {moving.name}, so there was nothing to train through."
     first, last = int(partial["iteration"].iloc[0]), int(partial["iteration"].iloc[-1])
-    during = its[(its["iteration"] >= first) & (its["iteration"] <= last)]
-    cost = during["cost"].dropna()
+    # the cost is over the rows of the workers present: compared within the commonest set of absent workers only
+    # (another worker's brief absence, or the first worker's return, changes the rows it is taken over)
+    away = partial["absent"].map(lambda cell: " ".join(sorted(a.split(":")[0] for a in cell.split())))
+    cost = partial[away == away.value_counts().idxmax()]["cost"].dropna()
     kept_learning = len(cost) < 2 or cost.iloc[-1] < cost.iloc[0]  # one iteration: nothing to compare within
     after = its[its["iteration"] > last]
     rejoined = f"; all workers back from iteration {last + 1}" if not after.empty else ""

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import matplotlib.image
 import numpy as np
+import pandas as pd
 import pytest
 
 from ground import cli
@@ -242,6 +243,19 @@ def test_findings_state_whether_they_hold_with_their_numbers():
     assert "**does not hold**" in research_findings(moving, static)[2]
 
 
+def test_training_through_a_link_loss_is_judged_on_the_cost_over_the_same_rows():
+    """While w2 is away the cost is over w1's rows; one iteration with w1 away instead (its cost over w2's rows)
+    must not decide the verdict: 6.0 -> 5.0 over the three iterations without w2 holds, whatever the other's 9.0."""
+    run = analyze(read_run(GOLDEN))
+    its = run.iterations
+    extra = its.iloc[[2, 2, 2]].copy()
+    extra["iteration"], extra["cost"] = [3, 4, 5], [6.0, 5.0, 9.0]
+    extra["absent"] = ["w2:out_of_range", "w2:out_of_range", "w1:timeout"]
+    run.iterations = pd.concat([its.iloc[:3], extra], ignore_index=True)
+    line = research_findings(run, copy.deepcopy(run))[3]
+    assert "**holds**; 4 iterations (2-5" in line and "ran without w1, w2, cost 7.0000 -> 5.0000" in line, line
+
+
 def test_the_runs_beside_the_research_with_ratios():
     """The golden run (4 iterations in 2.5 s, range 10 m) as both flights: each figure beside the research's,
     with NAC / research; a run shorter than 200 s is taken at its pace and says so."""
@@ -261,8 +275,6 @@ def test_the_runs_beside_the_research_with_ratios():
 def test_time_per_10_beside_the_research_compares_the_nearer_and_the_farther_half_of_the_blocks():
     """With iterations of tenths of a second a far 2 m bin holds a block or two (the shipped moving flight), so the
     row splits the farthest-flown worker's blocks at their median distance: 7 near blocks and 7 far ones."""
-    import pandas as pd
-
     run = analyze(read_run(GOLDEN))
     distance_m = [6.0 + i for i in range(14)]
     run.time_per_10 = pd.DataFrame({"worker": "w2", "first_iteration": range(0, 140, 10), "t_rel_s": distance_m,
