@@ -31,6 +31,21 @@ def links(air: MediumAir, phy_bps: float, per: float = 0.0) -> None:
                                       "fallback_per": np.full((n, n), per)}), 1.0)
 
 
+def counters_when(air: MediumAir, key: str, at_least: int, timeout_s: float = 5.0) -> dict:
+    """The delay line's counters once `key` reaches at_least (they come once a wall second), or at the timeout."""
+    deadline = time.monotonic() + timeout_s
+    while (air.counters or {}).get(key, 0) < at_least and time.monotonic() < deadline:
+        time.sleep(0.1)
+    return air.counters
+
+
+def close(air: MediumAir, server: subprocess.Popen | None) -> None:
+    if server is not None:
+        server.kill()
+        server.wait(5)
+    air.close()
+
+
 class Echo:
     """A UDP echo in station b and its client in station a; round trips in (wall = simulated at 1x) seconds."""
 
@@ -93,15 +108,9 @@ def test_a_small_message_waits_behind_a_bulk_flow_in_its_stations_queue():
         busy = echo.round_trips(30, gap_s=0.02)
         report = json.loads(bulk.communicate(timeout=30)[0])
         echo.close()
-        deadline = time.monotonic() + 5.0
-        while (air.counters or {}).get("delivered", 0) < 100 and time.monotonic() < deadline:
-            time.sleep(0.1)
-        counters = air.counters
+        counters = counters_when(air, "delivered", 100)
     finally:
-        if server is not None:
-            server.kill()
-            server.wait(5)
-        air.close()
+        close(air, server)
     model_s = 2 * expected_message_s(MacTiming(), 128, PHY_BPS)
     assert statistics.median(idle) < 5 * model_s, (statistics.median(idle), model_s)
     assert statistics.median(busy) > max(5 * statistics.median(idle), 0.005), (statistics.median(busy), idle)
@@ -131,15 +140,9 @@ def test_a_run_delivered_in_part_reaches_the_receiver_as_the_segments_that_got_t
         bulk = subprocess.run([*air.exec_prefix(0), "iperf3", "-c", b.address, "-t", "3", "--json",
                                "--connect-timeout", "2000"], capture_output=True, text=True, timeout=30)
         report = json.loads(bulk.stdout)
-        deadline = time.monotonic() + 5.0
-        while (air.counters or {}).get("runs_cut", 0) == 0 and time.monotonic() < deadline:
-            time.sleep(0.1)  # the delay line's counters come once a wall second
-        counters = air.counters
+        counters = counters_when(air, "runs_cut", 1)
     finally:
-        if server is not None:
-            server.kill()
-            server.wait(5)
-        air.close()
+        close(air, server)
     retransmits = report["end"]["sum_sent"]["retransmits"]
     assert counters["runs_cut"] > 0 and counters["retry_drops"] > 0, counters
     assert report["end"]["sum_received"]["bytes"] > 0
