@@ -22,6 +22,10 @@ beside_the_exclusive_tests = pytest.mark.niced
 # how long each step of a job may take there: the idle class gets no CPU while an exclusive test keeps both cores
 # busy (a clean-clone run saw a killed-worker BPCC job end, exit 255 from hydra's teardown, just after 60 s)
 IDLE_CLASS_WAIT_S = 180
+# an iteration's timeout the idle class can meet: at 10 s, clean-clone runs had one iteration time out in a BPCC
+# and a gradient-coded job (81 and 145 iterations; each test took 11 s there, 1 s alone), their ranks starved
+# beside an exclusive test; these tests judge decoding and units, not times
+IDLE_CLASS_TIMEOUT_S = str(IDLE_CLASS_WAIT_S / 3)
 
 
 def _kill_worker_midway_then_stop(out: Path, proc, rank: int) -> int:
@@ -43,10 +47,8 @@ def _kill_worker_midway_then_stop(out: Path, proc, rank: int) -> int:
 def _coded_matmul_with_a_worker_killed(tmp_path, task: str, rank: int):
     """matmul (A 12 x 50, B 50 x 2, seed 5) by `task` on 3 workers, worker `rank` killed midway: its
     records, its summary and the iterations logged at the kill; every iteration complete, some 10 after the kill."""
-    # an iteration's timeout the idle class can meet: a clean-clone run had one iteration of 81 time out at 10 s
-    # (the test took 11.3 s, 1 s alone), starved beside an exclusive test; what is judged here is decoding
     with job("--task", task, "--m", "12", "--n", "50", "--l", "2", "--seed", "5", "--duration-s", "600",
-             "--timeout-s", str(IDLE_CLASS_WAIT_S / 3), "--save-results", "--checkpoint-s", "0.5",
+             "--timeout-s", IDLE_CLASS_TIMEOUT_S, "--save-results", "--checkpoint-s", "0.5",
              "--out", str(tmp_path), ranks=4) as proc:
         killed_at = _kill_worker_midway_then_stop(tmp_path, proc, rank)
     read = read_jsonl(tmp_path / "compute.jsonl")
@@ -71,7 +73,7 @@ def test_mds_matmul_decodes_a_times_b_every_iteration_with_a_worker_killed(tmp_p
 def test_gradient_coded_training_with_a_worker_killed_follows_uncoded_training_with_everyone(tmp_path):
     """Three workers, s = 1: after worker 2 is killed the master still recovers the full gradient every
     iteration, so the cost curve and the weights are single-process gradient descent's over all the rows."""
-    with job("--task", "linreg_gc", "--code-s", "1", "--duration-s", "600", "--timeout-s", "10",
+    with job("--task", "linreg_gc", "--code-s", "1", "--duration-s", "600", "--timeout-s", IDLE_CLASS_TIMEOUT_S,
              "--checkpoint-s", "0.5", "--out", str(tmp_path), ranks=4) as proc:
         killed_at = _kill_worker_midway_then_stop(tmp_path, proc, 2)
     read = read_jsonl(tmp_path / "compute.jsonl")
@@ -114,8 +116,9 @@ def _slow_run(tmp_path, name: str, slowdown: float, *args: str):
     profile.write_text(f'[device]\nname = "{name}"\nslowdown = {slowdown}\nsource = "a test"\n')
     out = tmp_path / name
     done = run_mpi(4, "--task", "matmul_bpcc", "--m", "80", "--n", "2000", "--l", "1", "--seed", "7", "--code-k", "8",
-                   "--device-of", f"rank3={profile}", "--iterations", "30", "--timeout-s", "10", "--save-results",
-                   "--checkpoint-s", "0", "--out", str(out), *args, timeout_s=120)
+                   "--device-of", f"rank3={profile}", "--iterations", "30", "--timeout-s", IDLE_CLASS_TIMEOUT_S,
+                   "--save-results",
+                   "--checkpoint-s", "0", "--out", str(out), *args, timeout_s=IDLE_CLASS_WAIT_S)
     assert done.returncode == 0, done.stderr[-2000:]
     read = read_jsonl(out / "compute.jsonl")
     summary = read.of_kind("run_summary")[0]
