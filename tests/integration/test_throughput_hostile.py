@@ -503,3 +503,32 @@ class _WatchedLog(JsonlLog):
             if self.genuine == 3:
                 self.third_genuine.set()
         return record
+
+
+def test_a_sped_up_probe_waits_for_its_connection_in_simulated_time(tmp_path):
+    """A worker whose SYNs go unanswered (a listener whose accept queue is full drops them): at 4x the probe gives
+    up after 3 simulated seconds, 0.75 s of wall time, as a real-time run gives up after 3 s. It waited 3 wall
+    seconds at any speed-up, so a sped-up run logged a quarter as many failed probes per simulated minute. The
+    bound, 2.5 s, sits well under the 3 s an unscaled wait takes, whatever the load adds to 0.75 s."""
+    from nac_onboard.clock import Clock
+
+    class FourTimes(Clock):
+        speedup = 4.0
+
+    listener = socket.create_server(("127.0.0.1", 0), backlog=0)
+    port = listener.getsockname()[1]
+    queued = socket.create_connection(("127.0.0.1", port), timeout=5.0)  # fills the accept queue
+    own = OwnState("m", "master", 1, 47.0, 8.0, 500.0, None, None, "", True)
+    settings_ = ThroughputSection(probe=True, period_s=1.0, duration_s=0.5, interval_s=0.1)
+    try:
+        with JsonlLog(tmp_path / "throughput.jsonl") as out:
+            scheduler = ProbeScheduler(settings_, "m", lambda: [], lambda: AgentSnapshot(0.0, own), out,
+                                       threading.Event(), clock=FourTimes())
+            started = time.monotonic()
+            record = scheduler.probe_once("w", "127.0.0.1", port)
+            waited_s = time.monotonic() - started
+    finally:
+        queued.close()
+        listener.close()
+    assert record["error_kind"] == "link" and "timed out" in record["error"], record
+    assert waited_s < 2.5, waited_s
