@@ -152,7 +152,7 @@ class Agent:
         t = c.throughput
         if t.server:
             try:
-                self.throughput_server = ThroughputServer(t.bind, t.port).start()
+                self.throughput_server = ThroughputServer(t.bind, t.port, self.run_clock).start()
             except OSError as err:
                 raise OSError(f"throughput.port: cannot listen on {t.bind}:{t.port}: {err.strerror}") from None
         if t.probe:
@@ -339,7 +339,7 @@ class Agent:
         t = self.config.throughput
         try:
             server.stop()
-            self.throughput_server = ThroughputServer(t.bind, t.port).start()
+            self.throughput_server = ThroughputServer(t.bind, t.port, self.run_clock).start()
             self.log.write(kinds.THROUGHPUT_SERVER_RESTARTED, port=t.port, refused_before=server.refused)
         except OSError as err:
             self.log.write(kinds.THROUGHPUT_SERVER_FAILED, port=t.port, error=str(err))

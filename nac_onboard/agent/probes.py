@@ -33,14 +33,15 @@ from nac_onboard.clock import Clock
 from nac_onboard.flight_log import JsonlLog
 from nac_onboard.link import iperf3
 from nac_onboard.link.emulation import SleepEmulation
-from nac_onboard.link.throughput import LINK, MIN_INTERVAL_S, ProbeError, probe
+from nac_onboard.link.throughput import ANSWER_MARGIN_S, GRACE_S, LINK, MIN_INTERVAL_S, ProbeError, probe
 from nac_onboard.records import kinds
 
 log = logging.getLogger(__name__)
 
-# simulated seconds a probe waits for its connection: at a speed-up X the wall-clock wait is X times shorter, so a
-# worker out of range costs a sped-up run the same simulated time as a real-time one (a wall-clock 3 s was 12
-# simulated seconds at 4x: a quarter as many failed probes per simulated minute, and a higher mean throughput)
+# simulated seconds a probe waits for its connection (and, as throughput.GRACE_S and ANSWER_MARGIN_S, for its
+# answer): at a speed-up X the wall-clock waits are X times shorter, so a worker out of range costs a sped-up run
+# the same simulated time as a real-time one (wall-clock waits made a stalled probe hold its worker's schedule for
+# 34 simulated seconds at 4x against 10 at 1x: a quarter as many failed probes, a higher mean throughput)
 CONNECT_TIMEOUT_S = 3.0
 
 
@@ -157,7 +158,8 @@ class ProbeScheduler:
                 result = probe(host, port, duration_s=None if s.bytes else wall(s.duration_s),
                                nbytes=s.bytes or None, interval_s=max(wall(s.interval_s), MIN_INTERVAL_S),
                                rate_bps=rate_bps * self.clock.speedup if rate_bps else None,
-                               connect_timeout_s=wall(CONNECT_TIMEOUT_S))
+                               connect_timeout_s=wall(CONNECT_TIMEOUT_S), grace_s=wall(GRACE_S),
+                               answer_margin_s=wall(ANSWER_MARGIN_S))
         except ProbeError as err:
             result = {"error": str(err), "error_kind": err.kind}
         except iperf3.Iperf3Error as err:

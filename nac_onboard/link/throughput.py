@@ -33,6 +33,7 @@ import struct
 import threading
 import time
 
+from nac_onboard.clock import Clock
 from nac_onboard.errors import OperationFailed
 
 log = logging.getLogger(__name__)
@@ -188,7 +189,7 @@ def check_probe_arguments(port: int, duration_s, nbytes, interval_s, rate_bps) -
 
 def probe(host: str, port: int = DEFAULT_PORT, duration_s: float | None = 1.0, nbytes: int | None = None,
           interval_s: float = 0.5, rate_bps: float | None = None, connect_timeout_s: float = 3.0,
-          block_bytes: int = BLOCK_BYTES) -> dict:
+          block_bytes: int = BLOCK_BYTES, grace_s: float = GRACE_S, answer_margin_s: float = ANSWER_MARGIN_S) -> dict:
     """Send to a throughput server for duration_s (or nbytes) and return an iperf3-shaped result.
 
     rate_bps caps the sending rate (iperf3 -b) so a probe can share a link with other traffic.
@@ -223,11 +224,11 @@ def probe(host: str, port: int = DEFAULT_PORT, duration_s: float | None = 1.0, n
             counter.close_interval(t_end, counter.total)
             sock.shutdown(socket.SHUT_WR)
             # the server answers by the probe's length + GRACE_S from its start (it cuts the probe there)
-            answer_by = t0 + (duration_s or MAX_PROBE_S) + GRACE_S + ANSWER_MARGIN_S
-            raw = _read_answer(sock, where, max(answer_by, time.monotonic() + ANSWER_MARGIN_S))
+            answer_by = t0 + (duration_s or MAX_PROBE_S) + grace_s + answer_margin_s
+            raw = _read_answer(sock, where, max(answer_by, time.monotonic() + answer_margin_s))
         except (OSError, TimeoutError) as err:
             raise ProbeError(f"throughput probe to {where} failed: {err.strerror or err}", LINK) from None
-    max_end_s = (duration_s or MAX_PROBE_S) + GRACE_S + ANSWER_MARGIN_S
+    max_end_s = (duration_s or MAX_PROBE_S) + grace_s + answer_margin_s
     received, server_intervals = check_answer(raw, where, counter.total, max_end_s)
     return {
         "start": {
@@ -400,8 +401,9 @@ class ThroughputServer:
     more than the newcomer's address; else the newcomer is refused), and is cut at its length + GRACE_S.
     """
 
-    def __init__(self, bind: str = "127.0.0.1", port: int = DEFAULT_PORT):
+    def __init__(self, bind: str = "127.0.0.1", port: int = DEFAULT_PORT, clock: Clock | None = None):
         self.sock = socket.create_server((bind, port), reuse_port=False, backlog=LISTEN_BACKLOG)
+        self.clock = clock or Clock()  # GRACE_S is the run's time: a sped-up run's probes are cut as soon in it
         self.port = self.sock.getsockname()[1]
         self.refused = 0  # probes refused or broken off, by the server's checks
         self.shed = 0  # connections closed over the caps, before their header
@@ -568,7 +570,7 @@ class ThroughputServer:
                     busy = f"busy: {len(self._probes)} probes in progress"
             if busy is None:
                 t0 = time.monotonic()
-                probe_ = _Probe(conn, addr, t0 + (header["duration_s"] or MAX_PROBE_S) + GRACE_S)
+                probe_ = _Probe(conn, addr, t0 + (header["duration_s"] or MAX_PROBE_S) + self.clock.wall_s(GRACE_S))
                 self._probes.append(probe_)
         if busy is not None:
             self._refuse(conn, addr, busy)

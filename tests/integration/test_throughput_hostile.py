@@ -22,6 +22,7 @@ from ground.logs.runlog import RunLog
 from nac_onboard.agent.config import ThroughputSection
 from nac_onboard.agent.probes import ProbeScheduler
 from nac_onboard.agent.snapshot import AgentSnapshot, OwnState
+from nac_onboard.clock import Clock
 from nac_onboard.flight_log import JsonlLog, read_jsonl
 from nac_onboard.link.throughput import (
     ANSWER_MARGIN_S,
@@ -372,18 +373,21 @@ def test_a_genuine_probe_measures_the_link_while_500_idle_and_trickling_connecti
 
 
 @pytest.mark.exclusive  # rates or times measured against a bound
-def test_a_client_sending_forever_is_cut_at_the_probes_length_plus_the_grace():
+@pytest.mark.parametrize("speedup", [1.0, 4.0])
+def test_a_client_sending_forever_is_cut_at_the_probes_length_plus_the_grace(speedup):
     """A client declares a 0.5 s probe and never stops sending: the server cuts it at 0.5 s + GRACE_S (the
-    documented bound; it once took 120 s), not before. The bound holds on a loaded machine: the cut is the
-    server's accept thread noticing a deadline it checks every 0.25 s, with 1.5 s of slack."""
-    server = ThroughputServer("127.0.0.1", free_port()).start()
+    documented bound; it once took 120 s), not before; GRACE_S is the run's time, a quarter as long on the wall
+    clock at 4x. The bound holds on a loaded machine: the cut is the server's accept thread noticing a deadline it
+    checks every 0.25 s, with 1.5 s of slack."""
+    grace_s = GRACE_S / speedup
+    server = ThroughputServer("127.0.0.1", free_port(), sped_up(speedup)).start()
     try:
         with socket.create_connection(("127.0.0.1", server.port), timeout=5.0) as conn:
             conn.sendall(json.dumps({"protocol": PROTOCOL, "duration_s": 0.5, "interval_s": 0.1}).encode() + b"\n")
             t0 = time.monotonic()
             conn.setblocking(False)
             block, cut = b"\0" * 65536, False
-            while not cut and time.monotonic() - t0 < 0.5 + GRACE_S + 10:
+            while not cut and time.monotonic() - t0 < 0.5 + grace_s + 10:
                 readable, writable, _ = select.select([conn], [conn], [], 0.1)
                 try:
                     if readable:
@@ -396,7 +400,7 @@ def test_a_client_sending_forever_is_cut_at_the_probes_length_plus_the_grace():
                 except OSError:  # reset: cut too
                     cut = True
             elapsed_s = time.monotonic() - t0
-        assert cut and 0.5 + GRACE_S - 0.5 <= elapsed_s <= 0.5 + GRACE_S + 1.5, elapsed_s
+        assert cut and 0.5 + grace_s - 0.5 <= elapsed_s <= 0.5 + grace_s + 1.5, elapsed_s
         assert server.alive and server.refused == 1
         result = probe("127.0.0.1", server.port, duration_s=0.2, interval_s=0.1)  # and it serves the next one
         assert result["end"]["sum_received"]["bytes"] > 0
@@ -505,16 +509,13 @@ class _WatchedLog(JsonlLog):
         return record
 
 
-def test_a_sped_up_probe_waits_for_its_connection_in_simulated_time(tmp_path):
+def test_a_sped_up_probe_waits_for_its_connection_and_its_answer_in_simulated_time(tmp_path, hostile):
     """A worker whose SYNs go unanswered (a listener whose accept queue is full drops them): at 4x the probe gives
-    up after 3 simulated seconds, 0.75 s of wall time, as a real-time run gives up after 3 s. It waited 3 wall
-    seconds at any speed-up, so a sped-up run logged a quarter as many failed probes per simulated minute. The
-    bound, 2.5 s, sits well under the 3 s an unscaled wait takes, whatever the load adds to 0.75 s."""
-    from nac_onboard.clock import Clock
-
-    class FourTimes(Clock):
-        speedup = 4.0
-
+    up after 3 simulated seconds, 0.75 s of wall time, as a real-time run gives up after 3 s. A server that takes
+    the probe and never answers: at 4x the client gives up after the probe's length + GRACE_S + ANSWER_MARGIN_S
+    of simulated time, 2.1 s of wall time, not 8.1. These waits were wall-clock at any speed-up, so a sped-up run
+    logged a quarter as many failed probes per simulated minute. The bounds, 2.5 s and 5 s, sit well under the
+    3 s and 8.1 s of unscaled waits, whatever the load adds."""
     listener = socket.create_server(("127.0.0.1", 0), backlog=0)
     port = listener.getsockname()[1]
     queued = socket.create_connection(("127.0.0.1", port), timeout=5.0)  # fills the accept queue
@@ -523,7 +524,7 @@ def test_a_sped_up_probe_waits_for_its_connection_in_simulated_time(tmp_path):
     try:
         with JsonlLog(tmp_path / "throughput.jsonl") as out:
             scheduler = ProbeScheduler(settings_, "m", lambda: [], lambda: AgentSnapshot(0.0, own), out,
-                                       threading.Event(), clock=FourTimes())
+                                       threading.Event(), clock=sped_up(4.0))
             started = time.monotonic()
             record = scheduler.probe_once("w", "127.0.0.1", port)
             waited_s = time.monotonic() - started
@@ -532,3 +533,19 @@ def test_a_sped_up_probe_waits_for_its_connection_in_simulated_time(tmp_path):
         listener.close()
     assert record["error_kind"] == "link" and "timed out" in record["error"], record
     assert waited_s < 2.5, waited_s
+    stalled = hostile(stall=True)
+    with JsonlLog(tmp_path / "throughput-2.jsonl") as out:
+        scheduler = ProbeScheduler(settings_, "m", lambda: [], lambda: AgentSnapshot(0.0, own), out,
+                                   threading.Event(), clock=sped_up(4.0))
+        started = time.monotonic()
+        record = scheduler.probe_once("w", "127.0.0.1", stalled.port)
+        waited_s = time.monotonic() - started
+    assert stalled.stalled.is_set() and record["error_kind"] == "link", record
+    assert waited_s < 5.0, waited_s
+
+
+def sped_up(speedup: float) -> Clock:
+    """The run's clock at a fixed speed-up (its time axis is not read here)."""
+    clock = Clock()
+    clock.speedup = speedup
+    return clock
