@@ -236,7 +236,9 @@ class Medium:
             end = start_s + t.ppdu_s(t.subframe_bytes(head.size_bytes), t.broadcast_rate_bps, t.legacy_preamble_s)
             if not collided:
                 for j in range(self.n):
-                    if j != src and self.phy_bps[src, j] > 0 and self.rng.random() >= self.per[src, j]:
+                    # at the group rate, as robust as the slowest modelled rate at least: MCS 0's error rate, not
+                    # the pair's data rate's (a broadcast has no retries to make up for a fast rate's losses)
+                    if j != src and self.phy_bps[src, j] > 0 and self.rng.random() >= self.fallback_per[src, j]:
                         self._done.append(Delivery(head, j, end))
                         self.stats.delivered += 1
                         self.stats.segments_delivered += 1
@@ -299,29 +301,29 @@ class Medium:
 
 def expected_message_s(timing: MacTiming, message_bytes: int, phy_bps: float, per: float = 0.0,
                        mtu_bytes: int = 1500) -> float:
-    """The mean air time of a message sent alone on an idle medium (the sleep network's per-message charge):
-    IP packets of the MTU, aggregated as the medium does, each exchange paying AIFS, the mean backoff (half the
-    minimum window), preamble, data, SIFS and the block ack; lost subframes are sent again (1 / (1 - per) times
-    the air time on average)."""
+    """The mean time from a message's arrival at a medium idle for at least AIFS to its last data received, as the
+    medium charges it (the sleep network's per-message charge): IP packets of the MTU, aggregated as the medium
+    does. The first exchange waits for the next slot boundary (half a slot on average) and the mean backoff (half
+    the minimum window), then its preamble and data; each further one also waits for the last one's SIFS and block
+    ack and AIFS. Lost subframes are sent again (1 / (1 - per) times the air time on average)."""
     if phy_bps <= 0 or per >= 1:
         return math.inf
     packets = [mtu_bytes] * (message_bytes // mtu_bytes) + ([message_bytes % mtu_bytes] if message_bytes % mtu_bytes
                                                             else [])
-    total, batch, size = 0.0, 0, 0
-    backoff_s = timing.cw_min / 2 * timing.slot_s
-
-    def exchange(size_bytes: int) -> float:
-        return timing.aifs_s + backoff_s + timing.ppdu_s(size_bytes, phy_bps) + timing.sifs_s + timing.block_ack_s()
-
+    sizes, batch, size = [], 0, 0
     for packet in packets or [0]:
         sub = timing.subframe_bytes(packet)
         if batch and (batch >= timing.max_ampdu_frames or size + sub > timing.max_ampdu_bytes
                       or timing.ppdu_s(size + sub, phy_bps) > timing.max_ppdu_s):
-            total += exchange(size)
+            sizes.append(size)
             batch, size = 0, 0
         batch += 1
         size += sub
-    total += exchange(size)
+    sizes.append(size)
+    backoff_s = timing.cw_min / 2 * timing.slot_s
+    between_s = timing.sifs_s + timing.block_ack_s() + timing.aifs_s  # the last exchange's ack, then AIFS
+    total = timing.slot_s / 2 + len(sizes) * backoff_s + (len(sizes) - 1) * between_s
+    total += sum(timing.ppdu_s(s, phy_bps) for s in sizes)
     return total / (1.0 - per)
 
 
@@ -332,4 +334,8 @@ def saturated_goodput_bps(phy_bps: float, timing: MacTiming = MacTiming(), mtu_b
     if phy_bps <= 0:
         return 0.0
     message = 200 * mtu_bytes
-    return 8 * message / expected_message_s(timing, message, phy_bps, 0.0, mtu_bytes)
+    # back to back, each message also holds the medium for its last ack and the AIFS before the next, and starts
+    # on a slot boundary the last one's AIFS ended on
+    each_s = expected_message_s(timing, message, phy_bps, 0.0, mtu_bytes) - timing.slot_s / 2 \
+        + timing.sifs_s + timing.block_ack_s() + timing.aifs_s
+    return 8 * message / each_s

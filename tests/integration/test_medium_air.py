@@ -83,10 +83,43 @@ class Echo:
 
 
 @needs_kernel
+def test_a_broadcast_is_one_frame_that_reaches_the_stations_in_range_and_no_other():
+    """The agents' peer state goes as one broadcast a period (as on the fleet): sent to the run's /16 broadcast
+    address, it is one frame on the air, received by every station the sender reaches and by none it does not."""
+    air = MediumAir(["a", "b", "c"], ap=0, sharing=True).create()
+    sockets = []
+    try:
+        rates = np.full((3, 3), PHY_BPS)
+        np.fill_diagonal(rates, 0.0)
+        rates[0, 2] = rates[2, 0] = 0.0  # c is out of a's range
+        zeros = np.zeros((3, 3))
+        air.apply(SimpleNamespace(frames={"phy_bps": rates, "per": zeros, "fallback_bps": rates,
+                                          "fallback_per": zeros}), 1.0)
+        sender, near, far = (netns.socket_in_netns(st.netns, socket.AF_INET, socket.SOCK_DGRAM)
+                             for st in air.stations)
+        sockets = [sender, near, far]
+        for receiver in (near, far):
+            receiver.bind(("0.0.0.0", 47999))
+        near.settimeout(5.0)
+        far.settimeout(0.5)
+        sender.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+        address = air.stations[0].address.split(".")
+        sender.sendto(b"state", (f"{address[0]}.{address[1]}.255.255", 47999))
+        assert near.recvfrom(64)[0] == b"state"
+        with pytest.raises(TimeoutError):
+            far.recvfrom(64)  # delivered with the near one's copy, or never
+        assert counters_when(air, "delivered", 1)["offered"] == 1
+    finally:
+        for sock in sockets:
+            sock.close()
+        air.close()
+
+
+@needs_kernel
 @needs_iperf3
 @pytest.mark.exclusive  # judges round trips in milliseconds
 def test_a_small_message_waits_behind_a_bulk_flow_in_its_stations_queue():
-    """Idle, a 100-byte echo crosses the 30 Mbit/s air in about a millisecond (the model's 0.49 ms for the two
+    """Idle, a 100-byte echo crosses the 30 Mbit/s air in about a millisecond (the model's 0.32 ms for the two
     frames plus this host's TUN and Python hops). While station a sends an iperf3 bulk flow to b, a's echo
     requests wait behind the flow's packets in a's one transmit queue: the median round trip grows at least
     fivefold and past 5 ms, the delay line's records show the queue time, and the flow gets the medium's rate (at
@@ -112,7 +145,7 @@ def test_a_small_message_waits_behind_a_bulk_flow_in_its_stations_queue():
     finally:
         close(air, server)
     model_s = 2 * expected_message_s(MacTiming(), 128, PHY_BPS)
-    assert statistics.median(idle) < 5 * model_s, (statistics.median(idle), model_s)
+    assert statistics.median(idle) < 8 * model_s, (statistics.median(idle), model_s)
     assert statistics.median(busy) > max(5 * statistics.median(idle), 0.005), (statistics.median(busy), idle)
     bps = report["end"]["sum_received"]["bits_per_second"]
     assert 0.5 * PHY_BPS < bps < PHY_BPS, bps
