@@ -109,6 +109,9 @@ class ThroughputSection:
     # SITL only: a channel preset or TOML; each probe is then paced at the model's capacity for the pair's distance
     # (and fails below its minimum rate), so loopback behaves like the radio. "" = measure the real network.
     emulate_channel: str = ""
+    # the probes begin once this file exists ("" = at once). SITL gives its run's go, which the MPI job waits for
+    # too: the probes measure the flight the job computes in, and leave the job's set-up the air
+    start_file: str = ""
     # "nac": our probe, against `nac-onboard throughput server`; "iperf3": `iperf3 --client --json` against an
     # `iperf3 --server` on each target (run it there yourself; SITL's runner does), whole seconds per probe
     tool: str = "nac"

@@ -207,7 +207,7 @@ class Agent:
     def run(self) -> None:
         c = self.config
         telemetry = _Timer(1.0 / c.log.telemetry_hz)
-        publish = _Timer(1.0 / c.peers.rate_hz)
+        publish = _Timer(self.run_clock.wall_s(1.0 / c.peers.rate_hz))
         expire = _Timer(EXPIRE_CHECK_S)
         supervise = _Timer(SUPERVISE_S)
         sync = _Timer(c.log.fsync_s) if c.log.fsync_s > 0 else None
@@ -239,6 +239,7 @@ class Agent:
                                + self.autopilot.refused), refused
             wake_s = FLOOD_WAKE_S if refused - before >= FLOOD_REFUSED else MIN_WAKE_S
             self.autopilot.check(now)
+            self._peer_times_in_run_time(publish)
             if telemetry.fire(now):
                 self._log_telemetry()
             if publish.fire(now):
@@ -246,7 +247,7 @@ class Agent:
             if expire.fire(now):
                 for peer, silent_s in self.peers.expire(now):
                     self.log.write(kinds.PEER_LOST, peer=peer.id, role=peer.role, host=peer.host,
-                                   silent_s=round(silent_s, 3))
+                                   silent_s=round(self.run_clock.sim_s(silent_s), 3))
             if sync is not None and sync.fire(now):
                 for f in (self.log, self.throughput_log, self.tlog):
                     if f is not None:
@@ -256,6 +257,16 @@ class Agent:
             if supervise.fire(now):
                 self._supervise_throughput_server()
                 self._save_peer_freshness()
+
+    def _peer_times_in_run_time(self, publish: _Timer) -> None:
+        """The peer state's period and the peers' timeouts are the run's seconds (a real vehicle's are wall
+        seconds): at a speed-up X the state goes X times as often on the wall clock, so a sped-up run's air carries
+        what a real-time one's does (wall-clock periods put twice the frames into a simulated second at 0.25x as at
+        0.5x), and a silent peer is lost after the same simulated seconds."""
+        p, wall_s = self.config.peers, self.run_clock.wall_s
+        publish.period_s = wall_s(1.0 / p.rate_hz)
+        self.peers.timeout_s = wall_s(p.timeout_s)
+        self.peers.forget_s = wall_s(max(p.forget_s, p.timeout_s))
 
     def stop(self, reason: str) -> None:
         self.stop_reason = reason

@@ -26,6 +26,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 from nac_onboard.agent.config import ThroughputSection
 from nac_onboard.agent.snapshot import AgentSnapshot, ProbeResult, position
@@ -43,6 +44,7 @@ log = logging.getLogger(__name__)
 # the same simulated time as a real-time one (wall-clock waits made a stalled probe hold its worker's schedule for
 # 34 simulated seconds at 4x against 10 at 1x: a quarter as many failed probes, a higher mean throughput)
 CONNECT_TIMEOUT_S = 3.0
+GO_POLL_S = 0.05  # wall: how often a schedule waiting for its start file looks for it
 
 
 def received_bps(result: dict) -> float:
@@ -82,6 +84,8 @@ class ProbeScheduler:
         """Rounds until stopped. No probe, target list or answer can end the schedule: an exception from one
         probe is logged as a probe_failed record and the round goes on to the next target. Concurrent: each
         round starts a schedule for every target that has none, and ends those of targets no longer listed."""
+        if not self._wait_for_go():
+            return
         next_round = time.monotonic()
         schedules: dict[str, threading.Thread] = {}
         while not self.stop_event.wait(max(next_round - time.monotonic(), 0.0)):
@@ -111,6 +115,16 @@ class ProbeScheduler:
         deadline = time.monotonic() + self.clock.wall_s(self.settings.duration_s) + 12.0
         for schedule in schedules.values():
             schedule.join(max(deadline - time.monotonic(), 0.0))
+
+    def _wait_for_go(self) -> bool:
+        """Until the start file exists (True), or the agent stops first (False)."""
+        go = Path(self.settings.start_file) if self.settings.start_file else None
+        if go is not None and not go.exists():
+            log.info("throughput probes: waiting for %s", go)
+        while go is not None and not go.exists():
+            if self.stop_event.wait(GO_POLL_S):
+                return False
+        return True
 
     def _run_one(self, target, key: str) -> None:
         """One target's probes, one every period_s, until stopped or no longer listed."""

@@ -412,7 +412,9 @@ class Experiment:
 
     def _wait_for_compute_setup(self, timeout_s: float = COMPUTE_SETUP_TIMEOUT_S) -> None:
         """The missions start once the MPI job is set up (its run_started record): its start-up costs wall time,
-        which at a speed-up would otherwise be flight without computing, more of it the faster the run."""
+        which at a speed-up would otherwise be flight without computing, more of it the faster the run. Below 1x
+        the wait is longer in proportion: the start-up's connections cross the air on the run's slowed clock."""
+        timeout_s /= min(self.speedup, 1.0)
         deadline = time.monotonic() + timeout_s
         path = kinds.COMPUTE_LOG.at(self.run_dir)
         while not (path.exists() and (started := read_jsonl(path).of_kind(kinds.RUN_STARTED))):

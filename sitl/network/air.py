@@ -25,6 +25,7 @@ from sitl.network import netns
 from sitl.network.shaping import AirState, Layout
 
 log = logging.getLogger(__name__)
+AIR_PREFIX_LENGTH = 16  # each run's stations share one 10.<x>.0.0/16
 MAX_STATIONS = 250
 NFT_TABLE = "nacair"
 CARRIER_TIMEOUT_S = 5.0
@@ -163,7 +164,7 @@ class AirNetwork:
         netns.run(["ip", "-n", self.air_ns, "-batch", "-"], "the bridge", "\n".join(links) + "\n")
         for s in self.stations:
             netns.run(["ip", "-n", s.netns, "-batch", "-"], f"{s.vehicle_id}'s interfaces",
-                      f"link set lo up\naddr add {s.address}/16 dev air0\nlink set air0 up\n")
+                      f"link set lo up\naddr add {s.address}/{AIR_PREFIX_LENGTH} dev air0\nlink set air0 up\n")
             netns.run(["ip", "netns", "exec", s.netns, "sysctl", "-q", "-w", *self.tcp_settings()],
                       f"{s.vehicle_id}'s TCP settings")
         netns.run(["tc", "-n", self.air_ns, "-batch", "-"], "the air's qdiscs",

@@ -22,7 +22,7 @@ from nac_onboard.flight_log import JsonlLog
 from nac_onboard.radio.medium import DEFAULT_QUEUE_PACKETS
 from nac_onboard.records import kinds
 from sitl.network import netns
-from sitl.network.air import AirNetwork, Station, end_fed_process
+from sitl.network.air import AIR_PREFIX_LENGTH, AirNetwork, Station, end_fed_process
 from sitl.network.delay_line import READY
 from sitl.network.shaping import AirState
 
@@ -66,7 +66,7 @@ class MediumAir(AirNetwork):
         self._wait_ready()
         for s in self.stations:
             netns.run(["ip", "-n", s.netns, "-batch", "-"], f"{s.vehicle_id}'s air0",
-                      f"addr add {s.address}/16 dev air0\nlink set air0 up\n")
+                      f"addr add {s.address}/{AIR_PREFIX_LENGTH} dev air0\nlink set air0 up\n")
         self._reader = threading.Thread(target=self._read_counters, name="delay-line", daemon=True)
         self._reader.start()
         self.wait_for_carrier()

@@ -182,6 +182,38 @@ def test_two_agents_see_each_other_within_2_s_and_log_peer_lost(start_sitl, star
     assert fetch_state(feed)["peers"]["uav2"]["lost"]
 
 
+def test_a_sped_up_runs_agents_keep_their_peer_period_and_timeout_in_simulated_seconds(start_sitl, start_agent,
+                                                                                       tmp_path):
+    """On a run's clock at 4x, peer state at 1 Hz is one message a simulated second: 4 a wall second (wall-clock
+    periods gave 1, so a sped-up run's air carried a quarter of the peer frames, and a slowed one more). uav2
+    counts what it hears from uav1 while both are up: at least 2.5 a wall second is required, a margin of a
+    quarter of a second per message for a loaded machine's late wake-ups, where wall periods give at most 1.1. A
+    stopped peer is lost once silent for its 2 simulated seconds (0.5 s of wall time) and the record says so in
+    simulated seconds: the expiry check every 0.1 s and the last period (0.25 s) make it 2-3.4; wall-clock
+    timeouts gave 8 or more."""
+    from nac_onboard import clock
+
+    sim = start_sitl(vehicles=2, speedup=4.0)
+    clock_path = tmp_path / "clock.json"
+    clock.publish(str(clock_path), 4.0, 0.0)
+    env = {**os.environ, clock.ENV: str(clock_path)}
+    ports = [free_port(), free_port()]
+    configs = [agent_toml(f"uav{i + 1}", role, i + 1, companion_uri(sim, i), tmp_path / "runs", ports[i],
+                          [ports[1 - i]], peers={"rate_hz": 1.0, "timeout_s": 2.0})
+               for i, role in enumerate(["master", "worker"])]
+    agents = [start_agent(text, name=f"uav{i + 1}", env=env) for i, text in enumerate(configs)]
+    both_ready_s = max(wait_for_record(run_dir(tmp_path, i) / "agent.jsonl", kind("agent_ready"))["t_s"]
+                       for i in range(2))
+    wait_for_record(run_dir(tmp_path, 1) / "agent.jsonl", kind("peer_seen", peer="uav1"), timeout_s=5.0)
+    time.sleep(3.0)  # the window the messages are counted over
+    assert agents[1].stop() == 0
+    stopped = wait_for_record(run_dir(tmp_path, 1) / "agent.jsonl", kind("agent_stopped"))
+    heard_per_wall_s = stopped["peer_msgs"] / (stopped["stop_requested_s"] - both_ready_s)
+    assert heard_per_wall_s > 2.5, stopped["peer_msgs"]
+    lost = wait_for_record(run_dir(tmp_path, 0) / "agent.jsonl", kind("peer_lost", peer="uav2"), timeout_s=5.0)
+    assert 2.0 <= lost["silent_s"] < 4.0, lost
+
+
 def test_master_probes_each_worker_on_its_period_and_logs_failures_too(start_sitl, start_agent, tmp_path):
     sim = start_sitl(vehicles=2, speedup=5.0, spacing_m=9.0)
     ports = [free_port(), free_port()]

@@ -491,6 +491,43 @@ def test_concurrent_probes_go_on_to_the_other_workers_while_one_probe_stalls(tmp
     assert ended and ended[0]["error_kind"] == "link"  # it ended by its deadline, logged as a link failure
 
 
+def test_probes_begin_at_the_start_file_and_a_stop_before_it_ends_them(tmp_path):
+    """With `start_file` (SITL's go, which the MPI job waits for too) the schedule asks for no target and sends
+    nothing until the file exists, so the job's set-up has the air to itself; then it probes. Stopped before the
+    go, it ends without a probe."""
+    genuine = ThroughputServer("127.0.0.1", free_port()).start()
+    own = OwnState("m", "master", 1, 47.0, 8.0, 500.0, None, None, "", True)
+    go = tmp_path / "go"
+    asked = threading.Event()
+
+    def targets():
+        asked.set()
+        return [("w", "127.0.0.1", genuine.port)]
+
+    settings_ = ThroughputSection(probe=True, period_s=0.2, duration_s=0.1, interval_s=0.05, concurrent=True,
+                                  start_file=str(go))
+    stop, never = threading.Event(), threading.Event()
+    try:
+        with _WatchedLog(tmp_path / "throughput.jsonl") as out:
+            waiting = ProbeScheduler(settings_, "m", targets, lambda: AgentSnapshot(0.0, own), out, never).start()
+            scheduler = ProbeScheduler(settings_, "m", targets, lambda: AgentSnapshot(0.0, own), out, stop).start()
+            assert not asked.wait(1.0), "a schedule asked for its targets before the go"
+            never.set()
+            waiting.join(5.0)
+            assert not waiting.alive, "stopped before the go, the schedule went on waiting"
+            go.write_text("{}")
+            assert out.third_genuine.wait(30.0), "no probes after the go"
+            stop.set()
+            scheduler.join(20.0)
+    finally:
+        stop.set()
+        never.set()
+        genuine.stop()
+    records = read_jsonl(tmp_path / "throughput.jsonl").records
+    assert records and all(r["server"] == "w" for r in records)
+    assert records[0]["end"]["sum_received"]["bytes"] > 0
+
+
 class _WatchedLog(JsonlLog):
     """The probe log, telling the test when the genuine server's third good probe is written."""
 

@@ -372,3 +372,27 @@ def test_a_frame_file_flies_every_vehicle_of_the_scenario(tmp_path):
     hover_w = float(energy.level_power_w(scenario.frame, 0.0))
     assert world.physics.power.induced_power_w[1] == pytest.approx(scenario.frame.induced_power_w)
     assert float(energy.level_power_w(world.physics.power, 0.0)[0]) == pytest.approx(hover_w)
+
+
+def test_on_the_frame_level_air_agents_broadcast_their_state_and_probe_from_the_go(tmp_path):
+    """On the medium air each agent sends its state as one broadcast to the run's /16 and listens on one port for
+    everyone's (the fleet's default; a unicast to each peer was 900 frames a second from 16 vehicles); the htb air
+    keeps a unicast to each peer, as its nftables drops are per pair. With a job the master's probes start at the
+    go the job computes from."""
+    import dataclasses
+
+    import tomllib
+
+    from nac_onboard.records import kinds
+    from sitl.experiment.commands import agent_config
+
+    addresses = ["10.70.0.1", "10.70.0.2", "10.70.0.3"]
+    scenario = load_scenario("paper-flight-moving")
+    configs = [tomllib.loads(agent_config(scenario, i, tmp_path, Ports(14550), addresses)) for i in range(3)]
+    assert {c["peers"]["listen"] for c in configs} == {f"0.0.0.0:{Ports(14550).peers(0)}"}
+    assert all(c["peers"]["send_to"] == [f"10.70.255.255:{Ports(14550).peers(0)}"] for c in configs)
+    assert configs[0]["throughput"]["start_file"] == str(kinds.START_FILE.at(tmp_path))
+    static = load_scenario("paper-flight-static")
+    htb = dataclasses.replace(static, network=dataclasses.replace(static.network, air="htb"))
+    master = tomllib.loads(agent_config(htb, 0, tmp_path, Ports(14550), addresses))
+    assert master["peers"]["send_to"] == [f"10.70.0.2:{Ports(14550).peers(1)}", f"10.70.0.3:{Ports(14550).peers(2)}"]
