@@ -16,10 +16,11 @@ from ground.view.records import RunFollower, positions
 from ground.view.serve import ViewThread, screenshot
 from ground.view.server import ViewServer
 from missions import save_mission
+from missions.builder import Builder
 from missions.geo import Home, enu_to_lla, lla_to_enu
 from sitl.experiment.runner import Experiment, Outcome, save_screenshot
 from sitl.experiment.scenario import load_scenario
-from sitl.scenarios.generate import at, hover, route
+from sitl.scenarios.generate import at, hover
 from tests.conftest import allocate_base_port
 from tests.integration.conftest import needs_browser
 from tests.integration.test_experiment import write_scenario
@@ -46,9 +47,13 @@ def scrub(browser, offset_s: float) -> None:
 
 
 def out_and_back_scenario(folder: Path) -> Path:
-    """write_scenario's fleet, but w1 flies 120 m out (the channel's median range is 47 m) and back at 12 m/s."""
-    path = write_scenario(folder, duration_s=45.0)
-    save_mission(route(at(5, 0), 5.0, [(120.0, 0.0), (5.0, 0.0)], speed_mps=12.0), folder / "w1.plan")
+    """write_scenario's fleet, but w1 holds 10 s where it took off (the probes begin at the run's go, once all are
+    up: 1 s of wall time in range at 10x), then flies 120 m out (the channel's median range is 47 m) and back at
+    12 m/s."""
+    path = write_scenario(folder, duration_s=55.0)
+    w1 = Builder(at(5, 0)).takeoff(5.0).hold(0.0, 0.0, 5.0, 10.0).speed(12.0).waypoint(120.0, 0.0, 5.0) \
+        .waypoint(5.0, 0.0, 5.0).hold(5.0, 0.0, 5.0, 60.0).land(5.0, 0.0).mission()
+    save_mission(w1, folder / "w1.plan")
     save_mission(hover(at(0, 0), 5.0), folder / "master.plan")
     return path
 
