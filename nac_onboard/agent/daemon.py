@@ -239,12 +239,12 @@ class Agent:
                                + self.autopilot.refused), refused
             wake_s = FLOOD_WAKE_S if refused - before >= FLOOD_REFUSED else MIN_WAKE_S
             self.autopilot.check(now)
-            self._peer_times_in_run_time(publish)
             if telemetry.fire(now):
                 self._log_telemetry()
             if publish.fire(now):
                 self._publish_state()
             if expire.fire(now):
+                self._peer_times_in_run_time(publish)  # the pace can change; every expiry check follows it
                 for peer, silent_s in self.peers.expire(now):
                     self.log.write(kinds.PEER_LOST, peer=peer.id, role=peer.role, host=peer.host,
                                    silent_s=round(self.run_clock.sim_s(silent_s), 3))

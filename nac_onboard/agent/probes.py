@@ -118,10 +118,11 @@ class ProbeScheduler:
 
     def _wait_for_go(self) -> bool:
         """Until the start file exists (True), or the agent stops first (False)."""
-        go = Path(self.settings.start_file) if self.settings.start_file else None
-        if go is not None and not go.exists():
-            log.info("throughput probes: waiting for %s", go)
-        while go is not None and not go.exists():
+        go = Path(self.settings.start_file)
+        if not self.settings.start_file or go.exists():
+            return True
+        log.info("throughput probes: waiting for %s", go)
+        while not go.exists():
             if self.stop_event.wait(GO_POLL_S):
                 return False
         return True
