@@ -68,7 +68,9 @@ def test_keep_going_starts_a_job_whose_master_was_killed_again_from_its_checkpoi
         start_agent(text, name=f"uav{k + 1}")
     feed = configs[0].split("[state_feed]\nlisten = ")[1].split("\n")[0].strip('"')
     wait_for_record(tmp_path / "runs" / "test" / "uav1" / "agent.jsonl", kind("peer_seen", peer="uav2"))
-    out, total = tmp_path / "compute", 3000
+    # long enough that the kill lands mid-run: 3,000 iterations took 0.8 s on this machine, and under load the
+    # job once ended before the test saw its 20th iteration and killed it (ProcessLookupError)
+    out, total = tmp_path / "compute", 12000
     job = subprocess.Popen([NAC_ONBOARD, "mpi", "run", "--keep-going", "--feed", feed, "--hostfile",
                             str(tmp_path / "hostfile"), "--timeout", "120", "--", NAC_ONBOARD, "compute", "--task",
                             "linreg", "--iterations", str(total), "--out", str(out), "--emulate", "none",
