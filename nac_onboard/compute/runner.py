@@ -70,7 +70,7 @@ from nac_onboard.flight_log import JsonlLog
 from nac_onboard.link.emulation import SleepEmulation
 from nac_onboard.records import kinds
 
-IDLE_FIRST_S, IDLE_MAX_S = 0.05, 1.0  # back-off while no worker is in range
+IDLE_FIRST_S, IDLE_MAX_S = 0.05, 1.0  # simulated seconds: the back-off while no worker is in range
 UNRESPONSIVE_AFTER = 3  # iterations missed in a row before a worker is no longer waited for
 PING_S = 1.0  # how often an unresponsive worker is asked whether it is back
 DISK_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)  # a checkpoint that fails with these is skipped, not fatal
@@ -409,6 +409,18 @@ class Master:
                 self._pings[rank] = (request, message)
             self._next_ping_s[rank] = now + self.clock.wall_s(PING_S)
 
+    def _hear_until(self, deadline: float) -> None:
+        """The inbox while no worker is waited for, until one is back or the deadline: with every worker
+        unresponsive, nothing else reads the answers to the pings that bring them back."""
+        while True:
+            rank, buf = self.inbox.receive(deadline)
+            if buf is None:
+                return
+            self.stale_results += 1  # a ping's answer, or a result whose iteration was closed
+            if rank in self.unresponsive:
+                self._back(rank)
+                return
+
     def _back(self, rank: int) -> None:
         self.unresponsive.discard(rank)
         self._missed[rank] = 0
@@ -551,7 +563,7 @@ class Master:
                 idle_s = 0.0
             else:  # nobody reachable: wait, longer each time, instead of spinning through empty iterations
                 idle_s = min(max(2 * idle_s, IDLE_FIRST_S), IDLE_MAX_S)
-                time.sleep(idle_s)
+                self._hear_until(time.monotonic() + self.clock.wall_s(idle_s))
             record = self.iterate(iteration, present, links, t_start)
             self.pending = (iteration, start_unix, time.monotonic() - t_start, start_sim, self.clock.now_s(), links,
                             record)

@@ -347,6 +347,26 @@ def test_a_stopped_worker_is_no_longer_waited_for_and_rejoins_when_it_answers(tm
     assert per_worker(read.of_kind("iteration")[-1])[1]["present"], "back in the job at the end"
 
 
+def test_every_worker_stopped_at_once_is_taken_back_when_they_answer(tmp_path):
+    """With every worker unresponsive the master waited between empty iterations without reading its inbox, so the
+    answers to its pings were never heard and the job trained alone to its end (a 1x paper-flight-moving run,
+    2026-11-28: both workers unresponsive at 57 s, w2 in range and its probes through from 57 s, neither back by
+    130 s)."""
+    with job("--task", "linreg", "--duration-s", "10", "--out", str(tmp_path), "--timeout-s", "0.5") as proc:
+        wait_until(lambda: iterations_logged(tmp_path) >= 5, proc)  # past the warm-up, which needs everyone
+        pids = [read_jsonl(tmp_path / f"rank-{r}.jsonl").of_kind("worker_started")[0]["pid"] for r in (1, 2)]
+        for pid in pids:
+            os.kill(pid, signal.SIGSTOP)
+        wait_until(lambda: len(read_jsonl(tmp_path / "compute.jsonl").of_kind("worker_unresponsive")) == 2, proc)
+        for pid in pids:
+            os.kill(pid, signal.SIGCONT)
+        code = proc.wait(timeout=30)
+    assert code == 0, proc.stderr.read().decode()[-2000:]
+    read = read_jsonl(tmp_path / "compute.jsonl")
+    assert sorted(r["rank"] for r in read.of_kind("worker_back")) == [1, 2], read.of_kind("worker_back")
+    assert all(w["present"] for w in per_worker(read.of_kind("iteration")[-1])), "both back in the job at the end"
+
+
 @pytest.mark.parametrize("row, message", [
     ("1,2,mar,fri,not-a-number,0,0,0,0,0,0,0,0", "FFMC 'not-a-number' is not a number"),
     ("1,2,mar,fri,90,0,0,0,nan,40,4,0,0", "temp 'nan' outside -60..60"),

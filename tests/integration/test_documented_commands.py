@@ -29,11 +29,12 @@ DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 BLOCK = re.compile(r"```(?:sh|bash)\n(.*?)```", re.S)
 
 NOT_RUN = {
-    "make demo": "a 130 s flight in real time and one at 4x, 3 minutes; `make test` is CI's own command",
+    "make demo": "two 130 s flights at 4x, 1.5 minutes; `make test` is CI's own command",
     "make test": "the suite this test is part of",
-    "nac-sitl experiment paper-flight-moving": "130 s of real time; its scenario runs at 4x in test_kernel_network",
+    "nac-sitl experiment paper-flight-moving": "a 130 s flight at 4x, as make demo runs it; test_kernel_network "
+                                               "flies it on the htb air",
     "nac-sitl experiment paper-flight-moving --links replay:runs/flight-X":
-        "130 s of real time; replay is test_experiment's test_a_recorded_run_replays_its_links_on_the_kernel_network",
+        "a 130 s flight at 4x; replay is test_experiment's test_a_recorded_run_replays_its_links_on_the_kernel_network",
     "nac-sitl experiment paper-sim-moving --speedup 4 --view":
         "15 s of a 60 s scenario; `--view` live is test_view's test_the_live_page_follows_the_simulator_...",
     "nac-ground view /var/log/nac/RUN --follow": "a companion's log folder; --follow is test_view's 200 MB record test",

@@ -1,0 +1,96 @@
+"""Whether two sets of runs (the same scenario at two speed-ups) agree, judged only as far as their samples allow.
+
+A median's confidence interval from order statistics (distribution-free: no assumption on how a loaded machine
+spreads the measurements): with n samples, the k-th smallest and the k-th largest bound the median with at least the
+stated confidence, k from the binomial(n, 1/2) distribution. A bin with too few samples gives no interval at all,
+and is not judged. Two medians can agree within `rel` when their intervals, one widened by rel, meet.
+
+The runs' samples are pooled per distance bin: a moving flight's worker spends a few seconds in each 2 m bin, so
+one run holds one or two blocks of 10 iterations there, and only several runs together say anything per bin.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+#: below this, a median's 95 % interval is the whole sample's range (n = 5: k = 1) and says little: not judged
+MIN_SAMPLES = 8
+ALL = "all"  # every worker's samples together, as the report's throughput by distance pools the links
+
+
+def median_interval(values, confidence: float = 0.95) -> tuple[float, float] | None:
+    """(low, high) holding the population median with at least `confidence`, or None with fewer than MIN_SAMPLES."""
+    x = np.sort(np.asarray(values, dtype=float))
+    n = len(x)
+    if n < MIN_SAMPLES:
+        return None
+    tail = (1.0 - confidence) / 2
+    k, below = 0, 0.0
+    while True:  # the largest k with P(Binomial(n, 1/2) < k) <= tail: x[k-1] and x[n-k] bound the median
+        below_next = below + math.comb(n, k) / 2 ** n
+        if below_next > tail:
+            break
+        below, k = below_next, k + 1
+    k = max(k, 1)
+    return float(x[k - 1]), float(x[n - k])
+
+
+def agrees_within(values, target: float, rel: float, confidence: float = 0.95) -> bool | None:
+    """Whether the sample's median can be within rel of target (its interval meets the band); None: too few."""
+    interval = median_interval(values, confidence)
+    if interval is None:
+        return None
+    low, high = interval
+    return low <= target * (1 + rel) and high >= target * (1 - rel)
+
+
+@dataclass(frozen=True)
+class BinAgreement:
+    quantity: str  # "time_per_10_s" or "throughput_mbps"
+    worker: str
+    distance_from_m: float | None  # None: every distance together
+    samples: tuple[int, int]
+    medians: tuple[float, float]
+    intervals: tuple[tuple[float, float], tuple[float, float]]
+    agrees: bool  # the two medians can be within rel of each other
+
+    @property
+    def ratio(self) -> float:
+        return self.medians[1] / self.medians[0] if self.medians[0] else math.nan
+
+
+def compare(tables: tuple[dict[str, pd.DataFrame], dict[str, pd.DataFrame]], bin_m: float = 2.0,
+            rel: float = 0.10) -> list[BinAgreement]:
+    """Each quantity per worker and for all together, over every distance and per distance bin, of two sets of
+    runs: each a dict of pooled analysis tables ("time_per_10": worker, distance_m, time_per_10_s; "throughput":
+    server, distance_m, throughput_mbps). Only what both sets hold MIN_SAMPLES of is judged."""
+    out = []
+    for quantity, table, who in (("time_per_10_s", "time_per_10", "worker"), ("throughput_mbps", "throughput",
+                                                                             "server")):
+        pooled = [t[table].dropna(subset=["distance_m", quantity]) for t in tables]
+        for worker in [*sorted(set(pooled[0][who]) & set(pooled[1][who])), ALL]:
+            mine = pooled if worker == ALL else [p[p[who] == worker] for p in pooled]
+            bins = sorted(set(np.floor(mine[0]["distance_m"] / bin_m)) & set(np.floor(mine[1]["distance_m"] / bin_m)))
+            for b in [None, *bins]:
+                samples = [m[quantity] if b is None else m[quantity][np.floor(m["distance_m"] / bin_m) == b]
+                           for m in mine]
+                intervals = [median_interval(s) for s in samples]
+                if None in intervals:
+                    continue
+                (low_a, high_a), (low_b, high_b) = intervals
+                out.append(BinAgreement(quantity, str(worker), None if b is None else float(b * bin_m),
+                                        (len(samples[0]), len(samples[1])),
+                                        (float(samples[0].median()), float(samples[1].median())),
+                                        (intervals[0], intervals[1]),
+                                        low_b <= high_a * (1 + rel) and high_b >= low_a * (1 - rel)))
+    return out
+
+
+def pooled_tables(run_dirs) -> dict[str, pd.DataFrame]:
+    """The runs' analysis tables (RUN/analysis/time_per_10.csv and throughput.csv) one under the other."""
+    return {name: pd.concat([pd.read_csv(f"{run}/analysis/{name}.csv") for run in run_dirs], ignore_index=True)
+            for name in ("time_per_10", "throughput")}
