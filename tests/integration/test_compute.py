@@ -352,7 +352,7 @@ def test_every_worker_stopped_at_once_is_taken_back_when_they_answer(tmp_path):
     answers to its pings were never heard and the job trained alone to its end (a 1x paper-flight-moving run,
     2026-11-28: both workers unresponsive at 57 s, w2 in range and its probes through from 57 s, neither back by
     130 s)."""
-    with job("--task", "linreg", "--duration-s", "10", "--out", str(tmp_path), "--timeout-s", "0.5") as proc:
+    with job("--task", "linreg", "--duration-s", "7", "--out", str(tmp_path), "--timeout-s", "0.5") as proc:
         wait_until(lambda: iterations_logged(tmp_path) >= 5, proc)  # past the warm-up, which needs everyone
         pids = [read_jsonl(tmp_path / f"rank-{r}.jsonl").of_kind("worker_started")[0]["pid"] for r in (1, 2)]
         for pid in pids:
