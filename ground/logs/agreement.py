@@ -50,7 +50,7 @@ def agrees_within(values, target: float, rel: float, confidence: float = 0.95) -
 
 @dataclass(frozen=True)
 class BinAgreement:
-    quantity: str  # "time_per_10_s" or "throughput_mbps"
+    quantity: str  # "duration_s" (an iteration's, simulated), "time_per_10_s" or "throughput_mbps"
     worker: str
     distance_from_m: float | None  # None: every distance together
     samples: tuple[int, int]
@@ -65,10 +65,15 @@ class BinAgreement:
 
 def compare(tables: tuple[dict[str, pd.DataFrame], dict[str, pd.DataFrame]], bin_m: float = 2.0,
             rel: float = 0.10) -> list[BinAgreement]:
-    """Each quantity per worker and for all together, over every distance and per distance bin, of two sets of
-    runs: each a dict of pooled analysis tables ("time_per_10": worker, distance_m, time_per_10_s; "throughput":
-    server, distance_m, throughput_mbps). Only what both sets hold MIN_SAMPLES of is judged."""
+    """Two sets of runs, each a dict of pooled analysis tables: each iteration's simulated duration ("iterations":
+    duration_s; the pace, over the whole flight), then per worker and for all together, over every distance and
+    per distance bin, the time per 10 iterations ("time_per_10": worker, distance_m, time_per_10_s) and the probes'
+    throughput ("throughput": server, distance_m, throughput_mbps). Only what both sets hold MIN_SAMPLES of is
+    judged."""
     out = []
+    if all("iterations" in t for t in tables):
+        row = _judged("duration_s", ALL, None, [t["iterations"]["duration_s"].dropna() for t in tables], rel)
+        out += [row] if row else []
     for quantity, table, who in (("time_per_10_s", "time_per_10", "worker"), ("throughput_mbps", "throughput",
                                                                              "server")):
         pooled = [t[table].dropna(subset=["distance_m", quantity]) for t in tables]
@@ -78,19 +83,23 @@ def compare(tables: tuple[dict[str, pd.DataFrame], dict[str, pd.DataFrame]], bin
             for b in [None, *bins]:
                 samples = [m[quantity] if b is None else m[quantity][np.floor(m["distance_m"] / bin_m) == b]
                            for m in mine]
-                intervals = [median_interval(s) for s in samples]
-                if None in intervals:
-                    continue
-                (low_a, high_a), (low_b, high_b) = intervals
-                out.append(BinAgreement(quantity, str(worker), None if b is None else float(b * bin_m),
-                                        (len(samples[0]), len(samples[1])),
-                                        (float(samples[0].median()), float(samples[1].median())),
-                                        (intervals[0], intervals[1]),
-                                        low_b <= high_a * (1 + rel) and high_b >= low_a * (1 - rel)))
+                row = _judged(quantity, str(worker), None if b is None else float(b * bin_m), samples, rel)
+                out += [row] if row else []
     return out
 
 
+def _judged(quantity: str, worker: str, distance_from_m: float | None, samples, rel: float) -> BinAgreement | None:
+    intervals = [median_interval(s) for s in samples]
+    if None in intervals:
+        return None
+    (low_a, high_a), (low_b, high_b) = intervals
+    return BinAgreement(quantity, worker, distance_from_m, (len(samples[0]), len(samples[1])),
+                        (float(np.median(samples[0])), float(np.median(samples[1]))), (intervals[0], intervals[1]),
+                        low_b <= high_a * (1 + rel) and high_b >= low_a * (1 - rel))
+
+
 def pooled_tables(run_dirs) -> dict[str, pd.DataFrame]:
-    """The runs' analysis tables (RUN/analysis/time_per_10.csv and throughput.csv) one under the other."""
+    """The runs' analysis tables (RUN/analysis/iterations.csv, time_per_10.csv, throughput.csv) one under the
+    other."""
     return {name: pd.concat([pd.read_csv(f"{run}/analysis/{name}.csv") for run in run_dirs], ignore_index=True)
-            for name in ("time_per_10", "throughput")}
+            for name in ("iterations", "time_per_10", "throughput")}

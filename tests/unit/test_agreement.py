@@ -16,7 +16,8 @@ def tables(rng, scale: float = 1.0, far_blocks: int = 20) -> dict[str, pd.DataFr
                        "time_per_10_s": scale * rng.lognormal(np.log(3.0), 0.3, 40)})
     per_10 = pd.concat([near, far, w2], ignore_index=True)
     probes = per_10.rename(columns={"worker": "server"}).assign(throughput_mbps=lambda t: 30.0 / t["time_per_10_s"])
-    return {"time_per_10": per_10, "throughput": probes.drop(columns="time_per_10_s")}
+    iterations = pd.DataFrame({"duration_s": scale * rng.lognormal(np.log(0.3), 0.5, 300)})
+    return {"iterations": iterations, "time_per_10": per_10, "throughput": probes.drop(columns="time_per_10_s")}
 
 
 def test_the_same_process_at_both_speedups_agrees_in_every_judged_bin():
@@ -24,15 +25,17 @@ def test_the_same_process_at_both_speedups_agrees_in_every_judged_bin():
     rows = compare((tables(rng), tables(rng)))
     judged = {(r.quantity, r.worker, r.distance_from_m) for r in rows}
     assert ("time_per_10_s", "w1", None) in judged and ("time_per_10_s", "w1", 20.0) in judged
-    assert ("throughput_mbps", "w2", 10.0) in judged and all(r.agrees for r in rows), rows
+    assert ("throughput_mbps", "w2", 10.0) in judged and ("duration_s", "all", None) in judged
+    assert all(r.agrees for r in rows), rows
 
 
 def test_a_pace_twice_as_slow_is_told_apart_in_every_bin():
-    """Per bin; a worker's whole flight mixes its near and far blocks."""
+    """The pace, and each bin; a worker's whole flight mixes its near and far blocks."""
     rng = np.random.default_rng(2)
-    rows = [r for r in compare((tables(rng), tables(rng, scale=2.0))) if r.distance_from_m is not None]
-    assert len(rows) == 12 and not any(r.agrees for r in rows), rows
-    expected = {"time_per_10_s": 2.0, "throughput_mbps": 0.5}
+    rows = [r for r in compare((tables(rng), tables(rng, scale=2.0)))
+            if r.distance_from_m is not None or r.quantity == "duration_s"]
+    assert len(rows) == 13 and not any(r.agrees for r in rows), rows
+    expected = {"duration_s": 2.0, "time_per_10_s": 2.0, "throughput_mbps": 0.5}
     assert all(abs(r.ratio / expected[r.quantity] - 1) < 0.3 for r in rows), rows
 
 
