@@ -1,18 +1,23 @@
 """What the benchmarks share: the `--smoke` flag every one has (the same code path with tiny sizes, so the test
-suite runs them all), and a process's CPU time and memory from /proc."""
+suite runs them all), a process's CPU time and memory from /proc, and a scratch folder for whole runs on the kernel
+network."""
 
 from __future__ import annotations
 
 import argparse
 import os
 import secrets
+import sys
+import tempfile
 from pathlib import Path
 
 from nac_onboard.records import kinds
 from nac_onboard.tomlfile import write_toml
 from sitl.launcher import free_port
+from sitl.network.netns import NetworkUnavailable, check_kernel_network
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
 def parse_args(parser: argparse.ArgumentParser, smoke_defaults: dict) -> argparse.Namespace:
@@ -53,3 +58,15 @@ def agent_config(folder: Path, vehicle_id: str, role: str, autopilot_uri: str, *
     path = folder / "agent.toml"
     write_toml(path, config)
     return path
+
+
+def kernel_runs_folder(script: str, prefix: str) -> Path | None:
+    """A scratch folder for whole runs on the kernel network, the data directory set for them; None, the reason
+    printed, where this machine cannot make network namespaces."""
+    try:
+        check_kernel_network()
+    except NetworkUnavailable as err:
+        print(f"{script}: {err}", file=sys.stderr)
+        return None
+    os.environ.setdefault("NAC_DATA_DIR", str(DATA))
+    return Path(tempfile.mkdtemp(prefix=prefix))

@@ -19,10 +19,8 @@ import argparse
 import dataclasses
 import io
 import json
-import os
 import shutil
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -31,11 +29,9 @@ from ground.logs.agreement import compare, pooled_tables
 from sitl.experiment.runner import Outcome, run_scenario
 from sitl.experiment.scenario import load_scenario
 from sitl.launcher import allocate_base_port
-from sitl.network.netns import NetworkUnavailable, check_kernel_network
 
 import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SCENARIOS = ("paper-flight-moving", "paper-flight-static")
 SMOKE = {"scenarios": ["paper-flight-static"], "speedups": [4.0, 8.0], "runs": 1, "duration_s": 4.0}
 
@@ -78,13 +74,9 @@ def main() -> int:
     parser.add_argument("--runs", type=int, default=3, help="runs at each speed-up")
     parser.add_argument("--duration-s", type=float, default=None, help="simulated seconds (default: the scenario's)")
     args = _common.parse_args(parser, SMOKE)
-    try:
-        check_kernel_network()
-    except NetworkUnavailable as err:
-        print(f"flight_speedups: {err}", file=sys.stderr)
+    folder = _common.kernel_runs_folder("flight_speedups", "nac-bench-speedups-")
+    if folder is None:
         return 2
-    os.environ.setdefault("NAC_DATA_DIR", str(DATA))
-    folder = Path(tempfile.mkdtemp(prefix="nac-bench-speedups-"))
     ok = True
     try:
         for name in args.scenarios:

@@ -26,10 +26,8 @@ import argparse
 import dataclasses
 import io
 import json
-import os
 import shutil
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -41,11 +39,9 @@ from nac_onboard.records import kinds
 from sitl.experiment.runner import Outcome, run_scenario
 from sitl.experiment.scenario import load_scenario
 from sitl.launcher import allocate_base_port
-from sitl.network.netns import NetworkUnavailable, check_kernel_network
 
 import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 VARIANTS = ("htb", "medium", "medium-probes-host-tcp", "medium-probes", "medium-probes-in-turn", "medium-probes-cubic",
             "medium-probes-tx2", "medium-probes-device")  # up to medium-probes each adds one mechanism to the one
 # before; the rest each change medium-probes in one way: the probes in turn, a Jetson's TCP, or a companion's CPU
@@ -105,13 +101,9 @@ def main() -> int:
     parser.add_argument("--speedup", type=float, default=1.0)
     parser.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS))
     args = _common.parse_args(parser, SMOKE)
-    try:
-        check_kernel_network()
-    except NetworkUnavailable as err:
-        print(f"mechanisms: {err}", file=sys.stderr)
+    folder = _common.kernel_runs_folder("mechanisms", "nac-bench-mech-")
+    if folder is None:
         return 2
-    os.environ.setdefault("NAC_DATA_DIR", str(DATA))
-    folder = Path(tempfile.mkdtemp(prefix="nac-bench-mech-"))
     try:
         runs = [measure(name, args.duration_s, args.speedup, folder) for name in args.variants]
         for run in runs:
