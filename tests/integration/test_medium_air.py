@@ -242,7 +242,7 @@ def test_an_experiment_on_the_frame_level_air_trains_probes_and_records_its_queu
     assert not [n for n in netns.namespaces() if n.startswith(experiment.air.prefix)]
 
 
-STATIC_FLIGHT_S = 45.0  # some 130 iterations after the go, and 10 probes of each link (one in 4 s)
+STATIC_FLIGHT_S = 30.0  # some 80 iterations after the go, 8 blocks of 10 and 6 probes (one in 4 s) per worker
 
 
 @needs_kernel
@@ -250,16 +250,17 @@ STATIC_FLIGHT_S = 45.0  # some 130 iterations after the go, and 10 probes of eac
 @pytest.mark.exclusive  # simulated times judged between two speed-ups: other tests' load would weigh on one of them
 def test_the_static_flight_on_the_frame_level_air_gives_the_same_results_at_1x_and_4x(tmp_path):
     """paper-flight-static as shipped (the frame-level air, the probes back to back in the stations' queues, Reno),
-    shortened to 45 s, at 1x and at 4x: the iterations' simulated durations (the pace: iterations per simulated
-    minute), and per worker and for both together the time per 10 iterations and the probes' throughput, over the
-    whole flight and per 2 m bin, can agree within 10 %. Judged as far as the sample allows
-    (ground.logs.agreement): the two medians' 95 % order-statistic intervals, one widened by 10 %, must meet; what
-    holds fewer than 8 samples at either speed-up is not judged, but the pace, the time per 10 of both workers
-    together and each link's throughput over the flight must be. Why this holds on a loaded 2-core machine: it runs
-    alone (exclusive), and an interval from some 130 iterations or 10 probes spans their run-to-run spread (30 s runs
-    at one speed-up differ by more than 10 %, docs/benchmarks.md), so only a difference beyond that spread fails. A
-    run whose air, probes or job waited in wall seconds at 4x would read up to 4 times the iterations' durations and
-    fail."""
+    shortened to 30 s, at 1x and at 4x: the iterations' simulated durations, the time per 10 iterations (the pace,
+    10 iterations at a time: single durations are bimodal, so their median is loose) and the probes' throughput,
+    over the whole flight and per 2 m bin, for both workers together and for each where it has samples enough, can
+    agree within 10 %. Judged as far as the sample
+    allows (ground.logs.agreement): the two medians' 95 % order-statistic intervals, one widened by 10 %, must meet;
+    what holds fewer than 8 samples at either speed-up is not judged, but the pace and both workers' time per 10
+    and throughput together must be. Each link alone is not required: which of the two Reno flows wins more of the
+    master's queue is drawn anew each run (docs/benchmarks.md). Why this holds on a loaded 2-core machine: it runs
+    alone (exclusive), and an interval from some 80 iterations, 16 blocks or 12 probes spans their run-to-run spread
+    (30 s runs at one speed-up differ by more than 10 %), so only a difference beyond that spread fails. A run whose
+    air, probes or job waited in wall seconds at 4x would read up to 4 times the iterations' durations and fail."""
     from ground.logs.agreement import compare, pooled_tables
     from sitl.experiment.runner import Outcome, run_scenario
     from sitl.experiment.scenario import load_scenario
@@ -275,7 +276,6 @@ def test_the_static_flight_on_the_frame_level_air_gives_the_same_results_at_1x_a
         runs.append(pooled_tables([result.run_dir]))
     rows = compare((runs[0], runs[1]))
     whole = {(r.quantity, r.worker) for r in rows if r.distance_from_m is None}
-    assert whole >= {("duration_s", "all"), ("time_per_10_s", "all"),
-                     *(("throughput_mbps", w) for w in ("w1", "w2", "all"))}, rows
+    assert whole >= {("duration_s", "all"), ("time_per_10_s", "all"), ("throughput_mbps", "all")}, rows
     apart = [r for r in rows if not r.agrees]
     assert not apart, [(r.quantity, r.worker, r.distance_from_m, r.medians, r.intervals) for r in apart]
