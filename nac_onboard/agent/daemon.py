@@ -207,7 +207,8 @@ class Agent:
     def run(self) -> None:
         c = self.config
         telemetry = _Timer(1.0 / c.log.telemetry_hz)
-        publish = _Timer(self.run_clock.wall_s(1.0 / c.peers.rate_hz))
+        publish = _Timer(0.0)
+        self._peer_times_in_run_time(publish)
         expire = _Timer(EXPIRE_CHECK_S)
         supervise = _Timer(SUPERVISE_S)
         sync = _Timer(c.log.fsync_s) if c.log.fsync_s > 0 else None
