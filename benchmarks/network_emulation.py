@@ -31,7 +31,6 @@ import socket
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
 import types
 from pathlib import Path
@@ -48,8 +47,6 @@ from sitl.experiment.scenario import load_scenario
 from sitl.network.air import AirNetwork
 from sitl.network.medium_air import MediumAir
 from sitl.network.netns import (
-    NetworkUnavailable,
-    check_kernel_network,
     delete_namespace,
     new_prefix,
     run,
@@ -64,7 +61,6 @@ import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
 # and the experiment tests run already; only the generated fleet's scenario is left to the full run
 SMOKE = {"rates": [10.0], "fleets": [], "speedups": [4.0], "duration_s": 8.0, "latency_samples": 5,
          "iperf_s": 1}
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
 def capped(rate_mbps: float) -> ChannelModel:
@@ -296,16 +292,12 @@ def main() -> int:
     parser.add_argument("--latency-samples", type=int, default=40)
     parser.add_argument("--iperf-s", type=int, default=3)
     args = _common.parse_args(parser, SMOKE)
-    try:
-        check_kernel_network()
-    except NetworkUnavailable as err:
-        print(f"network_emulation: {err}", file=sys.stderr)
-        return 2
     if shutil.which("iperf3") is None:
         print("network_emulation: iperf3 is not installed", file=sys.stderr)
         return 2
-    os.environ.setdefault("NAC_DATA_DIR", str(DATA))
-    folder = Path(tempfile.mkdtemp(prefix="nac-bench-net-"))
+    folder = _common.kernel_runs_folder("network_emulation", "nac-bench-net-")
+    if folder is None:
+        return 2
     try:
         for speedup in args.speedups:
             print(json.dumps({"delay_line": delay_line(speedup, args.latency_samples, args.iperf_s, folder)}),
