@@ -41,7 +41,7 @@ from missions import save_mission
 from nac_onboard.clock import publish as publish_clock
 from nac_onboard.flight_log import JsonlLog
 from nac_onboard.radio.channel import PRESETS, ChannelModel
-from nac_onboard.radio.medium import MacTiming, expected_message_s
+from nac_onboard.radio.medium import MacTiming, expected_echo_s
 from sitl.experiment.runner import Outcome, run_scenario
 from sitl.experiment.scenario import load_scenario
 from sitl.network.air import AirNetwork
@@ -191,9 +191,10 @@ def _round(value):
 
 def delay_line(speedup: float, samples: int, iperf_s: int, folder: Path) -> dict:
     """The frame-level air (`[network] air = "medium"`) between two stations at 30 Mbit/s PHY: a 100-byte UDP echo's
-    round trip (simulated seconds) against the medium model's and against this host's floor (the same echo over a
-    bare veth pair, times the speed-up), and the delay line's CPU while iperf3 sends through it, per 1,000 packets a
-    second it carries (offload runs counted as the packets they stand for)."""
+    round trip (simulated seconds) against the medium model's for an echo answered at once (expected_echo_s) and
+    against this host's floor (the same echo over a bare veth pair, times the speed-up), the lead the delay line
+    took off each delivery, and its CPU while iperf3 sends through it, per 1,000 packets a second it carries
+    (offload runs counted as the packets they stand for)."""
     phy_bps = 30e6
     clock_path = folder / f"clock-{speedup:g}.json"
     publish_clock(str(clock_path), speedup, 0.0)
@@ -203,6 +204,7 @@ def delay_line(speedup: float, samples: int, iperf_s: int, folder: Path) -> dict
         rates = np.array([[0.0, phy_bps], [phy_bps, 0.0]])
         air.apply(types.SimpleNamespace(frames={"phy_bps": rates, "per": np.zeros((2, 2))}), speedup)
         rtts = _echo(a.netns, b.netns, b.address, samples, speedup)
+        lead_s = air.lead_s
         iperf = subprocess.Popen([*air.exec_prefix(1), "iperf3", "-s", "-1", "-B", b.address],
                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         time.sleep(0.3)
@@ -214,7 +216,7 @@ def delay_line(speedup: float, samples: int, iperf_s: int, folder: Path) -> dict
         iperf.wait(10)
     finally:
         air.close()
-    model_s = 2 * expected_message_s(MacTiming(), 128, phy_bps)
+    model_s = expected_echo_s(MacTiming(), 128, phy_bps)
     measured = sorted(rtts)
     floor = statistics.median(_plain_veth_echo(samples))
     cpu_pct = 100 * cpu_s / wall_s
@@ -224,6 +226,7 @@ def delay_line(speedup: float, samples: int, iperf_s: int, folder: Path) -> dict
     return {"speedup": speedup, "rtt_median_ms": round(median * 1e3, 3),
             "rtt_p90_ms": round(measured[int(0.9 * (len(measured) - 1))] * 1e3, 3),
             "model_ms": round(model_s * 1e3, 3), "rtt_ratio": round(median / model_s, 3),
+            "lead_ms": round(lead_s * 1e3, 3),
             "plain_veth_ms": round(floor * 1e3, 3), "plain_veth_simulated_ms": round(floor * speedup * 1e3, 3),
             "iperf3_mbps_simulated": mbps and round(mbps, 2),
             "packets_per_s": round(rate), "cpu_pct": round(cpu_pct, 1),

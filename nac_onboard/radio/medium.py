@@ -327,6 +327,15 @@ def expected_message_s(timing: MacTiming, message_bytes: int, phy_bps: float, pe
     return total / (1.0 - per)
 
 
+def expected_echo_s(timing: MacTiming, message_bytes: int, phy_bps: float) -> float:
+    """The mean round trip of an echo whose reply is sent the moment the request is received (a host's stack
+    answering), on a medium idle before the request: the request as expected_message_s; the reply finds the medium
+    busy with the request's block ack, so it waits for that and AIFS (not for a slot boundary), then its backoff
+    and PPDU. Error-free links."""
+    one_way_s = expected_message_s(timing, message_bytes, phy_bps)
+    return 2 * one_way_s + timing.sifs_s + timing.block_ack_s() + timing.aifs_s - timing.slot_s / 2
+
+
 @functools.lru_cache(maxsize=4096)
 def saturated_goodput_bps(phy_bps: float, timing: MacTiming = MacTiming(), mtu_bytes: int = 1500) -> float:
     """What a long transfer of IP packets gets from a PHY rate on an idle medium, every cost of the medium paid:

@@ -10,9 +10,17 @@ at once and counted, never dropped.
 
     python -m sitl.network.delay_line NS:ADDRESS [NS:ADDRESS ...] [--queue-packets N] [--retry-limit N] [--seed N]
 
-It prints `delay line ready` once every `air0` exists, then reads link updates on stdin, one JSON object a line
-({"phy_bps": [[...]], "per": [[...]], "fallback_bps": ..., "fallback_per": ...}, N x N each), and prints its
-counters as one JSON object a line every STATS_PERIOD_S wall seconds and at its end (stdin closed, or SIGTERM).
+It prints `delay line ready` once every `air0` exists, then reads control lines on stdin, one JSON object a line:
+first {"lead_s": L}, then link updates ({"phy_bps": [[...]], "per": [[...]], "fallback_bps": ..., "fallback_per":
+...}, N x N each). It prints its counters as one JSON object a line every STATS_PERIOD_S wall seconds and at its
+end (stdin closed, or SIGTERM).
+
+The lead: a packet's pass through the emulator costs wall time of its own (the sender's TUN write waking this
+process, the write to the receiver's TUN waking the receiving process: on this 2-core VM about 0.1 ms a pass, two
+cross-CPU wake-ups), which the medium's time does not include. Until the lead arrives, every packet is passed
+straight through (no medium, no hold), so whoever starts the line can time that pass (sitl.network.medium_air
+does: an echo between two stations); from then on each delivery is written L wall seconds before its time, never
+before its packet was read. Without it a 100-byte echo at 1x took 1.7-2.1 times the medium's round trip.
 """
 
 from __future__ import annotations
@@ -49,6 +57,7 @@ MAX_WAIT_S = 0.05  # wall: the longest select() sleeps, so stdin and the counter
 EARLY_S = 0.0002
 STATS_PERIOD_S = 1.0
 LATE_S = 0.001  # simulated: a delivery written this much after its time counts as late
+MAX_LEAD_S = 0.005  # wall: no pass of a working host takes this long (a longer one measured is taken as this)
 READY = "delay line ready"
 
 
@@ -120,7 +129,8 @@ class DelayLine:
         self.fds = [open_tun(ns) for ns in namespaces]
         self.out = sys.stdout if out is None else out  # the stdout of now, not of import time
         self.counters = {"packets_in": 0, "not_ipv4": 0, "unknown_destination": 0, "late": 0, "max_late_s": 0.0,
-                         "updates": 0, "bad_updates": 0, "runs_cut": 0}
+                         "updates": 0, "bad_updates": 0, "runs_cut": 0, "passed": 0}
+        self.lead_s: float | None = None  # wall; None: not given yet, packets pass straight through
         self.queue_s: list[float] = []  # since the last counters line
         self.air_s: list[float] = []
         self._stop = False
@@ -139,13 +149,16 @@ class DelayLine:
         next_stats = time.monotonic() + STATS_PERIOD_S
         print(READY, file=self.out, flush=True)
         while not self._stop:
-            now = self._deliver()
-            due = self.medium.next_event_s()
-            wait = MAX_WAIT_S if due is None else min((due - now) / self.clock.speedup, MAX_WAIT_S)
-            deadline = time.monotonic() + wait
+            self._deliver()
+            due = self.medium.next_event_s()  # simulated
+            # from the clock read after the medium's work, so that work does not lengthen the hold
+            now = self.clock.now_s()
+            wait = MAX_WAIT_S if due is None else min((due - now) / self.clock.speedup - (self.lead_s or 0.0),
+                                                      MAX_WAIT_S)
             ready = selector.select(max(wait - EARLY_S, 0.0))
             if not ready and due is not None:
-                while time.monotonic() < deadline:
+                until_s = now + wait * self.clock.speedup
+                while self.clock.now_s() < until_s:
                     pass  # the last stretch spun on the clock: a timed wake-up comes 50-100 us late
             now = self._deliver()
             for key, _ in ready:
@@ -186,12 +199,23 @@ class DelayLine:
                     continue
                 dst = BROADCAST
             size = len(packet) - ip
+            if self.lead_s is None:
+                self._pass(dst, src, packet)
+                continue
             self.medium.offer(now_s, src, dst, size, packet, segments_of(packet, size))
+
+    def _pass(self, dst: int, src: int, packet: bytes) -> None:
+        """Before the lead is given: the packet at once to its destination (every other station, if broadcast)."""
+        self.counters["passed"] += 1
+        for k in (range(len(self.fds)) if dst == BROADCAST else (dst,)):
+            if k != src:
+                self._write(k, packet)
 
     def _deliver(self) -> float:
         now = self.clock.now_s()
-        for delivery in self.medium.run_until(now, EARLY_S * self.clock.speedup):
-            late = now - delivery.delivered_s
+        lead_s = (self.lead_s or 0.0) * self.clock.speedup  # simulated
+        for delivery in self.medium.run_until(now + lead_s, EARLY_S * self.clock.speedup):
+            late = now + lead_s - delivery.delivered_s
             if late > LATE_S:
                 self.counters["late"] += 1
                 self.counters["max_late_s"] = max(self.counters["max_late_s"], late)
@@ -202,16 +226,22 @@ class DelayLine:
                 packets = surviving_segments(delivery.frame.item, delivery.lost_segments)
                 self.counters["runs_cut"] += 1
             for packet in packets:
-                try:
-                    os.write(self.fds[delivery.dst], packet)
-                except OSError:  # the receiver's air0 is down or its queue full: the packet is lost there
-                    self.counters["write_failed"] = self.counters.get("write_failed", 0) + 1
+                self._write(delivery.dst, packet)
         return now
+
+    def _write(self, dst: int, packet: bytes) -> None:
+        try:
+            os.write(self.fds[dst], packet)
+        except OSError:  # the receiver's air0 is down or its queue full: the packet is lost there
+            self.counters["write_failed"] = self.counters.get("write_failed", 0) + 1
 
     def _update(self, line: bytes) -> None:
         n = len(self.fds)
         try:
             update = json.loads(line)
+            if isinstance(update, dict) and "lead_s" in update:
+                self._set_lead(update["lead_s"])
+                return
             matrices = {key: np.asarray(update[key], float) for key in ("phy_bps", "per")}
             for key in ("fallback_bps", "fallback_per"):
                 matrices[key] = np.asarray(update[key], float) if key in update else None
@@ -225,6 +255,11 @@ class DelayLine:
                               matrices["fallback_per"])
         self.counters["updates"] += 1
 
+    def _set_lead(self, lead_s) -> None:
+        if isinstance(lead_s, bool) or not isinstance(lead_s, int | float) or not 0 <= lead_s <= MAX_LEAD_S:
+            raise ValueError(f"lead_s: expected wall seconds in 0..{MAX_LEAD_S:g}, got {lead_s!r}")
+        self.lead_s = float(lead_s)
+
     def _stats(self, now_s: float) -> None:
         s = self.medium.stats
         line = {"t_sim_s": round(now_s, 4), **self.counters, "offered": s.offered, "delivered": s.delivered,
@@ -233,8 +268,24 @@ class DelayLine:
                 "collisions": s.collisions, "busy_s": round(s.busy_s, 6),
                 "backlog": [self.medium.backlog(k) for k in range(len(self.fds))],
                 "queue_p50_s": _median(self.queue_s), "air_p50_s": _median(self.air_s)}
+        if self.lead_s is not None:
+            line["lead_s"] = self.lead_s
         self.queue_s, self.air_s = [], []
         print(json.dumps(line), file=self.out, flush=True)
+
+
+def _hold_cpus_awake():
+    """Idle CPUs poll instead of halting while this process lives: 0 written to /dev/cpu_dma_latency, held open
+    (Linux PM QoS, Documentation/power/pm_qos_interface.rst; as cyclictest does). On a VM a halted vCPU takes 50-150
+    us to wake (an IPI through the hypervisor), and every packet through the air wakes two processes: measured on
+    this VM, a zero-hold echo through two TUN passes took 0.10-0.32 ms, 0.05 ms with this held. A polling idle CPU
+    leaves it for any task at once. None: not allowed here (the waits are then the host's)."""
+    try:
+        fd = os.open("/dev/cpu_dma_latency", os.O_WRONLY)
+        os.write(fd, struct.pack("i", 0))
+        return fd
+    except OSError:
+        return None
 
 
 def _fine_timer_slack() -> None:
@@ -290,6 +341,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, line.stop)
     signal.signal(signal.SIGINT, line.stop)
     _before_the_stations()
+    line.counters["cpus_held_awake"] = _hold_cpus_awake() is not None  # the fd closes with the process
     line.run(sys.stdin)
     return 0
 

@@ -4,6 +4,10 @@ through the 802.11 medium model: one FIFO transmit queue per station, channel ac
 collisions, in the run's simulated time. No bridge, no tc, no nftables: rate, loss, queueing and air time are the
 medium's. The shaper hands it each pair's PHY rate and frame error rate (and the retry chain's fallback) instead of
 HTB rates and drop rules; the delay line's counters become `air_medium` records in network.jsonl.
+
+Before the medium takes the packets, the delay line passes them straight through while this times a small UDP echo
+between two stations: half its median round trip is the host's own cost of a pass through the emulator, which the
+delay line then takes off each delivery's hold (its `lead_s`).
 """
 
 from __future__ import annotations
@@ -11,9 +15,12 @@ from __future__ import annotations
 import json
 import logging
 import os
+import socket
+import statistics
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 from nac_onboard.child_process import die_with_parent_preexec
@@ -23,11 +30,17 @@ from nac_onboard.radio.medium import DEFAULT_QUEUE_PACKETS
 from nac_onboard.records import kinds
 from sitl.network import netns
 from sitl.network.air import AIR_PREFIX_LENGTH, AirNetwork, Station, end_fed_process
-from sitl.network.delay_line import READY
+from sitl.network.delay_line import MAX_LEAD_S, READY
 from sitl.network.shaping import AirState
 
 log = logging.getLogger(__name__)
 READY_TIMEOUT_S = 10.0
+LEAD_ECHOES = 40  # round trips timed for the lead (after LEAD_WARMUP not counted): under 0.1 s in all
+LEAD_WARMUP = 5
+LEAD_GAP_S = 0.001  # between them. A pass costs more the longer the host was idle before it (measured on this VM,
+# the CPUs held awake: 0.036, 0.058 and 0.108 ms at 1, 5 and 20 ms apart): timed on a busy air, the lead is the
+# least a pass costs, so no delivery is written before its receiver could have had it from the medium
+LEAD_ECHO_TIMEOUT_S = 1.0
 
 
 class MediumAir(AirNetwork):
@@ -42,6 +55,7 @@ class MediumAir(AirNetwork):
         self.errors: list[str] = []
         self._records: JsonlLog | None = None
         self._reader: threading.Thread | None = None
+        self.lead_s = 0.0  # wall: the host's own cost of a pass, taken off each delivery's hold
 
     @property
     def namespaces(self) -> list[str]:
@@ -70,6 +84,37 @@ class MediumAir(AirNetwork):
         self._reader = threading.Thread(target=self._read_counters, name="delay-line", daemon=True)
         self._reader.start()
         self.wait_for_carrier()
+        self.lead_s = self._time_a_pass() if len(self.stations) > 1 else 0.0
+        log.info("the host's pass through the delay line: %.3f ms (taken off each delivery)", self.lead_s * 1e3)
+        self._send({"lead_s": self.lead_s})
+
+    def _time_a_pass(self) -> float:
+        """Half the median round trip of a 100-byte UDP echo between the first two stations while the delay line
+        passes packets straight through (wall seconds), both ends in this thread as in benchmarks/network_emulation.
+        """
+        a, b = self.stations[0], self.stations[1]
+        server = netns.socket_in_netns(b.netns, socket.AF_INET, socket.SOCK_DGRAM)
+        client = netns.socket_in_netns(a.netns, socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            server.bind((b.address, 0))
+            for end in (server, client):
+                end.settimeout(LEAD_ECHO_TIMEOUT_S)
+            round_trips = []
+            for _ in range(LEAD_WARMUP + LEAD_ECHOES):
+                start = time.perf_counter()
+                client.sendto(b"x" * 100, server.getsockname())
+                message, sender = server.recvfrom(2048)
+                server.sendto(message, sender)
+                client.recvfrom(2048)
+                round_trips.append(time.perf_counter() - start)
+                time.sleep(LEAD_GAP_S)
+        except OSError as err:
+            raise netns.NetworkError(f"the delay line did not pass an echo between {a.vehicle_id} and "
+                                     f"{b.vehicle_id} within {LEAD_ECHO_TIMEOUT_S:g} s: {err}") from None
+        finally:
+            server.close()
+            client.close()
+        return min(statistics.median(round_trips[LEAD_WARMUP:]) / 2, MAX_LEAD_S)
 
     def _wait_ready(self) -> None:
         seen: list[str] = []
@@ -113,9 +158,11 @@ class MediumAir(AirNetwork):
         return "UP" in flags and "LOWER_UP" in flags
 
     def apply(self, state: AirState, pace: float) -> None:
-        frames = {key: value.tolist() for key, value in state.frames.items()}
+        self._send({key: value.tolist() for key, value in state.frames.items()})
+
+    def _send(self, control: dict) -> None:
         try:
-            self.line.stdin.write(json.dumps(frames) + "\n")
+            self.line.stdin.write(json.dumps(control) + "\n")
             self.line.stdin.flush()
         except (OSError, ValueError) as err:
             raise netns.NetworkError(f"the delay line stopped: {err}") from None

@@ -16,10 +16,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from nac_onboard.radio.medium import MacTiming, expected_message_s
+from nac_onboard.radio.medium import MacTiming, expected_echo_s, expected_message_s
 from sitl.network import netns
 from sitl.network.medium_air import MediumAir
 from tests.integration.test_kernel_network import needs_iperf3, needs_kernel
+from tests.stats import agrees_within, median_interval
 
 PHY_BPS = 30e6  # MCS 4 of 20 MHz 802.11n with the long guard interval is 39 Mbit/s: a mid-range link
 
@@ -155,6 +156,28 @@ def test_a_small_message_waits_behind_a_bulk_flow_in_its_stations_queue():
 
 
 @needs_kernel
+@pytest.mark.exclusive  # judges round trips of a few hundred microseconds
+def test_a_small_messages_round_trip_is_the_mediums_at_1x():
+    """Issue 28's acceptance 5 at 1x: a 100-byte echo between two stations (its server a thread of its own) takes
+    the medium model's round trip for an echo answered at once (expected_echo_s: 0.405 ms at 30 Mbit/s), within
+    10 %: the delay line takes the host's own pass (measured when the air is built) off each delivery. Judged by
+    the median's 95 % order-statistic interval of 200 round trips, which a loaded host's stray wake-ups widen
+    rather than shift; both ends run in this one test, nothing else at once. Without the lead the median was 1.14
+    times the model here, without the CPUs held awake 1.9-2.1 times."""
+    air = MediumAir(["a", "b"], ap=0, sharing=True).create()
+    try:
+        links(air, PHY_BPS)
+        echo = Echo(air)
+        round_trips = echo.round_trips(200, gap_s=0.005)
+        echo.close()
+        counters = counters_when(air, "delivered", 400)
+    finally:
+        air.close()
+    model_s = expected_echo_s(MacTiming(), 128, PHY_BPS)
+    assert 0 < air.lead_s < 0.001 and counters["lead_s"] == pytest.approx(air.lead_s)
+    assert agrees_within(round_trips, model_s, 0.10), (median_interval(round_trips), model_s)
+
+
 @needs_kernel
 @needs_iperf3
 def test_a_run_delivered_in_part_reaches_the_receiver_as_the_segments_that_got_through():
@@ -185,7 +208,8 @@ def test_a_run_delivered_in_part_reaches_the_receiver_as_the_segments_that_got_t
 
 def test_the_delay_line_and_its_devices_go_with_the_network_and_a_bad_update_is_refused():
     """The delay line runs at a real-time priority where this host allows one (else at nice -10): frames are due
-    on the clock, whatever else runs. Its TUN devices go with it, a malformed link update is refused with the shape
+    on the clock, whatever else runs; it holds the CPUs' wake-up latency at 0 (/dev/cpu_dma_latency open) where
+    the host has that device. Its TUN devices go with it, a malformed link update or lead is refused with what was
     expected, and it ends with the network."""
     fifo_allowed = subprocess.run([sys.executable, "-c", "import os; os.sched_setscheduler(0, os.SCHED_FIFO, "
                                    "os.sched_param(1))"], capture_output=True, timeout=30).returncode == 0
@@ -199,16 +223,29 @@ def test_the_delay_line_and_its_devices_go_with_the_network_and_a_bad_update_is_
         shown = subprocess.run([*air.exec_prefix(2), "ip", "-j", "link", "show", "air0"], capture_output=True,
                                text=True, timeout=10).stdout
         assert "tun" in shown or json.loads(shown)[0]["ifname"] == "air0"
+        if _may_hold_cpu_latency():
+            held = {os.readlink(f"/proc/{line.pid}/fd/{fd}") for fd in os.listdir(f"/proc/{line.pid}/fd")}
+            assert "/dev/cpu_dma_latency" in held
         air.line.stdin.write('{"phy_bps": [[0, 1], [1, 0]], "per": [[0, 0], [0, 0]]}\n')  # 2 x 2 for 3 stations
+        air.line.stdin.write('{"lead_s": -0.001}\n')
         air.line.stdin.flush()
         deadline = time.monotonic() + 5.0
-        while not air.errors and time.monotonic() < deadline:
+        while len(air.errors) < 2 and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert air.errors and "3 x 3" in air.errors[0], air.errors
+        assert len(air.errors) == 2 and "3 x 3" in air.errors[0], air.errors
+        assert "lead_s: expected wall seconds in 0..0.005" in air.errors[1], air.errors
     finally:
         air.close()
     assert line.poll() is not None, "the delay line ended"
     assert not [n for n in netns.namespaces() if n.startswith(air.prefix)], "the namespaces were removed"
+
+
+def _may_hold_cpu_latency() -> bool:
+    try:
+        os.close(os.open("/dev/cpu_dma_latency", os.O_WRONLY))
+        return True
+    except OSError:
+        return False
 
 
 @needs_kernel

@@ -5,7 +5,7 @@ standard deviations of their binomial laws, stated where they are used."""
 import numpy as np
 import pytest
 
-from nac_onboard.radio.medium import BROADCAST, MacTiming, Medium, expected_message_s
+from nac_onboard.radio.medium import BROADCAST, MacTiming, Medium, expected_echo_s, expected_message_s
 
 T = MacTiming()
 
@@ -51,6 +51,24 @@ def test_the_closed_form_is_what_the_medium_charges_a_message_after_idle_air():
             waits.append(max(d.delivered_s for d in m.run_until(t_s + 0.019)) - t_s)
             t_s += 0.02
         assert abs(sum(waits) / len(waits) - expected_message_s(T, size_bytes, 30e6)) < 5e-6, size_bytes
+
+
+def test_an_echo_answered_at_once_pays_the_requests_block_ack_before_its_reply():
+    """2,000 echoes of 100 bytes, each 20 ms after the last, the reply offered the moment the request is delivered:
+    their mean round trip is the closed form's, a block ack and AIFS above two lone messages. Two uniform backoffs
+    of 16 slots (standard deviation 58 us together): the mean of 2,000 is within 4.3 us of its expectation with
+    probability above 0.999; the bound is 5 us."""
+    m = medium(2, 30e6)
+    t_s, round_trips = 1.0, []
+    for _ in range(2000):
+        m.offer(t_s, 0, 1, 100)
+        (request,) = m.run_until(t_s + 0.009)
+        m.offer(request.delivered_s, 1, 0, 100)
+        (reply,) = m.run_until(t_s + 0.019)
+        round_trips.append(reply.delivered_s - t_s)
+        t_s += 0.02
+    assert abs(sum(round_trips) / len(round_trips) - expected_echo_s(T, 100, 30e6)) < 5e-6
+    assert expected_echo_s(T, 100, 30e6) - 2 * expected_message_s(T, 100, 30e6) > T.block_ack_s() + T.aifs_s - T.slot_s
 
 
 def test_a_small_message_waits_behind_the_bulk_its_station_queued_first():
