@@ -214,8 +214,9 @@ def experiment(args: argparse.Namespace, out=None) -> int:
         raise BadInput(f"--base-port {args.base_port}: {len(scenario.vehicles)} vehicles need {PORTS_PER_VEHICLE} "
                        f"ports each, up to {top}, beyond 65535")
     if not 0 < speedup <= scenario.max_speedup:
+        why = scenario.device_limit or " ".join(scenario.notes) or "fidelity"
         raise BadInput(f"{scenario.name}: --speedup {speedup:g} is outside what this scenario allows "
-                         f"(up to {scenario.max_speedup:g}x: {' '.join(scenario.notes) or 'fidelity'})")
+                       f"(up to {scenario.max_speedup:.3g}x: {why})")
     # SIGTERM is Ctrl-C (run_cli): the run stops, its partial report is written, and it exits 143
     result = run_scenario(scenario, args.out, speedup, args.base_port, out, analyze=not args.no_analysis,
                           network=args.network, links=args.links, view=args.view)

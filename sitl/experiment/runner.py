@@ -218,10 +218,13 @@ class Experiment:
         self.radio = radio
 
     def _speedup_note(self) -> str:
+        limit = f"; at most {self.scenario.max_speedup:.3g}x: {self.scenario.device_limit}" \
+            if self.scenario.device_limit else ""
         if self.speedup == 1.0:
-            return "real time"
-        return (f"sped up: simulated time ran {self.speedup:g}x wall-clock time, and so did the links, the compute "
-                "job's timeouts and the probes (one clock): results are in simulated seconds")
+            return "real time" + limit
+        pace = "sped up" if self.speedup > 1 else "slowed down (time dilation)"
+        return (f"{pace}: simulated time ran {self.speedup:g}x wall-clock time, and so did the links, the compute "
+                f"job's timeouts and the probes (one clock): results are in simulated seconds{limit}")
 
     def _write_record(self, kind: Kind, **fields) -> None:
         with JsonlLog(kinds.EXPERIMENT_LOG.at(self.run_dir)) as out:

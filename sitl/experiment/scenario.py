@@ -2,7 +2,7 @@
 
     name = "paper-flight-moving"
     duration_s = 130            # simulated seconds from the missions' start
-    max_speedup = 4             # fidelity limit: --speedup above it is refused
+    max_speedup = 4             # fidelity limit: --speedup above it is refused; a device profile may lower it
     [channel]  preset = "wifi-flight"           # or a TOML file (what `nac-ground logs calibrate` writes)
                background_airtime = 0.2         # any other channel field overrides the preset's
     [compute]  task = "linreg"  iterations = 0  timeout_s = 3.0  args = []   # no [compute]: no MPI job
@@ -18,6 +18,10 @@
                  device = "slow.toml"           # this companion's own device profile (a slow one among the rest)
     [[fault]]  at_s = 60  vehicle = "w1"  kind = "link_down"  duration_s = 5
 
+A scenario whose companions have a device profile slower than this host may not run faster than the profiles
+allow (device_speedup_limit): its max_speedup, and default_speedup, are lowered to that limit, below 1x where
+the host has too few cores for the ranks (time dilation).
+
 A vehicle's home is its mission's planned home (so the plan and the simulator cannot disagree); a vehicle without
 a mission gives `home = [lat, lon, alt_m]` and stays on the ground. Paths are relative to the scenario file.
 [channel] is resolved here, once: its preset or file with the table's overrides becomes the scenario's one
@@ -27,6 +31,7 @@ radio model (Scenario.channel), which the runner writes to the run directory for
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -52,6 +57,7 @@ SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
 MAX_VEHICLES = 250  # the simulator's limit (nac-sitl run --vehicles), and 10 ports each must fit below 65536
 MAX_DURATION_S = 7 * 86400.0  # simulated seconds: a week, far beyond any battery
 MAX_SPEEDUP = 1000.0  # as nac-sitl run --speedup
+MIN_SPEEDUP = 0.1  # the same
 TOP_KEYS = ("name", "description", "duration_s", "max_speedup", "default_speedup", "notes", "params", "channel",
             "compute", "throughput", "network", "energy", "vehicle", "fault")
 VEHICLE_KEYS = ("id", "role", "mission", "home", "companion_mah", "device")
@@ -146,6 +152,7 @@ class Scenario:
     max_speedup: float = 1.0
     default_speedup: float = 1.0
     notes: tuple[str, ...] = field(default_factory=tuple)
+    device_limit: str = ""  # why max_speedup is below the file's: the device profiles' limit (device_speedup_limit)
     params: tuple[tuple[str, float], ...] = ()  # autopilot parameters of every vehicle ([params])
     energy: EnergyPlan = EnergyPlan()
     frame: energy.Frame | None = None  # [energy] frame's, loaded
@@ -198,9 +205,9 @@ def load_scenario(name_or_path: str) -> Scenario:
     ids = [v.id for v in vehicles]
     if len(set(ids)) != len(ids):
         raise ScenarioError(f"{where}: vehicle ids must be unique, got {ids}")
-    max_speedup = check_number(data.get("max_speedup", 1.0), f"{where}: max_speedup", 0.1, MAX_SPEEDUP,
+    max_speedup = check_number(data.get("max_speedup", 1.0), f"{where}: max_speedup", MIN_SPEEDUP, MAX_SPEEDUP,
                                unit="x real time", error=ScenarioError)
-    default_speedup = check_number(data.get("default_speedup", 1.0), f"{where}: default_speedup", 0.1,
+    default_speedup = check_number(data.get("default_speedup", 1.0), f"{where}: default_speedup", MIN_SPEEDUP,
                                    max_speedup, unit="x real time (0.1 to max_speedup)", error=ScenarioError)
     name = get_value(data, "name", "str", where, ScenarioError, path.stem)
     check_id(name, f"{where}: name (it names the run directory)", ScenarioError)
@@ -243,7 +250,48 @@ def load_scenario(name_or_path: str) -> Scenario:
         except ValueError as err:
             raise ScenarioError(f"{where}: [compute] task {c.task} with {len(scenario.workers)} workers: {err}") \
                 from None
-    return scenario
+    return within_the_devices(scenario)
+
+
+def device_speedup_limit(scenario: Scenario, host_cores: int | None = None) -> tuple[float, str] | None:
+    """The fastest speed-up at which each companion's CPU time is still its device's: (speed-up, why), or None
+    when no rank's profile stretches its work (every one "host": then max_speedup is the scenario's own).
+
+    A rank holds each segment of its work until slowdown x its CPU seconds on this host have passed on the run's
+    clock (nac_onboard.compute.device.CpuStretch), so at a speed-up s it is on time while its work takes at most
+    slowdown / s of wall time per CPU second. The workers compute at once: with more of them than this host's cores
+    each gets cores / workers of a core, so s <= slowdown x cores / workers; the master computes alone. The slowdown
+    is the profile's (measured, or this host's measured CPU score over the device's)."""
+    if scenario.compute is None:
+        return None
+    cores = host_cores or len(os.sched_getaffinity(0))
+    workers = len(scenario.workers)
+    limits = []
+    for vehicle in (scenario.master, *scenario.workers):
+        device = vehicle.device or scenario.compute.device
+        if device == "host":
+            continue
+        profile = load_device_profile(device)
+        at_once = workers if vehicle.role == "worker" else 1
+        limit = profile.slowdown * min(1.0, cores / at_once)
+        shared = f" and {at_once} workers share this host's {cores} cores" if at_once > cores else ""
+        limits.append((limit, f"{vehicle.id}'s companion ({profile.name}) computes {profile.slowdown:.3g} times "
+                              f"slower than this host{shared}, so above {limit:.3g}x its work would take longer "
+                              f"than the device's"))
+    return min(limits, key=lambda limit: limit[0]) if limits else None
+
+
+def within_the_devices(scenario: Scenario) -> Scenario:
+    """The scenario with max_speedup and default_speedup at most device_speedup_limit's."""
+    limit = device_speedup_limit(scenario)
+    if limit is None or limit[0] >= scenario.max_speedup:
+        return scenario
+    speedup, why = limit
+    if speedup < MIN_SPEEDUP:
+        raise ScenarioError(f"{scenario.path}: this host cannot run it: {why}, and the simulator runs at "
+                            f"{MIN_SPEEDUP:g}x or faster (fewer workers, a faster profile or more cores)")
+    return dataclasses.replace(scenario, max_speedup=speedup, default_speedup=min(scenario.default_speedup, speedup),
+                               device_limit=why)
 
 
 def _table(data: dict, key: str, where: str) -> dict:

@@ -16,11 +16,12 @@ first {"lead_s": L}, then link updates ({"phy_bps": [[...]], "per": [[...]], "fa
 end (stdin closed, or SIGTERM).
 
 The lead: a packet's pass through the emulator costs wall time of its own (the sender's TUN write waking this
-process, the write to the receiver's TUN waking the receiving process: on this 2-core VM about 0.1 ms a pass, two
-cross-CPU wake-ups), which the medium's time does not include. Until the lead arrives, every packet is passed
-straight through (no medium, no hold), so whoever starts the line can time that pass (sitl.network.medium_air
+process, the write to the receiver's TUN waking the receiving process: on this 2-core VM 0.03-0.04 ms a pass with
+the CPUs held awake, below), which the medium's time does not include. Until the lead arrives, every packet is
+passed straight through (no medium, no hold), so whoever starts the line can time that pass (sitl.network.medium_air
 does: an echo between two stations); from then on each delivery is written L wall seconds before its time, never
-before its packet was read. Without it a 100-byte echo at 1x took 1.7-2.1 times the medium's round trip.
+before its packet was read. A 100-byte echo at 1x took 1.14 times the medium's round trip without it, 1.00-1.04
+with it (docs/benchmarks.md).
 """
 
 from __future__ import annotations

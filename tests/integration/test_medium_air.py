@@ -121,8 +121,8 @@ def test_a_broadcast_is_one_frame_that_reaches_the_stations_in_range_and_no_othe
 @needs_iperf3
 @pytest.mark.exclusive  # judges round trips in milliseconds
 def test_a_small_message_waits_behind_a_bulk_flow_in_its_stations_queue():
-    """Idle, a 100-byte echo crosses the 30 Mbit/s air in about a millisecond (the model's 0.32 ms for the two
-    frames plus this host's TUN and Python hops). While station a sends an iperf3 bulk flow to b, a's echo
+    """Idle, a 100-byte echo crosses the 30 Mbit/s air in about 0.4 ms (the medium's round trip for an echo, the
+    test below). While station a sends an iperf3 bulk flow to b, a's echo
     requests wait behind the flow's packets in a's one transmit queue: the median round trip grows at least
     fivefold and past 5 ms, the delay line's records show the queue time, and the flow gets the medium's rate (at
     most the PHY rate; over half of it). The bounds are wide on purpose: queueing adds tens of milliseconds, far

@@ -287,6 +287,41 @@ def test_a_shipped_jetson_profile_is_named_in_a_scenario_and_a_file_of_that_name
     assert load_scenario(str(path)).compute.device == str((tmp_path / "jetson-tx2").resolve())
 
 
+def test_a_device_profile_sets_how_fast_the_scenario_may_run_below_1x_with_too_few_cores(tmp_path, capsys,
+                                                                                         monkeypatch):
+    """On a host of 2 cores, a companion 3 times slower than it: one worker may run up to 3x (the file's 10 is
+    lowered, and its default with it) and the CLI refuses 4x naming the companion; 15 workers up to 3 x 2 / 15 =
+    0.4x (time dilation); 40 workers would need 0.15x... and at 1.2 times slower 0.06x, under the simulator's
+    0.1x: refused, saying why. Ranks on "host" set no limit."""
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})
+    (tmp_path / "slow.toml").write_text('[device]\nname = "slow"\nslowdown = 3\nsource = "s"\n')
+    path = tmp_path / "s.toml"
+    one = "max_speedup = 10\ndefault_speedup = 8\n" + TWO + "[compute]\ntask = 'linreg'\ndevice = 'slow.toml'\n"
+    path.write_text(one)
+    scenario = load_scenario(str(path))
+    assert (scenario.max_speedup, scenario.default_speedup) == (3.0, 3.0)
+    assert "a's companion (slow) computes 3 times slower than this host" in scenario.device_limit
+    assert cli.main(["experiment", str(path), "--speedup", "4"]) == 2
+    assert "--speedup 4 is outside what this scenario allows (up to 3x: a's companion (slow)" in \
+        capsys.readouterr().err
+
+    def fleet(workers: int) -> str:
+        return one.replace("[compute]", "".join(f"[[vehicle]]\nid = 'w{k}'\nrole = 'worker'\nhome = [47, 8, 500]\n"
+                                                for k in range(workers - 1)) + "[compute]")
+    path.write_text(fleet(15))
+    scenario = load_scenario(str(path))
+    assert scenario.max_speedup == pytest.approx(0.4) and scenario.default_speedup == pytest.approx(0.4)
+    assert "and 15 workers share this host's 2 cores" in scenario.device_limit
+    (tmp_path / "slow.toml").write_text('[device]\nname = "slow"\nslowdown = 1.2\nsource = "s"\n')
+    path.write_text(fleet(40))
+    with pytest.raises(ScenarioError, match=r"this host cannot run it: .* 40 workers share this host's 2 cores, so "
+                                            r"above 0.06x .* the simulator runs at 0.1x or faster"):
+        load_scenario(str(path))
+    path.write_text(fleet(40).replace("device = 'slow.toml'", "device = 'host'"))
+    scenario = load_scenario(str(path))
+    assert (scenario.max_speedup, scenario.default_speedup, scenario.device_limit) == (10.0, 8.0, "")
+
+
 def test_one_companions_own_device_and_the_allocation_keys_reach_the_ranks(tmp_path):
     """[[vehicle]] device gives that companion its own profile (checked now, named by the vehicle), and [compute]'s
     BPCC and re-planning keys reach the job's options: the options the ranks parse hold them all."""
