@@ -175,6 +175,7 @@ class Agent:
         self.stop_event.set()
         self.notifier.stopping()
         if self.scheduler is not None:
+            self.scheduler.abort()
             self.scheduler.join(timeout_s=self.config.throughput.duration_s + 15.0)
         if self.throughput_server is not None:
             self.throughput_server.stop()

@@ -17,12 +17,16 @@ its start, and a pair beyond the model's range fails as a real one would: loopba
 Periods and durations are in the run's time (nac_onboard.clock): at a speed-up X a probe lasts duration_s / X on
 the wall clock and its bytes move X times faster, so the record keeps what the wire saw (iperf3's fields) and
 adds `speedup` and `t_sim_s`: the rate in bits per simulated second is bits_per_second / speedup.
+When the agent stops, `abort` ends the probes under way at once (their sockets shut, their iperf3 clients killed):
+a probe cut short that way measured nothing and is a `probe_skipped` record, not a failed link.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import socket
+import subprocess
 import threading
 import time
 from collections.abc import Callable
@@ -68,6 +72,9 @@ class ProbeScheduler:
         self.emulation = emulation  # SITL: pace each probe at the channel model's rate for the pair's distance
         self.clock = clock or Clock()
         self._thread = threading.Thread(target=self._run, name="throughput-probes", daemon=True)
+        self._under_way: set = set()  # the sockets and iperf3 processes of probes under way, for abort()
+        self._cut: set = set()  # those abort() ended
+        self._lock = threading.Lock()
 
     def start(self) -> ProbeScheduler:
         self._thread.start()
@@ -75,6 +82,32 @@ class ProbeScheduler:
 
     def join(self, timeout_s: float) -> None:
         self._thread.join(timeout_s)
+
+    def abort(self) -> None:
+        """End every probe under way now (set the stop event first: a probe that starts after this ends at once).
+        Without it a probe ends by its own deadlines, seconds after the agent was told to stop."""
+        with self._lock:
+            under_way = list(self._under_way)
+            self._cut.update(under_way)
+        for item in under_way:
+            _end(item)
+
+    def _track(self, item) -> None:
+        with self._lock:
+            self._under_way.add(item)
+            stopped = self.stop_event.is_set()
+            if stopped:
+                self._cut.add(item)
+        if stopped:
+            _end(item)
+
+    def _untrack(self, item) -> bool:
+        """Forget a probe's socket or process; whether abort() cut it short."""
+        with self._lock:
+            self._under_way.discard(item)
+            cut = item in self._cut
+            self._cut.discard(item)
+        return cut
 
     @property
     def alive(self) -> bool:
@@ -160,6 +193,11 @@ class ProbeScheduler:
             return self.out.write(kinds.PROBE_SKIPPED, **fields, reason="no position for one of the pair yet")
         rate_bps = s.rate_bps or None
         wall = self.clock.wall_s
+        started: list = []
+
+        def track(item) -> None:
+            started.append(item)
+            self._track(item)
         try:
             if self.emulation is not None:
                 rate_bps = self._emulated_rate_bps(peer_id, distance_m, rate_bps)
@@ -168,17 +206,23 @@ class ProbeScheduler:
             if s.tool == "iperf3":
                 seconds = max(1, math.ceil(wall(s.duration_s) - 1e-9))
                 fields["duration_wall_s"] = seconds  # whole seconds: longer than duration_s when sped up
-                result = iperf3.client_result(host, port, seconds, timeout_s=seconds + 10.0)
+                result = iperf3.client_result(host, port, seconds, timeout_s=seconds + 10.0, started=track)
             else:
                 result = probe(host, port, duration_s=None if s.bytes else wall(s.duration_s),
                                nbytes=s.bytes or None, interval_s=max(wall(s.interval_s), MIN_INTERVAL_S),
                                rate_bps=rate_bps * self.clock.speedup if rate_bps else None,
                                connect_timeout_s=wall(CONNECT_TIMEOUT_S), grace_s=wall(GRACE_S),
-                               answer_margin_s=wall(ANSWER_MARGIN_S))
+                               answer_margin_s=wall(ANSWER_MARGIN_S), started=track)
         except ProbeError as err:
             result = {"error": str(err), "error_kind": err.kind}
         except iperf3.Iperf3Error as err:
             result = {"error": str(err), "error_kind": LINK}
+        finally:
+            cut = any([self._untrack(item) for item in started])
+        if cut and "error" in result:
+            probe_fields = {f.name for f in kinds.PROBE_SKIPPED.fields}
+            return self.out.write(kinds.PROBE_SKIPPED, **{k: v for k, v in fields.items() if k in probe_fields},
+                                  reason="the agent stopped during the probe")
         after = self.snapshot()
         fields["positions"] = {"start": self._pair(before, peer_id), "end": self._pair(after, peer_id)}
         fields["distance_m"] = distance_m
@@ -208,3 +252,14 @@ class ProbeScheduler:
             vehicle = snapshot.vehicle(who)
             out[who] = None if vehicle is None else position(vehicle)
         return out
+
+
+def _end(item) -> None:
+    """A probe's socket shut (its waits return at once) or its iperf3 client killed."""
+    try:
+        if isinstance(item, socket.socket):
+            item.shutdown(socket.SHUT_RDWR)
+        elif isinstance(item, subprocess.Popen):
+            item.kill()
+    except OSError:
+        pass  # already closed or exited: the probe is ending anyway

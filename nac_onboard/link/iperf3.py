@@ -12,6 +12,7 @@ import socket
 import statistics
 import subprocess
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from nac_onboard.child_process import ReadyProcess
@@ -61,12 +62,14 @@ def nac_rate_bps(host: str, port: int, duration_s: int | None, nbytes: int | Non
     return json.loads(out.stdout)["end"]["sum_received"]["bits_per_second"]
 
 
-def client_result(host: str, port: int, seconds: int, timeout_s: float) -> dict:
+def client_result(host: str, port: int, seconds: int, timeout_s: float,
+                  started: Callable[[subprocess.Popen], None] | None = None) -> dict:
     """One `iperf3 --client --json` run of whole seconds (iperf3 takes no fractions), as the agent's probes use
-    it with `throughput.tool = "iperf3"`: its JSON, or Iperf3Error with iperf3's own error."""
+    it with `throughput.tool = "iperf3"`: its JSON, or Iperf3Error with iperf3's own error. started, if given, is
+    handed the iperf3 process: killing it from another thread ends the probe at once (an Iperf3Error)."""
     command = ["iperf3", "--client", host, "--port", str(port), "--time", str(seconds), "--json",
                "--connect-timeout", "3000"]
-    return _client_json(command, f"{host}:{port}", timeout_s)
+    return _client_json(command, f"{host}:{port}", timeout_s, started)
 
 
 def iperf3_result(host: str, port: int, duration_s: int | None, nbytes: int | None = None,
@@ -77,18 +80,25 @@ def iperf3_result(host: str, port: int, duration_s: int | None, nbytes: int | No
     return _client_json(_in(netns, command, cpu=1), f"{host}:{port}", 60.0)
 
 
-def _client_json(command: list[str], where: str, timeout_s: float) -> dict:
+def _client_json(command: list[str], where: str, timeout_s: float,
+                 started: Callable[[subprocess.Popen], None] | None = None) -> dict:
     """iperf3's JSON result, or Iperf3Error saying why there is none."""
     try:
-        out = subprocess.run(command, capture_output=True, text=True, timeout=timeout_s)
-    except subprocess.TimeoutExpired:
-        raise Iperf3Error(f"iperf3 to {where} gave no result within {timeout_s:g} s") from None
+        with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as process:
+            if started is not None:
+                started(process)
+            try:
+                stdout, stderr = process.communicate(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.communicate()
+                raise Iperf3Error(f"iperf3 to {where} gave no result within {timeout_s:g} s") from None
     except OSError as err:
         raise Iperf3Error(f"cannot run iperf3: {err.strerror or err}") from None
     try:
-        result = json.loads(out.stdout)
+        result = json.loads(stdout)
     except json.JSONDecodeError:
-        raise Iperf3Error(f"iperf3 exited {out.returncode} without JSON: {out.stderr.strip()[-300:]}") from None
+        raise Iperf3Error(f"iperf3 exited {process.returncode} without JSON: {stderr.strip()[-300:]}") from None
     if not isinstance(result, dict) or "error" in result or "end" not in result:
         error = result.get("error") if isinstance(result, dict) else None
         raise Iperf3Error(f"iperf3 to {where}: {error or 'no end section'}")

@@ -32,6 +32,7 @@ import socket
 import struct
 import threading
 import time
+from collections.abc import Callable
 
 from nac_onboard.clock import Clock
 from nac_onboard.errors import OperationFailed
@@ -189,10 +190,12 @@ def check_probe_arguments(port: int, duration_s, nbytes, interval_s, rate_bps) -
 
 def probe(host: str, port: int = DEFAULT_PORT, duration_s: float | None = 1.0, nbytes: int | None = None,
           interval_s: float = 0.5, rate_bps: float | None = None, connect_timeout_s: float = 3.0,
-          block_bytes: int = BLOCK_BYTES, grace_s: float = GRACE_S, answer_margin_s: float = ANSWER_MARGIN_S) -> dict:
+          block_bytes: int = BLOCK_BYTES, grace_s: float = GRACE_S, answer_margin_s: float = ANSWER_MARGIN_S,
+          started: Callable[[socket.socket], None] | None = None) -> dict:
     """Send to a throughput server for duration_s (or nbytes) and return an iperf3-shaped result.
 
-    rate_bps caps the sending rate (iperf3 -b) so a probe can share a link with other traffic.
+    rate_bps caps the sending rate (iperf3 -b) so a probe can share a link with other traffic. started, if given,
+    is handed the connected socket: shutting it down from another thread ends the probe at once (a ProbeError).
     Raises ValueError for settings out of range (before connecting), ProbeError when the probe fails: kind LINK
     when nothing (more) got through (no connection, a reset, a stall, no answer in time, or the server saying its
     data stopped), SERVER when the server refused the probe or its answer is not a measurement (checked field by
@@ -207,6 +210,8 @@ def probe(host: str, port: int = DEFAULT_PORT, duration_s: float | None = 1.0, n
         sock = socket.create_connection((host, port), timeout=connect_timeout_s)
     except OSError as err:
         raise ProbeError(f"cannot connect to throughput server {where}: {err.strerror or err}") from None
+    if started is not None:
+        started(sock)
     with sock:
         header = {"protocol": PROTOCOL, "duration_s": duration_s, "bytes": nbytes, "interval_s": interval_s}
         local, remote = sock.getsockname(), sock.getpeername()

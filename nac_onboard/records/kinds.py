@@ -207,7 +207,8 @@ THROUGHPUT = Kind("throughput", THROUGHPUT_LOG, "one probe, shaped as iperf3 --j
     req("positions", "object", "", "the pair's positions at the start and the end"),
     opt("distance_m", "number", "m", "distance at the start"), opt("distance_end_m", "number", "m", "at the end"),
 ), open="real iperf3's own JSON keys, kept as it wrote them")
-PROBE_SKIPPED = Kind("probe_skipped", THROUGHPUT_LOG, "no probe: a position of the pair is not known yet",
+PROBE_SKIPPED = Kind("probe_skipped", THROUGHPUT_LOG, "no measurement: a position of the pair is not known yet, "
+                     "or the agent stopped during the probe",
                      (*_PROBE, req("reason", "string", "", "why")))
 PROBE_FAILED = Kind("probe_failed", THROUGHPUT_LOG, "the probe could not be made (an error in the agent, not a "
                     "measurement: left out of the analysis); the schedule goes on", (

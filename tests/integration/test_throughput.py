@@ -5,6 +5,7 @@ import dataclasses
 import json
 import os
 import secrets
+import socket
 import statistics
 import subprocess
 import sys
@@ -167,6 +168,39 @@ def test_probes_can_run_the_real_iperf3_and_log_its_json(tmp_path):
     assert measured["end"]["sum_received"]["bits_per_second"] > 1e6, "iperf3's own fields, as it wrote them"
     assert failed["error_kind"] == "link" and str(closed) in failed["error"]
     assert [r["kind"] for r in read_jsonl(tmp_path / "throughput.jsonl").records] == ["throughput", "throughput"]
+
+
+@pytest.mark.parametrize("tool", ["nac", pytest.param("iperf3", marks=needs_iperf3)])
+def test_a_stop_ends_a_probe_under_way_at_once_and_logs_it_skipped(tmp_path, tool):
+    """A probe to a host that takes the connection and then says nothing (a listening socket nobody accepts from)
+    would wait for its own deadlines: 10 s of sending, then the server's grace and the answer's margin (ours), or
+    its 20 s timeout (iperf3's client). The agent's stop ends it within 2 s, and it is logged as skipped (it
+    measured nothing), not as a failed link. That is what lets an agent stop within its runner's 5 s."""
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(4)
+    stop = threading.Event()
+    settings = ThroughputSection(probe=True, duration_s=10.0, interval_s=1.0, tool=tool)
+    try:
+        with JsonlLog(tmp_path / "throughput.jsonl") as out:
+            scheduler = ProbeScheduler(settings, "m", lambda: [], lambda: AgentSnapshot(0.0, _own_state()), out, stop)
+            probing = threading.Thread(target=scheduler.probe_once, args=("w", "127.0.0.1",
+                                                                          listener.getsockname()[1]))
+            probing.start()
+            deadline = time.monotonic() + 10.0
+            while not scheduler._under_way and time.monotonic() < deadline:
+                time.sleep(0.01)  # until the probe has connected (iperf3 is a process to start)
+            assert scheduler._under_way, "the probe connected"
+            stopped_at = time.monotonic()
+            stop.set()
+            scheduler.abort()
+            probing.join(10.0)
+            took_s = time.monotonic() - stopped_at
+    finally:
+        listener.close()
+    assert not probing.is_alive() and took_s < 2.0, took_s
+    (record,) = read_jsonl(tmp_path / "throughput.jsonl").records
+    assert record["kind"] == "probe_skipped" and record["reason"] == "the agent stopped during the probe"
 
 
 HEADER_FUZZ_EXAMPLES = 300
