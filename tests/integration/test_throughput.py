@@ -174,8 +174,9 @@ def test_probes_can_run_the_real_iperf3_and_log_its_json(tmp_path):
 def test_a_stop_ends_a_probe_under_way_at_once_and_logs_it_skipped(tmp_path, tool):
     """A probe to a host that takes the connection and then says nothing (a listening socket nobody accepts from)
     would wait for its own deadlines: 10 s of sending, then the server's grace and the answer's margin (ours), or
-    its 20 s timeout (iperf3's client). The agent's stop ends it within 2 s, and it is logged as skipped (it
-    measured nothing), not as a failed link. That is what lets an agent stop within its runner's 5 s."""
+    its 20 s timeout (iperf3's client). The agent's stop ends it within the 5 s its runner gives an agent to stop
+    (here it takes milliseconds: a shutdown or a kill, then a thread's end, so a loaded host cannot stretch it to
+    seconds), and it is logged as skipped (it measured nothing), not as a failed link."""
     listener = socket.socket()
     listener.bind(("127.0.0.1", 0))
     listener.listen(4)
@@ -198,7 +199,7 @@ def test_a_stop_ends_a_probe_under_way_at_once_and_logs_it_skipped(tmp_path, too
             took_s = time.monotonic() - stopped_at
     finally:
         listener.close()
-    assert not probing.is_alive() and took_s < 2.0, took_s
+    assert not probing.is_alive() and took_s < 5.0, took_s
     (record,) = read_jsonl(tmp_path / "throughput.jsonl").records
     assert record["kind"] == "probe_skipped" and record["reason"] == "the agent stopped during the probe"
 
