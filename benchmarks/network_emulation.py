@@ -27,7 +27,6 @@ import os
 import re
 import resource
 import shutil
-import socket
 import statistics
 import subprocess
 import sys
@@ -50,7 +49,7 @@ from sitl.network.netns import (
     delete_namespace,
     new_prefix,
     run,
-    socket_in_netns,
+    udp_echo_round_trips,
 )
 from sitl.network.shaper import Shaper
 from sitl.scenarios.generate import at, hover, route
@@ -236,24 +235,8 @@ def delay_line(speedup: float, samples: int, iperf_s: int, folder: Path) -> dict
 def _echo(client_ns: str, server_ns: str, server_address: str, samples: int, speedup: float = 1.0) -> list[float]:
     """A 100-byte UDP echo's round trips (simulated seconds: wall x speed-up), both ends in this one thread, after
     5 not counted."""
-    server = socket_in_netns(server_ns, socket.AF_INET, socket.SOCK_DGRAM)
-    client = socket_in_netns(client_ns, socket.AF_INET, socket.SOCK_DGRAM)
-    try:
-        server.bind((server_address, 9000))
-        client.settimeout(5.0)
-        rtts = []
-        for _ in range(samples + 5):
-            start = time.perf_counter()
-            client.sendto(b"x" * 100, (server_address, 9000))
-            message, sender = server.recvfrom(2048)
-            server.sendto(message, sender)
-            client.recvfrom(2048)
-            rtts.append((time.perf_counter() - start) * speedup)
-            time.sleep(0.005)
-    finally:
-        server.close()
-        client.close()
-    return rtts[5:]
+    wall = udp_echo_round_trips(client_ns, server_ns, server_address, samples + 5, 0.005, 5.0)
+    return [r * speedup for r in wall[5:]]
 
 
 def _plain_veth_echo(samples: int) -> list[float]:

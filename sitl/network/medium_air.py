@@ -15,12 +15,10 @@ from __future__ import annotations
 import json
 import logging
 import os
-import socket
 import statistics
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 from nac_onboard.child_process import die_with_parent_preexec
@@ -93,27 +91,12 @@ class MediumAir(AirNetwork):
         passes packets straight through (wall seconds), both ends in this thread as in benchmarks/network_emulation.
         """
         a, b = self.stations[0], self.stations[1]
-        server = netns.socket_in_netns(b.netns, socket.AF_INET, socket.SOCK_DGRAM)
-        client = netns.socket_in_netns(a.netns, socket.AF_INET, socket.SOCK_DGRAM)
         try:
-            server.bind((b.address, 0))
-            for end in (server, client):
-                end.settimeout(LEAD_ECHO_TIMEOUT_S)
-            round_trips = []
-            for _ in range(LEAD_WARMUP + LEAD_ECHOES):
-                start = time.perf_counter()
-                client.sendto(b"x" * 100, server.getsockname())
-                message, sender = server.recvfrom(2048)
-                server.sendto(message, sender)
-                client.recvfrom(2048)
-                round_trips.append(time.perf_counter() - start)
-                time.sleep(LEAD_GAP_S)
+            round_trips = netns.udp_echo_round_trips(a.netns, b.netns, b.address, LEAD_WARMUP + LEAD_ECHOES,
+                                                     LEAD_GAP_S, LEAD_ECHO_TIMEOUT_S)
         except OSError as err:
             raise netns.NetworkError(f"the delay line did not pass an echo between {a.vehicle_id} and "
                                      f"{b.vehicle_id} within {LEAD_ECHO_TIMEOUT_S:g} s: {err}") from None
-        finally:
-            server.close()
-            client.close()
         return min(statistics.median(round_trips[LEAD_WARMUP:]) / 2, MAX_LEAD_S)
 
     def _wait_ready(self) -> None:

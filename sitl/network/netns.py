@@ -20,6 +20,7 @@ import signal
 import socket
 import subprocess
 import threading
+import time
 
 from nac_onboard.errors import BadInput, OperationFailed
 
@@ -144,6 +145,31 @@ def delete_namespace(name: str) -> None:
 def socket_in_netns(name: str, family: int, kind: int) -> socket.socket:
     """A socket that belongs to network namespace `name` (it keeps it for life)."""
     return in_netns(name, lambda: socket.socket(family, kind))
+
+
+def udp_echo_round_trips(client_ns: str, server_ns: str, server_address: str, count: int, gap_s: float,
+                         timeout_s: float) -> list[float]:
+    """Round trips (wall seconds) of a 100-byte UDP echo from namespace client_ns to server_address in server_ns,
+    both ends in this thread, gap_s apart; OSError (a TimeoutError) when one is not back within timeout_s."""
+    server = socket_in_netns(server_ns, socket.AF_INET, socket.SOCK_DGRAM)
+    client = socket_in_netns(client_ns, socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        server.bind((server_address, 0))
+        for end in (server, client):
+            end.settimeout(timeout_s)
+        round_trips = []
+        for _ in range(count):
+            start = time.perf_counter()
+            client.sendto(b"x" * 100, server.getsockname())
+            message, sender = server.recvfrom(2048)
+            server.sendto(message, sender)
+            client.recvfrom(2048)
+            round_trips.append(time.perf_counter() - start)
+            time.sleep(gap_s)
+        return round_trips
+    finally:
+        server.close()
+        client.close()
 
 
 def in_netns(name: str, make):
