@@ -10,10 +10,14 @@ whole run costs on this machine (needs root, ip, tc, nft and iperf3).
 3. Whole runs: a fleet of 3, 8 and 16 vehicles (master hovering, workers around it, half of them flying in and
    out), linreg over the kernel network with probes, at 1x and at 4x (`--speedups`: each against the first):
    wall time, CPU, and the results in simulated time (iterations per simulated minute, mean probe throughput).
-   Target: 8 vehicles at 4x within 10 % of the 1x run. `--air medium`: the flight scenarios' air instead.
+   Target: 8 vehicles at 4x within 10 % of the 1x run. `--air medium`: the flight scenarios' air instead;
+   `--device`: the companions' device profile; `--probes none`: the job alone. Each ratio also comes window by
+   window (`by_window_ratio_95`: the ratio over the windows both runs hold and its 95 % interval), for one run's pace
+   is only as steady as its windows are.
 
     python benchmarks/network_emulation.py [--rates 1 10 50] [--fleets 3 8 16] [--duration-s 60] [--speedups 1 4]
-                                           [--air htb|medium] [--smoke]
+                                           [--air htb|medium] [--device jetson-tx2] [--probes in-turn|none]
+                                           [--smoke]
 """
 
 from __future__ import annotations
@@ -35,7 +39,9 @@ import types
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
+from ground.logs.agreement import pace_by_window, ratio_interval
 from missions import save_mission
 from nac_onboard.clock import publish as publish_clock
 from nac_onboard.flight_log import JsonlLog
@@ -131,19 +137,26 @@ def _rate_bps(tc_text: str) -> int | None:
     return int(round(float(match.group(1)) * scale))
 
 
-def fleet_scenario(folder: Path, vehicles: int, duration_s: float, air: str = "htb") -> Path:
+PROBE_PERIOD_S = 2.0  # the fleet's probes, one worker after another: a cycle is (vehicles - 1) x this
+WINDOW_S = 10.0  # without probes, a run's pace is taken window by window over this many simulated seconds
+
+
+def fleet_scenario(folder: Path, vehicles: int, duration_s: float, air: str = "htb", device: str = "host",
+                   probes: bool = True) -> Path:
     """Master at the origin; workers on rings 6-10 m out, every other one flying out to 14 m and back: always in
     range, and with a timeout no iteration reaches, so the comparison measures the clock, not a threshold (a
     worker whose iterations take about the timeout flips between late and absent, run to run). air "medium": the
     flight scenarios' air (the 802.11 medium, Reno), the workers probed back to back one at a time: fifteen bulk
     flows at once through one medium saturate it (0.87 of it busy, 13 % of exchanges colliding, seconds of queue at
-    every station), so that the probes' connections time out and an iteration takes 5 s."""
+    every station), so that the probes' connections time out and an iteration takes 5 s. device: the companions'
+    device profile (their CPU time stretched to it, nac_onboard.compute.device); probes False: none at all."""
     folder.mkdir(parents=True, exist_ok=True)
     save_mission(hover(at(0, 0), 3.0), folder / "v0.plan")
+    probe_table = ["[throughput]", f"period_s = {PROBE_PERIOD_S}",
+                   "duration_s = 0.5" if air == "htb" else "duration_s = 1.0", "interval_s = 0.1"]
     blocks = ['name = "fleet"', f"duration_s = {duration_s}", "max_speedup = 8.0", '[channel]',
-              'preset = "wifi-flight"', "[compute]", 'task = "linreg"', "timeout_s = 20.0", "[throughput]",
-              "period_s = 2.0", "duration_s = 0.5" if air == "htb" else "duration_s = 1.0",
-              "interval_s = 0.1", "[network]", f'air = "{air}"',
+              'preset = "wifi-flight"', "[compute]", 'task = "linreg"', "timeout_s = 20.0", f'device = "{device}"',
+              *(probe_table if probes else []), "[network]", f'air = "{air}"',
               'congestion_control = "host"' if air == "htb" else 'congestion_control = "reno"',
               '[[vehicle]]', 'id = "v0"', 'role = "master"', 'mission = "v0.plan"']
     for k in range(1, vehicles):
@@ -161,27 +174,45 @@ def fleet_scenario(folder: Path, vehicles: int, duration_s: float, air: str = "h
     return folder / "fleet.toml"
 
 
-def whole_run(vehicles: int, speedup: float, duration_s: float, folder: Path, air: str = "htb") -> dict:
-    scenario = load_scenario(str(fleet_scenario(folder / f"fleet-{vehicles}-{air}", vehicles, duration_s, air)))
+def whole_run(vehicles: int, speedup: float, duration_s: float, folder: Path, air: str = "htb", device: str = "host",
+              probes: bool = True) -> dict:
+    """One run of the fleet; its pace also window by window (iterations per simulated minute in each whole window
+    of WINDOW_S, or of one cycle of the probes in turn), from which a ratio of two runs gets its interval."""
+    scenario = load_scenario(str(fleet_scenario(folder / f"fleet-{vehicles}-{air}", vehicles, duration_s, air,
+                                                device, probes)))
     before_self, before_children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(
         resource.RUSAGE_CHILDREN)
     t0 = time.monotonic()
     from sitl.launcher import allocate_base_port
 
-    result = run_scenario(scenario, folder / f"run-{vehicles}-{air}-{speedup:g}x", speedup,
-                          allocate_base_port(vehicles, slots=5), out=io.StringIO(), network="kernel")
+    run_dir = folder / f"run-{vehicles}-{air}-{speedup:g}x"
+    result = run_scenario(scenario, run_dir, speedup, allocate_base_port(vehicles, slots=5), out=io.StringIO(),
+                          network="kernel")
     wall_s = time.monotonic() - t0
     after_self, after_children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(
         resource.RUSAGE_CHILDREN)
     cpu = sum(getattr(after, f) - getattr(before, f) for after, before in
               ((after_self, before_self), (after_children, before_children)) for f in ("ru_utime", "ru_stime"))
     s = result.summary
+    window_s = (vehicles - 1) * PROBE_PERIOD_S if probes else WINDOW_S
+    iterations = run_dir / "analysis" / "iterations.csv"
+    by_window = pace_by_window(pd.read_csv(iterations), window_s) if iterations.exists() else pd.Series(dtype=float)
     return {"vehicles": vehicles, "air": air, "speedup": speedup, "outcome": result.outcome.name.lower(),
             "wall_s": round(wall_s, 1), "cpu_s": round(cpu, 1), "cpu_cores": round(cpu / wall_s, 2),
             "iterations": s.get("iterations"), "iterations_per_sim_min": _round(s.get("iterations_per_min")),
+            "window_s": window_s, "iterations_per_sim_min_by_window": {f"{t:g}": round(x, 1) for t, x in
+                                                                       by_window.items()},
             "mean_throughput_mbps": _round(s.get("mean_throughput_mbps")),
             "measured_to_applied_by_bin": s.get("measured_to_applied_by_bin"),
             "ok": result.outcome is Outcome.COMPLETED}
+
+
+def _interval(first: dict, second: dict) -> list[float] | None:
+    """The second run's pace over the first's over the windows both hold, with its 95 % interval."""
+    first_s, second_s = (pd.Series({float(t): x for t, x in run["iterations_per_sim_min_by_window"].items()})
+                         for run in (first, second))
+    found = ratio_interval(first_s, second_s)
+    return None if found is None else [round(x, 3) for x in found]
 
 
 def _round(value):
@@ -275,6 +306,8 @@ def main() -> int:
     parser.add_argument("--speedups", type=float, nargs="+", default=[1.0, 4.0])
     parser.add_argument("--duration-s", type=float, default=60.0, help="simulated seconds per whole run")
     parser.add_argument("--air", choices=["htb", "medium"], default="htb", help="the whole runs' air")
+    parser.add_argument("--device", default="host", help="the fleet's companions' device profile")
+    parser.add_argument("--probes", choices=["in-turn", "none"], default="in-turn", help="the fleet's probes")
     parser.add_argument("--latency-samples", type=int, default=40)
     parser.add_argument("--iperf-s", type=int, default=3)
     args = _common.parse_args(parser, SMOKE)
@@ -292,7 +325,8 @@ def main() -> int:
             print(json.dumps({"shaping_accuracy": shaping_accuracy(rate, args.iperf_s, folder)}), flush=True)
         print(json.dumps({"update_latency": update_latency(args.latency_samples, folder)}), flush=True)
         for vehicles in args.fleets:
-            runs = {x: whole_run(vehicles, x, args.duration_s, folder, args.air) for x in args.speedups}
+            runs = {x: whole_run(vehicles, x, args.duration_s, folder, args.air, args.device, args.probes == "in-turn")
+                    for x in args.speedups}
             for run in runs.values():
                 print(json.dumps({"whole_run": run}), flush=True)
             base_x = args.speedups[0]  # each other speed-up's results against the first one's
@@ -303,6 +337,7 @@ def main() -> int:
                         "vehicles": vehicles, "air": args.air, "speedup": x, "first_speedup": base_x,
                         "iterations_per_sim_min_ratio": round(run["iterations_per_sim_min"] /
                                                               base["iterations_per_sim_min"], 3),
+                        "by_window_ratio_95": _interval(base, run),
                         "throughput_ratio": round(run["mean_throughput_mbps"] / base["mean_throughput_mbps"], 3)
                         if base["mean_throughput_mbps"] and run["mean_throughput_mbps"] else None}}), flush=True)
             if not all(r["ok"] for r in runs.values()):

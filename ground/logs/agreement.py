@@ -5,6 +5,9 @@ spreads the measurements): with n samples, the k-th smallest and the k-th larges
 stated confidence, k from the binomial(n, 1/2) distribution. A bin with too few samples gives no interval at all,
 and is not judged. Two medians can agree within `rel` when their intervals, one widened by rel, meet.
 
+A run's pace (iterations per simulated minute) is one number, whose spread shows only across its windows: the pace in
+each window of simulated time, and two runs' ratio with an interval from those windows (ratio_interval).
+
 The runs' samples are pooled per distance bin: a moving flight's worker spends a few seconds in each 2 m bin, so
 one run holds one or two blocks of 10 iterations there, and only several runs together say anything per bin.
 """
@@ -16,10 +19,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
+from scipy import stats
 
 #: below this, a median's 95 % interval is the whole sample's range (n = 5: k = 1) and says little: not judged
 MIN_SAMPLES = 8
 ALL = "all"  # every worker's samples together, as the report's throughput by distance pools the links
+MIN_WINDOWS = 5  # a pace's spread from fewer windows than this is not estimated
 
 
 def median_interval(values, confidence: float = 0.95) -> tuple[float, float] | None:
@@ -46,6 +51,37 @@ def agrees_within(values, target: float, rel: float, confidence: float = 0.95) -
         return None
     low, high = interval
     return low <= target * (1 + rel) and high >= target * (1 - rel)
+
+
+def pace_by_window(iterations: pd.DataFrame, window_s: float) -> pd.Series:
+    """Iterations begun per simulated minute in each window of window_s simulated seconds (from the run's time 0, so
+    two runs' windows are the same stretch of their scenario) that lies wholly within the job's span, indexed by
+    the window's start (iterations.csv: start_sim_s, duration_s)."""
+    done = iterations.dropna(subset=["start_sim_s", "duration_s"])
+    if done.empty:
+        return pd.Series(dtype=float)
+    first = math.ceil(float(done["start_sim_s"].min()) / window_s)
+    last = math.floor(float((done["start_sim_s"] + done["duration_s"]).max()) / window_s)
+    index = np.floor(done["start_sim_s"].to_numpy() / window_s).astype(int)
+    starts = np.arange(first, last)
+    counts = [(index == k).sum() for k in starts]
+    return pd.Series(np.asarray(counts, dtype=float) * 60.0 / window_s, index=starts * window_s)
+
+
+def ratio_interval(first: pd.Series, second: pd.Series, confidence: float = 0.95) -> tuple[float, float, float] | None:
+    """The second run's pace over the first's, over the windows both hold, and the interval holding it with about
+    `confidence`: the ratio estimator's standard error from the windows' residuals (second - ratio x first), so what
+    both runs share window by window (where the vehicles were, what the air did) cancels and only how they differ
+    counts; Student's t. None with fewer than MIN_WINDOWS windows in common or no iterations in the first."""
+    common = first.index.intersection(second.index)
+    a, b = first[common].to_numpy(float), second[common].to_numpy(float)
+    n = len(common)
+    if n < MIN_WINDOWS or a.sum() == 0:
+        return None
+    ratio = b.sum() / a.sum()
+    se = math.sqrt(((b - ratio * a) ** 2).sum() / (n * (n - 1))) / a.mean()
+    half = stats.t.ppf(0.5 + confidence / 2, n - 1) * se
+    return float(ratio), float(ratio - half), float(ratio + half)
 
 
 @dataclass(frozen=True)
