@@ -53,13 +53,14 @@ def mpi_command(ranks: int, *args: str) -> list[str]:
             "nac_onboard.compute", *args]
 
 
-def run_mpi(ranks: int, *args: str, timeout_s: float = 120.0) -> subprocess.CompletedProcess:
+def run_mpi(ranks: int, *args: str, timeout_s: float = 120.0, env: dict | None = None) -> subprocess.CompletedProcess:
     """The job, judged by its answer as the experiment runner judges it: on a loaded machine hydra's `mpiexec` now
     and then dies of SIGPIPE after every rank has finished (its closing message written to a proxy already gone,
     docs/benchmarks.md; 1 of 18 jobs in a clean-clone CI run), or says it could not write to that proxy and exits
     255 (a clean-clone CI run, 2026-11-27: "unable to send SIGUSR1 downstream"). With the master's run_summary
     written, that exit is MPICH's teardown, not the job's, and counts as 0; without it, it stays a failure."""
-    done = subprocess.run(mpi_command(ranks, *args), capture_output=True, text=True, timeout=timeout_s, env=ENV)
+    done = subprocess.run(mpi_command(ranks, *args), capture_output=True, text=True, timeout=timeout_s,
+                          env=env or ENV)
     out = Path(args[args.index("--out") + 1]) if "--out" in args else None
     teardown = done.returncode == -signal.SIGPIPE or (
         done.returncode == 255 and "unable to write data to proxy" in done.stderr)
@@ -489,9 +490,8 @@ def test_a_device_profile_gives_the_same_simulated_iterations_at_1x_and_4x(tmp_p
         clock_file = tmp_path / f"clock-{speedup:g}.json"
         clock.publish(str(clock_file), speedup, 0.0)
         out = tmp_path / f"run-{speedup:g}x"
-        done = subprocess.run(mpi_command(3, "--task", "matmul", "--iterations", "8", "--out", str(out),
-                                          "--device", str(device)),
-                              capture_output=True, text=True, timeout=120, env={**ENV, clock.ENV: str(clock_file)})
+        done = run_mpi(3, "--task", "matmul", "--iterations", "8", "--out", str(out), "--device", str(device),
+                       env={**ENV, clock.ENV: str(clock_file)})
         assert done.returncode == 0, done.stderr
         started, = records(out, "run_started")
         assert (started["device"], started["cpu_slowdown"], started["speedup"]) == ("slow", 1000.0, speedup)
