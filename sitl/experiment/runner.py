@@ -77,6 +77,7 @@ log = logging.getLogger(__name__)
 CLIENT_ERRORS = (OSError, LinkError, CommandError, MissionError)
 TAKEOFF_TIMEOUT_S = 60.0  # simulated
 COMPUTE_SETUP_TIMEOUT_S = 60.0  # wall: ranks started, data loaded, connections warmed up
+HEARTBEAT_WAIT_S = 10.0  # wall at 1x: ten of a vehicle's heartbeats, which it sends at 1 Hz of simulated time
 LANDING_SPEEDUP = 20.0  # the simulator alone ran 100 vehicles at 44x on this machine (docs/benchmarks.md, sitl_scale)
 CLOCK_PUBLISH_S = 0.1  # wall seconds between publications of the simulator's clock (readers re-read as often)
 
@@ -368,7 +369,7 @@ class Experiment:
             items = vehicle.mission.to_wire()
             self.progress[i].total = len(items) - 1
             try:
-                client.wait_heartbeat(10.0)
+                client.wait_heartbeat(self._slowed_s(HEARTBEAT_WAIT_S))
                 if client.upload(items) != M.MAV_MISSION_ACCEPTED:
                     raise ExperimentError(Outcome.MISSION_FAILED, f"{vehicle.id}: mission upload refused")
             except CLIENT_ERRORS as err:
@@ -399,6 +400,11 @@ class Experiment:
             os.replace(partial, start)
         self._watch()
 
+    def _slowed_s(self, wall_s: float) -> float:
+        """A wait of wall_s, longer in proportion below 1x, where what it waits for comes on the run's slowed clock
+        (a vehicle's 1 Hz heartbeat was 10 wall seconds apart at 0.1x, as long as the whole wait)."""
+        return wall_s / min(self.speedup, 1.0)
+
     def _sim_elapsed_s(self) -> float:
         return self.sim.t_s - (self.mission_start_sim_s or 0.0)
 
@@ -417,7 +423,7 @@ class Experiment:
         """The missions start once the MPI job is set up (its run_started record): its start-up costs wall time,
         which at a speed-up would otherwise be flight without computing, more of it the faster the run. Below 1x
         the wait is longer in proportion: the start-up's connections cross the air on the run's slowed clock."""
-        timeout_s /= min(self.speedup, 1.0)
+        timeout_s = self._slowed_s(timeout_s)
         deadline = time.monotonic() + timeout_s
         path = kinds.COMPUTE_LOG.at(self.run_dir)
         while not (path.exists() and (started := read_jsonl(path).of_kind(kinds.RUN_STARTED))):
@@ -675,7 +681,9 @@ class Experiment:
     def _shutdown(self, land: bool) -> None:
         self.stop_event.set()  # the progress followers stop reading
         # at the scenario's end the MPI job is finishing its own --duration-s: let it write its summary
-        self._stop_mpi(grace_s=self.scenario.compute.timeout_s + 2.0 if land and self.scenario.compute else 0.0)
+        # (its last iteration may wait out the job's timeout, which is simulated seconds)
+        self._stop_mpi(grace_s=self._slowed_s(self.scenario.compute.timeout_s + 2.0)
+                       if land and self.scenario.compute else 0.0)
         if self.job is not None:
             self.job.stop()
         for index in list(self.frozen):  # after the job's end: their connections reset when they die
