@@ -30,6 +30,7 @@ class AutopilotLink:
     def __init__(self, config: AutopilotSection, own_sysid: int, sysid: int | None, signing_key: bytes | None,
                  log: JsonlLog, on_status: Callable[[str], None], tap: Callable[[bytes], None] | None = None):
         self.config = config
+        self.link_timeout_s = config.link_timeout_s  # wall; the agent stretches it on a slowed run's clock
         self.own_sysid = own_sysid  # what the companion sends as (the vehicle's sysid, as a Pixhawk's companion)
         self.sysid = sysid  # the autopilot's; None: the first autopilot heard
         self.signing_key = signing_key
@@ -168,7 +169,7 @@ class AutopilotLink:
         vehicle = self.vehicle()
         if self.up and vehicle is not None:
             silent_s = vehicle.link_age_s(now_s)
-            if silent_s > a.link_timeout_s:
+            if silent_s > self.link_timeout_s:
                 self._mark_lost(now_s - silent_s, "silent", silent_s=round(silent_s, 3))
         reopenable = not a.uri.startswith("udpin:")  # a listening UDP socket needs no reopening
         if not self.up and now_s - self.last_open_attempt_s >= a.reconnect_s:

@@ -209,7 +209,7 @@ class Agent:
         c = self.config
         telemetry = _Timer(1.0 / c.log.telemetry_hz)
         publish = _Timer(0.0)
-        self._peer_times_in_run_time(publish)
+        self._times_in_run_time(publish)
         expire = _Timer(EXPIRE_CHECK_S)
         supervise = _Timer(SUPERVISE_S)
         sync = _Timer(c.log.fsync_s) if c.log.fsync_s > 0 else None
@@ -246,7 +246,7 @@ class Agent:
             if publish.fire(now):
                 self._publish_state()
             if expire.fire(now):
-                self._peer_times_in_run_time(publish)  # the pace can change; every expiry check follows it
+                self._times_in_run_time(publish)  # the pace can change; every expiry check follows it
                 for peer, silent_s in self.peers.expire(now):
                     self.log.write(kinds.PEER_LOST, peer=peer.id, role=peer.role, host=peer.host,
                                    silent_s=round(self.run_clock.sim_s(silent_s), 3))
@@ -260,15 +260,22 @@ class Agent:
                 self._supervise_throughput_server()
                 self._save_peer_freshness()
 
-    def _peer_times_in_run_time(self, publish: _Timer) -> None:
+    def _times_in_run_time(self, publish: _Timer) -> None:
         """The peer state's period and the peers' timeouts are the run's seconds (a real vehicle's are wall
         seconds): at a speed-up X the state goes X times as often on the wall clock, so a sped-up run's air carries
         what a real-time one's does (wall-clock periods put twice the frames into a simulated second at 0.25x as at
-        0.5x), and a silent peer is lost after the same simulated seconds."""
+        0.5x), and a silent peer is lost after the same simulated seconds. Below 1x the autopilot link's timeout
+        and the peers' replay window are stretched too: the autopilot's 1 Hz heartbeat came 5-10 wall seconds apart
+        at 0.2-0.1x (a 16-vehicle fleet logged 2,700-3,000 link_lost), and a state held seconds in the slowed air's
+        queues was refused as stale. Above 1x they stay wall seconds, a floor a loaded host's late wake-ups need."""
         p, wall_s = self.config.peers, self.run_clock.wall_s
         publish.period_s = wall_s(1.0 / p.rate_hz)
         self.peers.timeout_s = wall_s(p.timeout_s)
         self.peers.forget_s = wall_s(max(p.forget_s, p.timeout_s))
+        slowed = 1.0 / min(self.run_clock.speedup, 1.0)
+        self.autopilot.link_timeout_s = self.config.autopilot.link_timeout_s * slowed
+        if self.peers.replay_window_s is not None:
+            self.peers.replay_window_s = p.replay_window_s * slowed
 
     def stop(self, reason: str) -> None:
         self.stop_reason = reason
