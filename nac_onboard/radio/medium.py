@@ -83,11 +83,14 @@ class Frame:
     first_sent_s: float | None = None
     tries: list[int] = field(default_factory=list)  # per segment still to send: failed tries so far
     pending: list[int] = field(default_factory=list)  # those segments' places in the run, in step with tries
-    lost: list[int] = field(default_factory=list)  # places of the segments that failed every try
+    lost: list[int] = field(default_factory=list)  # places of the segments dropped at the queue or failed every try
+    queued: int | None = None  # how many of the run's segments found room in the queue (None: all)
 
     def __post_init__(self):
-        self.tries = [0] * self.segments
-        self.pending = list(range(self.segments))
+        self.queued = self.segments if self.queued is None else self.queued
+        self.tries = [0] * self.queued
+        self.pending = list(range(self.queued))
+        self.lost = list(range(self.queued, self.segments))  # the tail a full queue had no room for
 
     @property
     def segment_bytes(self) -> int:
@@ -112,7 +115,7 @@ class MediumStats:
     offered: int = 0
     delivered: int = 0
     segments_delivered: int = 0  # packets delivered, an offload run counted as the packets it stands for
-    queue_drops: int = 0  # tail drops at a full queue
+    queue_drops: int = 0  # packets dropped at a full queue (a run's segments each count)
     retry_drops: int = 0  # packets that failed every try (a run's segments each count)
     exchanges: int = 0
     collisions: int = 0
@@ -150,14 +153,18 @@ class Medium:
 
     def offer(self, t_s: float, src: int, dst: int, size_bytes: int, item: object = None, segments: int = 1) -> bool:
         """Queue a packet (or a run of `segments` packets) at station src, in time order after run_until(t_s);
-        False: its queue had no room for them (a queue holds queue_packets packets)."""
+        False: its queue had no room for it. A queue holds queue_packets packets and drops what does not fit, packet
+        by packet, as a FIFO of the MTU's packets does: a run takes the room there is, its tail is dropped (and
+        delivered as lost segments), so how the sender's stack batched its packets, which a speed-up changes, does
+        not decide what is dropped."""
         self.stats.offered += 1
-        queue = self.queues[src]
-        if self.queued[src] + segments > self.queue_packets:
-            self.stats.queue_drops += 1
+        segments = max(segments, 1)
+        room = min(self.queue_packets - self.queued[src], segments)
+        self.stats.queue_drops += segments - max(room, 0)
+        if room <= 0:
             return False
-        queue.append(Frame(src, dst, size_bytes, item, t_s, max(segments, 1)))
-        self.queued[src] += max(segments, 1)
+        self.queues[src].append(Frame(src, dst, size_bytes, item, t_s, segments, queued=room))
+        self.queued[src] += room
         if self.backoff[src] is None:
             self.backoff[src] = int(self.rng.integers(0, self.cw[src] + 1))
             self.counting_from_s[src] = max(t_s, self.idle_from_s)
@@ -231,7 +238,7 @@ class Medium:
         head = queue[0]
         if head.dst == BROADCAST:
             queue.popleft()
-            self.queued[src] -= head.segments
+            self.queued[src] -= head.queued
             head.first_sent_s = start_s if head.first_sent_s is None else head.first_sent_s
             end = start_s + t.ppdu_s(t.subframe_bytes(head.size_bytes), t.broadcast_rate_bps, t.legacy_preamble_s)
             if not collided:
@@ -287,9 +294,9 @@ class Medium:
         # one still being retried waits for it
         while queue and queue[0].dst == dst and not queue[0].tries:
             frame = queue.popleft()
-            self.queued[src] -= frame.segments
+            self.queued[src] -= frame.queued
             # what failed every try is lost, each MPDU on its own: of a run, only those segments
-            self.stats.retry_drops += len(frame.lost)
+            self.stats.retry_drops += len(frame.lost) - (frame.segments - frame.queued)
             if len(frame.lost) < frame.segments:
                 self._done.append(Delivery(frame, dst, data_end, tuple(sorted(frame.lost))))
                 self.stats.delivered += 1

@@ -171,8 +171,21 @@ def test_a_segmentation_offload_run_costs_the_air_of_its_packets_and_their_room_
     last_single = single.run_until(1.0)[-1].delivered_s
     (delivered,) = run.run_until(1.0)
     assert delivered.delivered_s == pytest.approx(last_single) and run.stats.exchanges == single.stats.exchanges == 3
+
+
+def test_a_full_queue_drops_a_runs_tail_packet_by_packet():
+    """A queue of 50 packets holding a 44-segment run has room for 6 of a 10-segment run: those 6 are queued and
+    sent, its last 4 are dropped and counted (delivered as the run's lost segments, which the delay line cuts out),
+    and a single packet after it finds no room. A whole-run drop would have kept the queue 6 short, room that a
+    stack batching fewer segments (a slower speed-up) would have filled: what is dropped would depend on batching."""
     full = medium(2, 65e6, queue_packets=50)
-    assert full.offer(0.0, 0, 1, 44 * 1500, segments=44) and not full.offer(0.0, 0, 1, 10 * 1500, segments=10)
+    assert full.offer(0.0, 0, 1, 44 * 1500, "first", segments=44)
+    assert full.offer(0.0, 0, 1, 10 * 1500, "second", segments=10) and full.backlog(0) == 50
+    assert not full.offer(0.0, 0, 1, 100, "third") and full.stats.queue_drops == 5
+    first, second = full.run_until(1.0)
+    assert (first.frame.item, first.lost_segments) == ("first", ())
+    assert (second.frame.item, second.lost_segments) == ("second", (6, 7, 8, 9))
+    assert full.stats.segments_delivered == 50 and full.stats.retry_drops == 0 and full.backlog(0) == 0
 
 
 def test_a_run_loses_only_the_segments_that_failed_every_try():
