@@ -15,13 +15,14 @@ import time
 from types import SimpleNamespace
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from nac_onboard.radio.medium import MacTiming, expected_echo_s, expected_message_s
 from sitl.network import netns
 from sitl.network.medium_air import LEAD_GAP_S, MediumAir
 from tests.integration.test_kernel_network import needs_iperf3, needs_kernel
-from tests.stats import agrees_within, median_interval
+from tests.stats import agrees_within, median_interval, spearman_interval
 
 PHY_BPS = 30e6  # MCS 4 of 20 MHz 802.11n with the long guard interval is 39 Mbit/s: a mid-range link
 
@@ -336,18 +337,21 @@ def test_an_experiment_on_the_frame_level_air_trains_probes_and_records_its_queu
     assert not [n for n in netns.namespaces() if n.startswith(experiment.air.prefix)]
 
 
-STATIC_FLIGHT_S = 30.0  # some 80 iterations after the go, 8 blocks of 10 and 6 probes (one in 4 s) per worker
+# Each flight's first seconds: the static one some 80 iterations after the go, 8 blocks of 10 and 6 probes (one in
+# 4 s) per worker; the moving one while w1 flies out from 6 m to about 20 m (out of range at 25 m, after 45 s).
+FLIGHT_PAIRS_S = {"paper-flight-static": 30.0, "paper-flight-moving": 40.0}
 
 
 @needs_kernel
 @pytest.mark.slow
 @pytest.mark.exclusive  # simulated times judged between two speed-ups: other tests' load would weigh on one of them
-def test_the_static_flight_on_the_frame_level_air_gives_the_same_results_at_1x_and_4x(tmp_path):
-    """paper-flight-static as shipped (the frame-level air, the probes back to back in the stations' queues, Reno),
-    shortened to 30 s, at 1x and at 4x: the iterations' simulated durations, the time per 10 iterations (the pace,
-    10 iterations at a time: single durations are bimodal, so their median is loose) and the probes' throughput,
-    over the whole flight and per 2 m bin, for both workers together and for each where it has samples enough, can
-    agree within 10 %. Judged as far as the sample
+@pytest.mark.parametrize("flight", FLIGHT_PAIRS_S)
+def test_the_flights_on_the_frame_level_air_give_the_same_results_at_1x_and_4x(tmp_path, flight):
+    """Each flight scenario as shipped (the frame-level air, the probes back to back in the stations' queues, Reno),
+    shortened to its first seconds (FLIGHT_PAIRS_S), at 1x and at 4x: the iterations' simulated durations, the time
+    per 10 iterations (the pace, 10 iterations at a time: single durations are bimodal, so their median is loose)
+    and the probes' throughput, over the whole flight and per 2 m bin, for both workers together and for each where
+    it has samples enough, can agree within 10 %. Judged as far as the sample
     allows (ground.logs.agreement): the two medians' 95 % order-statistic intervals, one widened by 10 %, must meet;
     what holds fewer than 8 samples at either speed-up is not judged, but the pace and both workers' time per 10
     and throughput together must be. Each link alone is not required: which of the two Reno flows wins more of the
@@ -360,16 +364,41 @@ def test_the_static_flight_on_the_frame_level_air_gives_the_same_results_at_1x_a
     from sitl.experiment.scenario import load_scenario
     from tests.conftest import allocate_base_port
 
-    scenario = dataclasses.replace(load_scenario("paper-flight-static"), duration_s=STATIC_FLIGHT_S)
+    scenario = dataclasses.replace(load_scenario(flight), duration_s=FLIGHT_PAIRS_S[flight])
     assert scenario.network.air == "medium" and scenario.throughput.concurrent, "the shipped flight's air and probes"
-    runs = []
+    runs, run_dirs = [], []
     for speedup in (1.0, 4.0):
         result = run_scenario(scenario, tmp_path / f"{speedup:g}x", speedup, allocate_base_port(3, slots=5),
                               out=io.StringIO(), network="kernel")
         assert result.outcome is Outcome.COMPLETED, result.detail
         runs.append(pooled_tables([result.run_dir]))
+        run_dirs.append(result.run_dir)
     rows = compare((runs[0], runs[1]))
     whole = {(r.quantity, r.worker) for r in rows if r.distance_from_m is None}
     assert whole >= {("duration_s", "all"), ("time_per_10_s", "all"), ("throughput_mbps", "all")}, rows
     apart = [r for r in rows if not r.agrees]
     assert not apart, [(r.quantity, r.worker, r.distance_from_m, r.medians, r.intervals) for r in apart]
+    if flight == "paper-flight-moving":
+        _time_per_10_rises_with_w1s_distance_through_the_air(runs, run_dirs)
+
+
+def _time_per_10_rises_with_w1s_distance_through_the_air(tables: list[dict], run_dirs: list) -> None:
+    """Issue 28's acceptance 1 on the pair's blocks of 10 iterations pooled (20-45 while w1 flies out from 6 m):
+    Spearman's rho of w1's time per 10 with its distance must be above 0 and can be 0.5 or more, judged by its 95 %
+    interval (Fisher's z), which comes from the number of blocks: it fails on no correlation (rho near 0: the
+    interval reaches below 0 and short of 0.5), not on a sample's spread. Measured, the first 40 s of six such pairs
+    pooled: 0.51-0.71. The cause is the network's: the job computed with no model of its links (`emulate` none),
+    so its times are what the air's queues and frames took, which its records hold beside."""
+    from ground.logs import iteration_pace
+    from nac_onboard.flight_log import read_jsonl
+
+    blocks = pd.concat([t["time_per_10"] for t in tables], ignore_index=True)
+    w1 = blocks[blocks["worker"] == "w1"]
+    rho = iteration_pace.spearman(w1).get("w1")
+    assert rho is not None, w1
+    interval = spearman_interval(rho, len(w1))
+    assert interval is not None and interval[0] > 0 and interval[1] >= 0.5, (rho, len(w1), interval)
+    for run in run_dirs:
+        assert read_jsonl(run / "compute" / "compute.jsonl").of_kind("run_started")[0]["emulate"] == "none"
+        air = read_jsonl(run / "network.jsonl").of_kind("air_medium")
+        assert any(r["queue_p50_s"] is not None and r["air_p50_s"] is not None for r in air), air[-1:]
