@@ -387,7 +387,7 @@ def _time_per_10_rises_with_w1s_distance_through_the_air(tables: list[dict], run
     Spearman's rho of w1's time per 10 with its distance must be above 0 and can be 0.5 or more, judged by its 95 %
     interval (Fisher's z), which comes from the number of blocks: it fails on no correlation (rho near 0: the
     interval reaches below 0 and short of 0.5), not on a sample's spread. Measured, the first 40 s of six such pairs
-    pooled: 0.51-0.71. The cause is the network's: the job computed with no model of its links (`emulate` none),
+    pooled: 0.51-0.68. The cause is the network's: the job computed with no model of its links (`emulate` none),
     so its times are what the air's queues and frames took, which its records hold beside."""
     from ground.logs import iteration_pace
     from nac_onboard.flight_log import read_jsonl
