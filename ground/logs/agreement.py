@@ -53,15 +53,6 @@ def agrees_within(values, target: float, rel: float, confidence: float = 0.95) -
     return low <= target * (1 + rel) and high >= target * (1 - rel)
 
 
-def spearman_interval(rho: float, n: int, confidence: float = 0.95) -> tuple[float, float] | None:
-    """(low, high) around Spearman's rho from n pairs: Fisher's z with the standard error 1.06 / sqrt(n - 3)
-    (Fieller, Hartley and Pearson, Biometrika 44, 1957), or None with fewer than MIN_SAMPLES pairs."""
-    if n < MIN_SAMPLES or not -1.0 < rho < 1.0:
-        return None
-    z, spread = math.atanh(rho), stats.norm.ppf(0.5 + confidence / 2) * 1.06 / math.sqrt(n - 3)
-    return math.tanh(z - spread), math.tanh(z + spread)
-
-
 def pace_by_window(iterations: pd.DataFrame, window_s: float) -> pd.Series:
     """Iterations begun per simulated minute in each window of window_s simulated seconds (from the run's time 0, so
     two runs' windows are the same stretch of their scenario) that lies wholly within the job's span, indexed by
