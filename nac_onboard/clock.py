@@ -33,6 +33,13 @@ class ClockError(BadInput):
     pass
 
 
+def slowed_s(wall_s: float, speedup: float) -> float:
+    """A wait or timeout of wall_s stretched below 1x, where what it waits for comes on the run's slowed clock (a
+    1 Hz heartbeat is 10 wall seconds apart at 0.1x); above 1x it stays wall seconds, a floor a loaded host's late
+    wake-ups need."""
+    return wall_s / min(speedup, 1.0)
+
+
 @dataclass(frozen=True)
 class ClockSample:
     speedup: float

@@ -41,7 +41,7 @@ from nac_onboard.agent.snapshot import AgentSnapshot, OwnState
 from nac_onboard.agent.state_feed import REQUEST as FEED_REQUEST
 from nac_onboard.agent.state_feed import encode_snapshot
 from nac_onboard.agent.systemd_notify import SystemdNotifier
-from nac_onboard.clock import from_env
+from nac_onboard.clock import from_env, slowed_s
 from nac_onboard.flight_log import JsonlLog, TlogWriter
 from nac_onboard.link.emulation import SleepEmulation
 from nac_onboard.link.throughput import ThroughputServer
@@ -272,10 +272,10 @@ class Agent:
         publish.period_s = wall_s(1.0 / p.rate_hz)
         self.peers.timeout_s = wall_s(p.timeout_s)
         self.peers.forget_s = wall_s(max(p.forget_s, p.timeout_s))
-        slowed = 1.0 / min(self.run_clock.speedup, 1.0)
-        self.autopilot.link_timeout_s = self.config.autopilot.link_timeout_s * slowed
+        speedup = self.run_clock.speedup
+        self.autopilot.link_timeout_s = slowed_s(self.config.autopilot.link_timeout_s, speedup)
         if self.peers.replay_window_s is not None:
-            self.peers.replay_window_s = p.replay_window_s * slowed
+            self.peers.replay_window_s = slowed_s(p.replay_window_s, speedup)
 
     def stop(self, reason: str) -> None:
         self.stop_reason = reason

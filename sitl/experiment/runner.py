@@ -401,9 +401,7 @@ class Experiment:
         self._watch()
 
     def _slowed_s(self, wall_s: float) -> float:
-        """A wait of wall_s, longer in proportion below 1x, where what it waits for comes on the run's slowed clock
-        (a vehicle's 1 Hz heartbeat was 10 wall seconds apart at 0.1x, as long as the whole wait)."""
-        return wall_s / min(self.speedup, 1.0)
+        return clock.slowed_s(wall_s, self.speedup)
 
     def _sim_elapsed_s(self) -> float:
         return self.sim.t_s - (self.mission_start_sim_s or 0.0)
