@@ -160,8 +160,8 @@ class Medium:
         self.stats.offered += 1
         segments = max(segments, 1)
         room = min(self.queue_packets - self.queued[src], segments)
-        self.stats.queue_drops += segments - max(room, 0)
-        if room <= 0:
+        self.stats.queue_drops += segments - room
+        if room == 0:
             return False
         self.queues[src].append(Frame(src, dst, size_bytes, item, t_s, segments, queued=room))
         self.queued[src] += room
