@@ -6,6 +6,7 @@ radio by its file (run_channel_path), which the runner writes once before any of
 from __future__ import annotations
 
 import ipaddress
+import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -146,14 +147,30 @@ def mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: f
             *compute_args(scenario, run_dir, ports, end_at_sim_s, workers=workers, resume=resume)]
 
 
+# UCX's own TCP keepalive (ucx-1.20 src/uct/tcp/tcp_base.h: UCT_TCP_DEFAULT_KEEPALIVE_IDLE, _INTVL; its KEEPCNT
+# "auto" leaves the kernel's 9 probes): an idle connection whose peer stays silent 10 + 9 x 2 s is reset.
+UCX_KEEPALIVE_IDLE_S, UCX_KEEPALIVE_INTVL_S = 10.0, 2.0
+
+
+def ucx_keepalive_env(speedup: float) -> dict[str, str]:
+    """UCX's keepalive in simulated seconds: its timers run on the wall clock, and below 1x its 18 s of silence are
+    too short for an answer queued behind a full transmit queue (0.1x: 1.8 simulated s; measured, an idle keepalive
+    connection beside an 8-stream iperf3 at 1 Mbit/s was reset after 28.2 wall s), so the MPI job lost its master."""
+    return {"UCX_TCP_KEEPIDLE": f"{math.ceil(clock.slowed_s(UCX_KEEPALIVE_IDLE_S, speedup))}s",
+            "UCX_TCP_KEEPINTVL": f"{math.ceil(clock.slowed_s(UCX_KEEPALIVE_INTVL_S, speedup))}s"}
+
+
 def kernel_mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: float, air: AirNetwork,
-                       clock_path: Path, workers: list[str] | None = None, resume: bool = False) -> list[str]:
+                       clock_path: Path, speedup: float, workers: list[str] | None = None,
+                       resume: bool = False) -> list[str]:
     """mpiexec as on the fleet: started on the master's companion, one rank per vehicle's namespace, over TCP
-    only (shared memory would bypass the shaped links). workers, resume: as compute_args."""
+    only (shared memory would bypass the shaped links), with UCX's keepalive on the run's clock. workers, resume:
+    as compute_args."""
     ids = [v.id for v in scenario.vehicles]
     workers = [w.id for w in scenario.workers] if workers is None else workers
     order = [ids.index(scenario.master.id), *(ids.index(w) for w in workers)]
-    env = {"UCX_TLS": "tcp,self", "UCX_NET_DEVICES": "air0", "MPIR_CVAR_NOLOCAL": "1", clock.ENV: str(clock_path)}
+    env = {"UCX_TLS": "tcp,self", "UCX_NET_DEVICES": "air0", "MPIR_CVAR_NOLOCAL": "1", clock.ENV: str(clock_path),
+           **ucx_keepalive_env(speedup)}
     mpiexec = launch.mpiexec_command([air.stations[k].netns for k in order], run_dir / "config",
                                      air.stations[order[0]].address, netns=True, env=env)
     return [*air.exec_prefix(order[0]), *mpiexec, sys.executable, "-m", "mpi4py", "-m", "nac_onboard.compute",

@@ -458,7 +458,7 @@ class Experiment:
         """mpiexec for the job's supervisor: these workers, from the checkpoint or not."""
         if self.air is not None:
             command = kernel_mpi_command(self.scenario, self.run_dir, self.ports, self.end_at_sim_s, self.air,
-                                         self.clock_path, workers, resume)
+                                         self.clock_path, self.speedup, workers, resume)
         else:
             command = mpi_command(self.scenario, self.run_dir, self.ports, self.end_at_sim_s, workers, resume)
         self.mpi_log.write(f"---- nac-sitl: mpiexec for {', '.join(workers)}{' (--resume)' if resume else ''}\n"

@@ -3,13 +3,14 @@
 import json
 import os
 import re
+import types
 
 import pytest
 
 from missions.geo import distance_m
 from nac_onboard.radio.channel import PRESETS
 from sitl import cli
-from sitl.experiment.commands import Ports, compute_args
+from sitl.experiment.commands import Ports, compute_args, kernel_mpi_command
 from sitl.experiment.scenario import SCENARIO_DIR, ScenarioError, load_scenario
 
 SHIPPED = sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
@@ -270,6 +271,26 @@ def test_a_scenarios_device_profile_is_checked_and_reaches_the_ranks(tmp_path):
     assert scenario.compute.device == str((tmp_path / "tx2.toml").resolve())
     args = compute_args(scenario, tmp_path / "run", Ports(47000), 100.0)
     assert args[args.index("--device") + 1] == scenario.compute.device
+
+
+def test_the_kernel_networks_mpi_job_has_ucxs_keepalive_on_the_simulated_clock(tmp_path):
+    """UCX resets a connection whose peer is silent 10 + 9 x 2 of its seconds; on the wall clock at 0.1x that is
+    1.8 simulated s, less than a full queue holds, and the job lost its master. Below 1x both timers stretch;
+    above it they stay UCX's (a loaded host's floor), never shorter."""
+    path = tmp_path / "s.toml"
+    path.write_text(TWO + "[compute]\ntask = 'linreg'\n")
+    scenario = load_scenario(str(path))
+    stations = [types.SimpleNamespace(netns=f"ns-{i}", address=f"10.9.0.{i + 1}") for i in range(2)]
+    air = types.SimpleNamespace(stations=stations, exec_prefix=lambda i: ["ip", "netns", "exec", stations[i].netns])
+
+    def genv(speedup):
+        command = kernel_mpi_command(scenario, tmp_path / "run", Ports(47000), 10.0, air, tmp_path / "c", speedup)
+        return {command[i + 1]: command[i + 2] for i, part in enumerate(command) if part == "-genv"}
+
+    assert {k: genv(0.1)[k] for k in ("UCX_TCP_KEEPIDLE", "UCX_TCP_KEEPINTVL")} == {
+        "UCX_TCP_KEEPIDLE": "100s", "UCX_TCP_KEEPINTVL": "20s"}
+    for speedup in (1.0, 4.0):
+        assert (genv(speedup)["UCX_TCP_KEEPIDLE"], genv(speedup)["UCX_TCP_KEEPINTVL"]) == ("10s", "2s")
 
 
 def test_a_shipped_jetson_profile_is_named_in_a_scenario_and_a_file_of_that_name_comes_first(tmp_path, monkeypatch):
