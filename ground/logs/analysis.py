@@ -1,7 +1,8 @@
 """The tables of a run (pure: a RunLog in, pandas DataFrames out).
 
 One time axis: unix seconds (`t_s`) as every NAC record carries it, shown as `t_rel_s` from the run's first
-record. A telemetry position is dated by the autopilot's clock, not by when the agent happened to log it: the
+record on the run's own clock: simulated seconds in a SITL run at any speed-up, wall seconds otherwise
+(run_clock). A telemetry position is dated by the autopilot's clock, not by when the agent happened to log it: the
 agent logs the latest position at its own pace, so the time a sample was *taken* is bounded above by the earliest
 log time of it or any later sample (a running minimum from the end, per boot of the autopilot). This keeps
 positions of fast (or sped-up) vehicles aligned without assuming the autopilot clock's rate.
@@ -20,6 +21,7 @@ import pandas as pd
 
 from ground.logs import energy as energy_
 from ground.logs import iteration_pace
+from ground.logs.run_clock import RunClock
 from ground.logs.runlog import RunLog
 from missions.geo import Home, ecef_to_enu, lla_to_ecef
 from nac_onboard.clock import PACE_LIMIT
@@ -37,6 +39,7 @@ class RunTables:
     name: str
     master: str | None
     t0_s: float
+    clock: RunClock  # t_s to t_rel_s: simulated seconds where the run pairs them
     trajectories: pd.DataFrame  # vehicle, t_s, t_rel_s, lat/lon/alt, east_m, north_m, up_m
     distances: pd.DataFrame  # t_s, t_rel_s, worker, distance_m (master to worker)
     throughput: pd.DataFrame  # one row per probe
@@ -78,7 +81,7 @@ def sample_times(positions: pd.DataFrame) -> pd.Series:
     return out
 
 
-def trajectories(run: RunLog, t0_s: float) -> pd.DataFrame:
+def trajectories(run: RunLog, clock: RunClock) -> pd.DataFrame:
     columns = ["vehicle", "t_s", "t_rel_s", "lat_deg", "lon_deg", "alt_m", "east_m", "north_m", "up_m"]
     if not run.positions:
         return pd.DataFrame(columns=columns)
@@ -95,7 +98,8 @@ def trajectories(run: RunLog, t0_s: float) -> pd.DataFrame:
     ecef = lla_to_ecef(table["lat_deg"].to_numpy(), table["lon_deg"].to_numpy(), table["alt_m"].to_numpy())
     first = table.iloc[0]
     local = ecef_to_enu(ecef, Home(float(first["lat_deg"]), float(first["lon_deg"]), float(first["alt_m"])))
-    table = table.assign(t_rel_s=table["t_s"] - t0_s, east_m=local[:, 0], north_m=local[:, 1], up_m=local[:, 2])
+    table = table.assign(t_rel_s=clock.rel_s(table["t_s"].to_numpy(float)), east_m=local[:, 0], north_m=local[:, 1],
+                         up_m=local[:, 2])
     return table[columns].reset_index(drop=True)
 
 
@@ -113,7 +117,7 @@ def interpolate_positions(track: pd.DataFrame, times_s: np.ndarray) -> np.ndarra
     return out
 
 
-def distances(traj: pd.DataFrame, master: str | None, t0_s: float) -> pd.DataFrame:
+def distances(traj: pd.DataFrame, master: str | None, clock: RunClock) -> pd.DataFrame:
     columns = ["t_s", "t_rel_s", "worker", "distance_m"]
     if master is None or master not in set(traj["vehicle"]):
         return pd.DataFrame(columns=columns)
@@ -124,7 +128,8 @@ def distances(traj: pd.DataFrame, master: str | None, t0_s: float) -> pd.DataFra
     for worker in sorted(set(traj["vehicle"]) - {master}):
         w_ecef = interpolate_positions(traj[traj["vehicle"] == worker], times)
         d = np.linalg.norm(master_ecef - w_ecef, axis=1)
-        frames.append(pd.DataFrame({"t_s": times, "t_rel_s": times - t0_s, "worker": worker, "distance_m": d}))
+        frames.append(pd.DataFrame({"t_s": times, "t_rel_s": clock.rel_s(times.astype(float)), "worker": worker,
+                                    "distance_m": d}))
     table = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=columns)
     return table.dropna(subset=["distance_m"]).reset_index(drop=True)
 
@@ -159,7 +164,7 @@ def _applied_mbps(rates: dict, client, server, t_sim_s, span_sim_s) -> float | N
     return float(held.mean()) / 1e6
 
 
-def throughput(run: RunLog, t0_s: float) -> pd.DataFrame:
+def throughput(run: RunLog, clock: RunClock) -> pd.DataFrame:
     rows = []
     rates = applied_rates(run)
     for r in run.probes:
@@ -170,7 +175,7 @@ def throughput(run: RunLog, t0_s: float) -> pd.DataFrame:
         t_s = float(start) if start is not None else r["t_s"]
         failed = "error" in r
         speedup = r.get("speedup") or 1.0
-        rows.append({"t_s": t_s, "t_rel_s": t_s - t0_s, "t_sim_s": r.get("t_sim_s"),
+        rows.append({"t_s": t_s, "t_rel_s": clock.rel_s(t_s), "t_sim_s": r.get("t_sim_s"),
                      "client": r.get("client"), "server": r.get("server"),
                      "distance_m": r.get("distance_m"), "distance_end_m": r.get("distance_end_m"),
                      "throughput_mbps": 0.0 if failed else got.get("bits_per_second", 0.0) / speedup / 1e6,
@@ -228,30 +233,30 @@ def throughput_by_distance(table: pd.DataFrame, bin_m: float = DEFAULT_BIN_M) ->
     return out[columns]
 
 
-def iterations(run: RunLog, t0_s: float) -> tuple[pd.DataFrame, pd.DataFrame]:
+def iterations(run: RunLog, clock: RunClock) -> tuple[pd.DataFrame, pd.DataFrame]:
     rows, worker_rows = [], []
     for r in sorted(run.iterations, key=lambda r: r["start_s"]):
         w = r.get("workers") or {}
         ranks = w.get("rank", [])
         present = w.get("present", [])
         absent = [f"{w['vehicle'][k]}:{w['absent'][k]}" for k in range(len(ranks)) if not present[k]]
-        rows.append({"iteration": r["iteration"], "t_s": r["start_s"], "t_rel_s": r["start_s"] - t0_s,
+        rows.append({"iteration": r["iteration"], "t_s": r["start_s"], "t_rel_s": clock.rel_s(r["start_s"]),
                      "start_sim_s": r.get("start_sim_s", np.nan),
                      "duration_s": r.get("duration_sim_s", r["duration_s"]), "complete": bool(r.get("complete", True)),
                      "workers_present": int(sum(present)), "absent": " ".join(absent), "cost": r.get("cost")})
         for k, rank in enumerate(ranks):
-            worker_rows.append({"iteration": r["iteration"], "t_rel_s": r["start_s"] - t0_s, "rank": rank,
+            worker_rows.append({"iteration": r["iteration"], "t_rel_s": clock.rel_s(r["start_s"]), "rank": rank,
                                 **{key: w[key][k] for key in w if key != "rank"}})
     it_columns = ["iteration", "t_s", "t_rel_s", "start_sim_s", "duration_s", "complete", "workers_present",
                   "absent", "cost"]
     return pd.DataFrame(rows, columns=it_columns), pd.DataFrame(worker_rows)
 
 
-def events(run: RunLog, its: pd.DataFrame, t0_s: float) -> pd.DataFrame:
+def events(run: RunLog, its: pd.DataFrame, clock: RunClock) -> pd.DataFrame:
     """Each fault and MPI job restart, at its time and the iteration running then (the cost figure's axis)."""
     rows = []
     for e in run.events:
-        t_rel_s = e["t_s"] - t0_s
+        t_rel_s = clock.rel_s(e["t_s"])
         before = its[its["t_rel_s"] <= t_rel_s] if not its.empty else its
         rows.append({"t_rel_s": t_rel_s, "iteration": int(before["iteration"].iloc[-1]) if len(before) else None,
                      "what": e["what"]})
@@ -332,12 +337,13 @@ def analyze(run: RunLog, master: str | None = None, bin_m: float = DEFAULT_BIN_M
     starts = [min(p["t_s"] for p in run.positions)] if run.positions else []
     starts += [r["start_s"] for r in run.iterations[:1]] + [r["t_s"] for r in run.probes[:1] + run.compute_runs[:1]]
     t0_s = float(min(starts)) if starts else 0.0
+    clock = RunClock.of(t0_s, run.link_rates, run.energy)
     master = run.master(master)
-    traj = trajectories(run, t0_s)
-    dist = distances(traj, master, t0_s)
-    probes = with_distances(throughput(run, t0_s), traj)
+    traj = trajectories(run, clock)
+    dist = distances(traj, master, clock)
+    probes = with_distances(throughput(run, clock), traj)
     bins = throughput_by_distance(probes, bin_m)
-    its, workers = iterations(run, t0_s)
+    its, workers = iterations(run, clock)
     summary = summarize(run, its, workers, probes, bins, dist, threshold_mbps)
     summary["master"] = master
     missing = list(run.missing)
@@ -355,9 +361,9 @@ def analyze(run: RunLog, master: str | None = None, bin_m: float = DEFAULT_BIN_M
     power = energy_.power(run.energy)
     vehicles = energy_.by_vehicle(power, run.battery_empty)
     summary.update(energy_.summarize(vehicles, summary))
-    return RunTables(run.name, master, t0_s, traj, dist, probes, bins, its, workers, training_cost(its), summary,
-                     problems, missing, per_10, iteration_pace.by_distance(per_10, bin_m), power, vehicles,
-                     events(run, its, t0_s))
+    return RunTables(run.name, master, t0_s, clock, traj, dist, probes, bins, its, workers, training_cost(its),
+                     summary, problems, missing, per_10, iteration_pace.by_distance(per_10, bin_m), power, vehicles,
+                     events(run, its, clock))
 
 
 MACHINE_ITERATION_COST_S = 0.0024  # a linreg iteration with 2 workers at 1x, kernel network (docs/benchmarks.md)

@@ -29,8 +29,13 @@ def trajectories(ax, t: RunTables) -> None:
     ax.legend(fontsize="small")
 
 
+def time_label(t: RunTables) -> str:
+    """A SITL run's axis is its simulated time at any speed-up; a flight's, its own."""
+    return "simulated time (s)" if t.clock.simulated else "time (s)"
+
+
 def distances(ax, t: RunTables) -> None:
-    ax.set(title="Master-worker distance", xlabel="time (s)", ylabel="distance (m)")
+    ax.set(title="Master-worker distance", xlabel=time_label(t), ylabel="distance (m)")
     if t.distances.empty:
         return _empty(ax, "distances")
     for worker, rows in t.distances.groupby("worker"):
@@ -39,7 +44,7 @@ def distances(ax, t: RunTables) -> None:
 
 
 def throughput_over_time(ax, t: RunTables) -> None:
-    ax.set(title="Throughput over time", xlabel="time (s)", ylabel="throughput (Mbit/s)")
+    ax.set(title="Throughput over time", xlabel=time_label(t), ylabel="throughput (Mbit/s)")
     if t.throughput.empty:
         return _empty(ax, "throughput probes")
     for (client, server), rows in t.throughput.groupby(["client", "server"]):
@@ -62,7 +67,7 @@ def throughput_vs_distance(ax, t: RunTables) -> None:
 
 
 def iteration_time(ax, t: RunTables) -> None:
-    ax.set(title="Iteration time", xlabel="time (s)", ylabel="iteration duration (s)")
+    ax.set(title="Iteration time", xlabel=time_label(t), ylabel="iteration duration (s)")
     if t.iterations.empty:
         return _empty(ax, "compute iterations")
     its = t.iterations

@@ -64,9 +64,10 @@ def trains_through_link_loss(moving: RunTables) -> str:
     absent = sorted({a.split(":")[0] for cell in partial["absent"] for a in cell.split()})
     cost_text = ("no cost logged" if cost.empty else f"cost {cost.iloc[0]:.4f}" if len(cost) == 1
                  else f"cost {cost.iloc[0]:.4f} -> {cost.iloc[-1]:.4f}")
+    clock = "simulated" if moving.clock.simulated else "wall-clock"
     return (f"Training continues while a worker is out of range ({moving.name}): "
             f"{_verdict(kept_learning)}; {len(partial)} iterations "
-            f"({first}-{last}, from t={partial['t_rel_s'].iloc[0]:.0f} s wall-clock) ran without {', '.join(absent)}, "
+            f"({first}-{last}, from t={partial['t_rel_s'].iloc[0]:.0f} s {clock}) ran without {', '.join(absent)}, "
             f"{cost_text}{rejoined}. The research's moving run stopped at its first link loss.")
 
 

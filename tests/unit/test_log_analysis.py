@@ -65,6 +65,26 @@ def test_golden_run_gives_exactly_the_known_tables():
     assert t.missing == [] and t.problems == []
 
 
+def test_a_sped_up_sitl_runs_tables_are_on_its_simulated_clock(tmp_path):
+    """The golden run as if flown at 4x: its shaper's records pair each wall second with four simulated ones (from
+    1000.5 to 1003 only: before and after, the run's mean pace), so every table's t_rel_s is four times the wall
+    offset, as the same flight at 1x would read; without such records (the golden run as is) it stays wall time."""
+    run = tmp_path / "run"
+    shutil.copytree(GOLDEN, run)
+    link = {"kind": "link_rates", "speedup": 4.0, "a": ["master"], "b": ["w1"], "distance_m": [10.0],
+            "rate_bps": [1e7], "loss": [0.0], "snr_db": [20.0], "mcs": [3], "source": "wifi-flight"}
+    records = [{"t_s": 1000.0, "kind": "schema", "schema_version": 1, "file": "network.jsonl"}] + [
+        {"t_s": 1000.5 + k * 0.25, **link, "t_sim_s": 2.0 + k} for k in range(11)]
+    (run / "network.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    t = analyze(read_run(run))
+    assert t.clock.simulated and t.t0_s == 1000.0
+    assert rows(t.distances[["t_rel_s", "distance_m"]], 3) == [[4.0, 11.9], [8.0, 13.9], [12.0, 15.9], [16.0, 17.9]]
+    assert t.throughput["t_rel_s"].tolist() == [0.0, 4.0, 8.0, 12.0, 16.0, 20.0]
+    assert t.iterations["t_rel_s"].tolist() == [4.0, 6.0, 8.0, 12.0]
+    assert t.training_cost["elapsed_s"].tolist() == [0.0, 2.0, 4.0, 8.0]
+    assert not analyze(read_run(GOLDEN)).clock.simulated
+
+
 def test_analyze_writes_tables_figures_and_a_report(tmp_path):
     out = tmp_path / "out"
     assert cli.main(["logs", "analyze", str(GOLDEN), "--out", str(out)]) == 0
