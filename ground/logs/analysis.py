@@ -240,16 +240,20 @@ def iterations(run: RunLog, clock: RunClock) -> tuple[pd.DataFrame, pd.DataFrame
         ranks = w.get("rank", [])
         present = w.get("present", [])
         absent = [f"{w['vehicle'][k]}:{w['absent'][k]}" for k in range(len(ranks)) if not present[k]]
-        rows.append({"iteration": r["iteration"], "t_s": r["start_s"], "t_rel_s": clock.rel_s(r["start_s"]),
+        rows.append({"iteration": r["iteration"], "t_s": r["start_s"],
                      "start_sim_s": r.get("start_sim_s", np.nan),
                      "duration_s": r.get("duration_sim_s", r["duration_s"]), "complete": bool(r.get("complete", True)),
                      "workers_present": int(sum(present)), "absent": " ".join(absent), "cost": r.get("cost")})
         for k, rank in enumerate(ranks):
-            worker_rows.append({"iteration": r["iteration"], "t_rel_s": clock.rel_s(r["start_s"]), "rank": rank,
+            worker_rows.append({"iteration": r["iteration"], "t_s": r["start_s"], "rank": rank,
                                 **{key: w[key][k] for key in w if key != "rank"}})
     it_columns = ["iteration", "t_s", "t_rel_s", "start_sim_s", "duration_s", "complete", "workers_present",
                   "absent", "cost"]
-    return pd.DataFrame(rows, columns=it_columns), pd.DataFrame(worker_rows)
+    its, workers = pd.DataFrame(rows, columns=it_columns), pd.DataFrame(worker_rows)
+    its["t_rel_s"] = clock.rel_s(its["t_s"].to_numpy(float))
+    if not workers.empty:
+        workers.insert(1, "t_rel_s", clock.rel_s(workers.pop("t_s").to_numpy(float)))
+    return its, workers
 
 
 def events(run: RunLog, its: pd.DataFrame, clock: RunClock) -> pd.DataFrame:
