@@ -19,12 +19,13 @@ REPLAY_PREFIX = "replay:"
 def replay_from_run(run_dir: str | Path) -> ReplayLinks:
     """Each pair's probes of a recorded run as a replay table."""
     from ground.logs.analysis import throughput
+    from ground.logs.run_clock import RunClock
     from ground.logs.runlog import read_run
 
     path = Path(run_dir)
     if not path.is_dir():
         raise ReplayError(f"replay: {path} is not a run directory")
-    probes = throughput(read_run(path), 0.0)
+    probes = throughput(read_run(path), RunClock.of(0.0))  # its times from t_sim_s or t_s, below
     probes = probes.dropna(subset=["client", "server"])
     if probes.empty:
         raise ReplayError(f"replay: {path} has no throughput probes to replay (expected agent throughput "

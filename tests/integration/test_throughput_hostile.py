@@ -18,6 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ground.logs.analysis import throughput as analysis_throughput
+from ground.logs.run_clock import RunClock
 from ground.logs.runlog import RunLog
 from nac_onboard.agent.config import ThroughputSection
 from nac_onboard.agent.probes import ProbeScheduler
@@ -310,7 +311,7 @@ def test_a_one_way_blackhole_mid_probe_is_a_link_failure_kept_in_the_analysis():
     assert out["kind"] == "link" and "stalled" in out["error"], out
     record = {"kind": "throughput", "t_s": 100.0, "client": "m", "server": "w", "error": out["error"],
               "error_kind": out["kind"], "distance_m": 20.0}
-    table = analysis_throughput(RunLog(REPO, probes=[record]), 0.0)
+    table = analysis_throughput(RunLog(REPO, probes=[record]), RunClock.of(0.0))
     assert len(table) == 1 and table["throughput_mbps"].iloc[0] == 0.0, "a dead link is a measurement: zero"
 
 
