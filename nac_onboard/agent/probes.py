@@ -34,11 +34,19 @@ from pathlib import Path
 
 from nac_onboard.agent.config import ThroughputSection
 from nac_onboard.agent.snapshot import AgentSnapshot, ProbeResult, position
-from nac_onboard.clock import Clock
+from nac_onboard.clock import Clock, slowed_s
 from nac_onboard.flight_log import JsonlLog
 from nac_onboard.link import iperf3
 from nac_onboard.link.emulation import SleepEmulation
-from nac_onboard.link.throughput import ANSWER_MARGIN_S, GRACE_S, LINK, MIN_INTERVAL_S, ProbeError, probe
+from nac_onboard.link.throughput import (
+    ANSWER_MARGIN_S,
+    GRACE_S,
+    IDLE_TIMEOUT_S,
+    LINK,
+    MIN_INTERVAL_S,
+    ProbeError,
+    probe,
+)
 from nac_onboard.records import kinds
 
 log = logging.getLogger(__name__)
@@ -212,7 +220,8 @@ class ProbeScheduler:
                                nbytes=s.bytes or None, interval_s=max(wall(s.interval_s), MIN_INTERVAL_S),
                                rate_bps=rate_bps * self.clock.speedup if rate_bps else None,
                                connect_timeout_s=wall(CONNECT_TIMEOUT_S), grace_s=wall(GRACE_S),
-                               answer_margin_s=wall(ANSWER_MARGIN_S), started=track)
+                               answer_margin_s=wall(ANSWER_MARGIN_S), started=track,
+                               idle_timeout_s=slowed_s(IDLE_TIMEOUT_S, self.clock.speedup))
         except ProbeError as err:
             result = {"error": str(err), "error_kind": err.kind}
         except iperf3.Iperf3Error as err:

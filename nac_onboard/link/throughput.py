@@ -34,7 +34,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from nac_onboard.clock import Clock
+from nac_onboard.clock import Clock, slowed_s
 from nac_onboard.errors import OperationFailed
 
 log = logging.getLogger(__name__)
@@ -46,7 +46,7 @@ RECV_BYTES = 1024 * 1024
 MAX_ANSWER_BYTES = 1 << 20
 HEADER_LIMIT_BYTES = 4096
 HEADER_TIMEOUT_S = 2.0  # a client that connects and sends nothing holds the server this long at most
-IDLE_TIMEOUT_S = 10.0
+IDLE_TIMEOUT_S = 10.0  # the run's seconds below 1x (slowed_s): a slowed run's link carries its bytes that slowly
 MAX_PROBE_S = 60.0  # the longest probe a server accepts (by duration; by bytes it must finish in this time too)
 MAX_PROBE_BYTES = 10 ** 11
 MIN_INTERVAL_S, MAX_INTERVALS = 0.05, 1200
@@ -191,7 +191,7 @@ def check_probe_arguments(port: int, duration_s, nbytes, interval_s, rate_bps) -
 def probe(host: str, port: int = DEFAULT_PORT, duration_s: float | None = 1.0, nbytes: int | None = None,
           interval_s: float = 0.5, rate_bps: float | None = None, connect_timeout_s: float = 3.0,
           block_bytes: int = BLOCK_BYTES, grace_s: float = GRACE_S, answer_margin_s: float = ANSWER_MARGIN_S,
-          started: Callable[[socket.socket], None] | None = None) -> dict:
+          started: Callable[[socket.socket], None] | None = None, idle_timeout_s: float = IDLE_TIMEOUT_S) -> dict:
     """Send to a throughput server for duration_s (or nbytes) and return an iperf3-shaped result.
 
     rate_bps caps the sending rate (iperf3 -b) so a probe can share a link with other traffic. started, if given,
@@ -224,7 +224,7 @@ def probe(host: str, port: int = DEFAULT_PORT, duration_s: float | None = 1.0, n
             sock.setblocking(False)
             t0 = time.monotonic()
             counter = _IntervalCounter(t0, interval_s, True, sock)
-            _send_data(sock, counter, t0, duration_s, nbytes, rate_bps, block_bytes)
+            _send_data(sock, counter, t0, duration_s, nbytes, rate_bps, block_bytes, idle_timeout_s)
             t_end = time.monotonic()
             counter.close_interval(t_end, counter.total)
             sock.shutdown(socket.SHUT_WR)
@@ -317,7 +317,8 @@ def _checked_interval(value: dict, what: str, where: str, max_bytes: int, max_en
     return interval_sum(float(start_s), float(end_s), nbytes, False)
 
 
-def _send_data(sock, counter: _IntervalCounter, t0: float, duration_s, nbytes, rate_bps, block_bytes) -> None:
+def _send_data(sock, counter: _IntervalCounter, t0: float, duration_s, nbytes, rate_bps, block_bytes,
+               idle_timeout_s: float) -> None:
     block = memoryview(mmap.mmap(-1, block_bytes))  # page-aligned, as iperf3's: copies run faster
     deadline = t0 + (duration_s if duration_s is not None else MAX_PROBE_S)  # by bytes: the server's limit
     limit = nbytes if nbytes is not None else float("inf")
@@ -334,8 +335,8 @@ def _send_data(sock, counter: _IntervalCounter, t0: float, duration_s, nbytes, r
         try:
             total += send(block if limit - total >= block_bytes else block[:int(limit - total)])
         except BlockingIOError:  # the send buffer is full: wait for room, never past the deadline
-            if not select.select([], [sock], [], min(deadline - now, IDLE_TIMEOUT_S))[1] and duration_s is None:
-                raise TimeoutError(f"the receiver took nothing for {IDLE_TIMEOUT_S:g} s") from None
+            if not select.select([], [sock], [], min(deadline - now, idle_timeout_s))[1] and duration_s is None:
+                raise TimeoutError(f"the receiver took nothing for {idle_timeout_s:g} s") from None
         now = monotonic()
         if now >= counter.next_mark:
             counter.close_interval(now, total)
@@ -600,7 +601,7 @@ class ThroughputServer:
         try:
             with conn:
                 try:
-                    answer = _receive_data(conn, header, rest, t0, probe_)
+                    answer = _receive_data(conn, header, rest, t0, probe_, self.clock.speedup)
                 except _ProbeBroken as err:
                     self._refuse(conn, addr, str(err), err.kind)
                     return
@@ -625,12 +626,15 @@ class _ProbeBroken(Exception):
         self.kind = kind
 
 
-def _receive_data(conn: socket.socket, header: dict, rest: bytes, t0: float, probe_: _Probe) -> dict:
-    """Count one probe's data until the sender half-closes; the receiver's measurement. Raises _ProbeBroken."""
+def _receive_data(conn: socket.socket, header: dict, rest: bytes, t0: float, probe_: _Probe, speedup: float) -> dict:
+    """Count one probe's data until the sender half-closes; the receiver's measurement. Raises _ProbeBroken. Its
+    stall limits are the run's seconds below 1x (at 0.1x, 10 wall seconds without data were 1 simulated second,
+    and a slowed air's full queue holds more: probes were refused as stalled)."""
+    idle_s, stalled_s = slowed_s(IDLE_TIMEOUT_S, speedup), slowed_s(STALLED_S, speedup)
     counter = _IntervalCounter(t0, header["interval_s"], False, conn)
     buf = mmap.mmap(-1, RECV_BYTES)
     conn.setblocking(True)
-    set_kernel_timeouts(conn, send_s=IDLE_TIMEOUT_S, recv_s=IDLE_TIMEOUT_S)
+    set_kernel_timeouts(conn, send_s=idle_s, recv_s=idle_s)
     recv_into, monotonic = conn.recv_into, time.monotonic
     total, last_s = len(rest), t0
     try:
@@ -649,8 +653,9 @@ def _receive_data(conn: socket.socket, header: dict, rest: bytes, t0: float, pro
         raise _ProbeBroken(f"the connection broke: {err.strerror or err}", LINK) from None
     if probe_.cut_reason is not None:
         silent_s = monotonic() - last_s
-        if silent_s >= STALLED_S:  # bytes had stopped flowing: the link failed, not the sender
-            raise _ProbeBroken(f"no data for the last {silent_s:.1f} s of the probe: the path stalled", LINK)
+        if silent_s >= stalled_s:  # bytes had stopped flowing: the link failed, not the sender
+            raise _ProbeBroken(f"no data for the last {silent_s * min(speedup, 1.0):.1f} s of the probe: the path "
+                               "stalled", LINK)
         raise _ProbeBroken(probe_.cut_reason, SERVER)
     counter.close_interval(last_s, total)
     return {"sum_received": interval_sum(0.0, last_s - t0, total, False), "intervals": counter.intervals}

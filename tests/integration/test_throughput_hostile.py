@@ -25,6 +25,7 @@ from nac_onboard.agent.probes import ProbeScheduler
 from nac_onboard.agent.snapshot import AgentSnapshot, OwnState
 from nac_onboard.clock import Clock
 from nac_onboard.flight_log import JsonlLog, read_jsonl
+from nac_onboard.link import throughput
 from nac_onboard.link.throughput import (
     ANSWER_MARGIN_S,
     GRACE_S,
@@ -407,6 +408,34 @@ def test_a_client_sending_forever_is_cut_at_the_probes_length_plus_the_grace(spe
         assert result["end"]["sum_received"]["bytes"] > 0
     finally:
         server.stop()
+
+
+@pytest.mark.parametrize("speedup", [1.0, 0.25])
+def test_a_pause_in_a_probes_data_is_a_stall_only_past_the_idle_limit_in_the_runs_seconds(monkeypatch, speedup):
+    """The server calls a probe stalled when no data came for IDLE_TIMEOUT_S, the run's seconds below 1x: at 0.1x
+    ten wall seconds were one simulated second, less than a slowed air's full queue holds, and probes that were
+    only queued failed as stalled. With the limit at 0.5 s, a 1 s pause stalls the probe at 1x and not at 0.25x
+    (2 wall seconds); a loaded machine's late wake-up cannot shorten the pause, and it would take another second to
+    reach 0.25x's limit."""
+    monkeypatch.setattr(throughput, "IDLE_TIMEOUT_S", 0.5)
+    server, answer = ThroughputServer("127.0.0.1", free_port(), sped_up(speedup)).start(), None
+    try:
+        with socket.create_connection(("127.0.0.1", server.port), timeout=10.0) as conn:
+            try:
+                conn.sendall(json.dumps({"protocol": PROTOCOL, "duration_s": 2.0, "interval_s": 0.5}).encode()
+                             + b"\n" + b"\0" * 65536)
+                time.sleep(1.0)
+                conn.sendall(b"\0" * 65536)
+                conn.shutdown(socket.SHUT_WR)
+                answer = json.loads(conn.makefile().readline() or "null")
+            except OSError:
+                pass  # the server broke the probe off and closed it: counted in server.refused
+    finally:
+        server.stop()
+    if speedup < 1.0:
+        assert server.refused == 0 and answer["sum_received"]["bytes"] == 2 * 65536, answer
+    else:
+        assert server.refused == 1 and (answer is None or "stalled" in answer["error"]), answer
 
 
 def test_idle_connections_are_closed_after_the_header_deadline():
