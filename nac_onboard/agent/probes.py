@@ -56,6 +56,7 @@ log = logging.getLogger(__name__)
 # the same simulated time as a real-time one (wall-clock waits made a stalled probe hold its worker's schedule for
 # 34 simulated seconds at 4x against 10 at 1x: a quarter as many failed probes, a higher mean throughput)
 CONNECT_TIMEOUT_S = 3.0
+IPERF3_END_S = 10.0  # after its test, iperf3's exchange of results: over a slowed air, the run's seconds below 1x
 GO_POLL_S = 0.05  # wall: how often a schedule waiting for its start file looks for it
 
 
@@ -214,7 +215,8 @@ class ProbeScheduler:
             if s.tool == "iperf3":
                 seconds = max(1, math.ceil(wall(s.duration_s) - 1e-9))
                 fields["duration_wall_s"] = seconds  # whole seconds: longer than duration_s when sped up
-                result = iperf3.client_result(host, port, seconds, timeout_s=seconds + 10.0, started=track)
+                result = iperf3.client_result(host, port, seconds, started=track,
+                                              timeout_s=seconds + slowed_s(IPERF3_END_S, self.clock.speedup))
             else:
                 result = probe(host, port, duration_s=None if s.bytes else wall(s.duration_s),
                                nbytes=s.bytes or None, interval_s=max(wall(s.interval_s), MIN_INTERVAL_S),
