@@ -12,6 +12,7 @@ process start.
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import logging
 import subprocess
@@ -110,6 +111,19 @@ class Station:
     port: str  # its bridge port's name in the air namespace
 
 
+def quick_acks(station: Station) -> str:
+    """The `ip -batch` line that has the station's TCP acknowledge every segment at once (the prefix route's
+    `quickack`, ip-route(8)). Linux otherwise holds an acknowledgement up to TCP_DELACK_MIN, 40 ms of wall time
+    (include/net/tcp.h; no sysctl sets it), which at a speed-up s is 40 s simulated ms: the job's and the probes'
+    acknowledgements would come at other simulated times at every speed-up. Measured, `paper-flight-moving` four runs
+    each at 1x and 4x: 4x / 1x pace 1.03 with this, 1.11 without (ten and seven runs); w1's probes at 6-8 m 1.02,
+    against 1.38 (docs/benchmarks.md). On the HTB air too (a copy of paper-flight-static there, 60 s, 2-3 runs each
+    at 1x and 4x, 2026-11-28: its probes 9.4-9.7 Mbit/s with it and without; that job is this host's CPU at any
+    speed-up). A real station delays its acknowledgements; this one's cost is more of them on the air."""
+    prefix = ipaddress.ip_interface(f"{station.address}/{AIR_PREFIX_LENGTH}").network
+    return f"route replace {prefix} dev air0 src {station.address} quickack 1\n"
+
+
 class AirNetwork:
     def __init__(self, vehicle_ids: list[str], ap: int | None, sharing: bool,
                  probe_ports: list[int | None] | None = None, speedup: float = 1.0,
@@ -164,7 +178,8 @@ class AirNetwork:
         netns.run(["ip", "-n", self.air_ns, "-batch", "-"], "the bridge", "\n".join(links) + "\n")
         for s in self.stations:
             netns.run(["ip", "-n", s.netns, "-batch", "-"], f"{s.vehicle_id}'s interfaces",
-                      f"link set lo up\naddr add {s.address}/{AIR_PREFIX_LENGTH} dev air0\nlink set air0 up\n")
+                      f"link set lo up\naddr add {s.address}/{AIR_PREFIX_LENGTH} dev air0\nlink set air0 up\n"
+                      f"{quick_acks(s)}")
             netns.run(["ip", "netns", "exec", s.netns, "sysctl", "-q", "-w", *self.tcp_settings()],
                       f"{s.vehicle_id}'s TCP settings")
         netns.run(["tc", "-n", self.air_ns, "-batch", "-"], "the air's qdiscs",
@@ -239,7 +254,8 @@ class AirNetwork:
         """Station `index` neither sends nor hears any more (its companion lost its power): its air0 down; or,
         silent=False, up again (a rebooted companion: its address, and the prefix route the kernel re-adds)."""
         s = self.stations[index]
-        netns.run(["ip", "-n", s.netns, "link", "set", "air0", "down" if silent else "up"], f"{s.vehicle_id}'s air0")
+        netns.run(["ip", "-n", s.netns, "-batch", "-"], f"{s.vehicle_id}'s air0",
+                  "link set air0 down\n" if silent else f"link set air0 up\n{quick_acks(s)}")
 
     def exec_prefix(self, index: int) -> list[str]:
         """The command prefix that runs a program on station `index`."""

@@ -12,7 +12,6 @@ delay line then takes off each delivery's hold (its `lead_s`).
 
 from __future__ import annotations
 
-import ipaddress
 import json
 import logging
 import os
@@ -28,7 +27,7 @@ from nac_onboard.flight_log import JsonlLog
 from nac_onboard.radio.medium import DEFAULT_QUEUE_PACKETS
 from nac_onboard.records import kinds
 from sitl.network import netns
-from sitl.network.air import AIR_PREFIX_LENGTH, AirNetwork, Station, end_fed_process
+from sitl.network.air import AIR_PREFIX_LENGTH, AirNetwork, Station, end_fed_process, quick_acks
 from sitl.network.delay_line import MAX_LEAD_S, READY
 from sitl.network.shaping import AirState
 
@@ -40,18 +39,6 @@ LEAD_GAP_S = 0.001  # between them. A pass costs more the longer the host was id
 # the CPUs held awake: 0.036, 0.058 and 0.108 ms at 1, 5 and 20 ms apart): timed on a busy air, the lead is the
 # least a pass costs, so no delivery is written before its receiver could have had it from the medium
 LEAD_ECHO_TIMEOUT_S = 1.0
-
-
-def _quick_acks(station: Station) -> str:
-    """The `ip -batch` line that has the station's TCP acknowledge every segment at once (the prefix route's
-    `quickack`, ip-route(8)). Linux otherwise holds an acknowledgement up to TCP_DELACK_MIN, 40 ms of wall time
-    (include/net/tcp.h; no sysctl sets it), which at a speed-up s is 40 s simulated ms: the job's and the probes'
-    acknowledgements would come at other simulated times at every speed-up. Measured, `paper-flight-moving` four runs
-    each at 1x and 4x: 4x / 1x pace 1.03 with this, 1.11 without (ten and seven runs); w1's probes at 6-8 m 1.02,
-    against 1.38 (docs/benchmarks.md). A real station delays its acknowledgements; this one's cost is more of them on
-    the air."""
-    prefix = ipaddress.ip_interface(f"{station.address}/{AIR_PREFIX_LENGTH}").network
-    return f"route replace {prefix} dev air0 src {station.address} quickack 1\n"
 
 
 class MediumAir(AirNetwork):
@@ -91,20 +78,13 @@ class MediumAir(AirNetwork):
         self._wait_ready()
         for s in self.stations:
             netns.run(["ip", "-n", s.netns, "-batch", "-"], f"{s.vehicle_id}'s air0",
-                      f"addr add {s.address}/{AIR_PREFIX_LENGTH} dev air0\nlink set air0 up\n{_quick_acks(s)}")
+                      f"addr add {s.address}/{AIR_PREFIX_LENGTH} dev air0\nlink set air0 up\n{quick_acks(s)}")
         self._reader = threading.Thread(target=self._read_counters, name="delay-line", daemon=True)
         self._reader.start()
         self.wait_for_carrier()
         self.lead_s = self._time_a_pass() if len(self.stations) > 1 else 0.0
         log.info("the host's pass through the delay line: %.3f ms (taken off each delivery)", self.lead_s * 1e3)
         self._send({"lead_s": self.lead_s})
-
-    def silence(self, index: int, silent: bool = True) -> None:
-        """As the kernel network's; up again, the prefix route the kernel re-adds is given its quick acks back."""
-        super().silence(index, silent)
-        if not silent:
-            s = self.stations[index]
-            netns.run(["ip", "-n", s.netns, "-batch", "-"], f"{s.vehicle_id}'s air0", _quick_acks(s))
 
     def _time_a_pass(self) -> float:
         """Half the median round trip of a 100-byte UDP echo between the first two stations while the delay line
