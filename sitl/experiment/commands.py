@@ -153,9 +153,10 @@ UCX_KEEPALIVE_IDLE_S, UCX_KEEPALIVE_INTVL_S = 10.0, 2.0
 
 
 def ucx_keepalive_env(speedup: float) -> dict[str, str]:
-    """UCX's keepalive in simulated seconds: its timers run on the wall clock, and below 1x its 18 s of silence are
-    too short for an answer queued behind a full transmit queue (0.1x: 1.8 simulated s; measured, an idle keepalive
-    connection beside an 8-stream iperf3 at 1 Mbit/s was reset after 28.2 wall s), so the MPI job lost its master."""
+    """UCX's keepalive on the run's clock below 1x (above it UCX's own wall seconds, a loaded host's floor): its
+    timers run on the wall clock, and at 0.1x its 18 s of silence are 1.8 simulated s, too short for an answer
+    queued behind a full transmit queue (measured: an idle keepalive connection beside an 8-stream iperf3 at 1
+    Mbit/s, reset after 28.2 wall s), so the MPI job lost its master."""
     return {"UCX_TCP_KEEPIDLE": f"{math.ceil(clock.slowed_s(UCX_KEEPALIVE_IDLE_S, speedup))}s",
             "UCX_TCP_KEEPINTVL": f"{math.ceil(clock.slowed_s(UCX_KEEPALIVE_INTVL_S, speedup))}s"}
 
