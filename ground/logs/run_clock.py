@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nac_onboard.flight_log import finite_number
+
 MIN_PAIRS = 2
 
 
@@ -22,15 +24,11 @@ def clock_pairs(records: list[dict]) -> tuple[np.ndarray, np.ndarray]:
     """(wall, simulated) seconds of the records carrying both numbers, in wall order, one per wall time, the
     simulated ones never going back (one writer's records; another's lag cannot reverse its clock)."""
     pairs = sorted({float(r["t_s"]): float(r["t_sim_s"]) for r in records
-                    if _finite(r.get("t_s")) and _finite(r.get("t_sim_s"))}.items())
+                    if finite_number(r.get("t_s")) and finite_number(r.get("t_sim_s"))}.items())
     if len(pairs) < MIN_PAIRS:
         return np.empty(0), np.empty(0)
     wall, sim = (np.array(column) for column in zip(*pairs, strict=True))
     return wall, np.maximum.accumulate(sim)
-
-
-def _finite(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
 
 
 @dataclass(frozen=True)
@@ -44,8 +42,7 @@ class RunClock:
         """The clock from the first source holding enough pairs (the most frequent first)."""
         for records in sources:
             wall, sim = clock_pairs(records)
-            span = wall[-1] - wall[0] if len(wall) else 0.0
-            if len(wall) >= MIN_PAIRS and span > 0 and sim[-1] > sim[0]:
+            if len(wall) and wall[-1] > wall[0] and sim[-1] > sim[0]:
                 return cls(t0_s, wall, sim)
         return cls(t0_s, np.empty(0), np.empty(0))
 

@@ -41,6 +41,7 @@ import numpy as np
 import orjson
 
 from missions.geo import Home, lla_to_enu
+from nac_onboard.flight_log import finite_number as _finite
 from nac_onboard.records import READABLE_VERSIONS, kinds
 
 EVENT_KINDS = {k.name: text for k, text in (
@@ -391,16 +392,6 @@ def _collector_paused():
     finally:
         if was_enabled:
             gc.enable()
-
-
-def _finite(value) -> bool:
-    """A JSON number that is finite (not a bool, a string, None, NaN or infinity)."""
-    kind = type(value)
-    if kind is float:  # the usual case first: a replay asks this a million times
-        return value - value == 0.0
-    if kind is int:
-        return True
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _short(value) -> str:
