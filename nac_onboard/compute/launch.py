@@ -9,20 +9,75 @@ takes nothing else with it and the master trains on with the workers it has left
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
+import signal
 import sys
+from collections.abc import Iterable
 from pathlib import Path
 
 from nac_onboard.errors import BadInput
 
 HOST_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # a vehicle id or a namespace: safe in the launcher
+# hydra_pmi_proxy writes its node's topology for the ranks to a file of this name, kept open while it runs and
+# removed at its exit; the path is compiled into the mpich wheel's proxy (TMPDIR is not read), and a proxy killed
+# with SIGKILL leaves its file there for good (five per run of the lost-companion tests, 2026-11-28)
+HYDRA_TOPOLOGY_PREFIX = "/tmp/hydra_hwloc_xmlfile_"
 
 
 def mpiexec_path() -> str:
     """The `mpiexec` installed beside this Python (the mpich wheel), else the one on PATH."""
     mpiexec = Path(sys.executable).parent / "mpiexec"
     return str(mpiexec if mpiexec.exists() else "mpiexec")
+
+
+def hydra_topology_files(pids: Iterable[int]) -> list[str]:
+    """The hydra topology files these processes hold open (their proxies'), read from /proc: none for a process
+    gone or not ours to read."""
+    found = []
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            for fd in os.listdir(f"/proc/{pid}/fd"):
+                with contextlib.suppress(OSError):
+                    target = os.readlink(f"/proc/{pid}/fd/{fd}")
+                    if target.startswith(HYDRA_TOPOLOGY_PREFIX):
+                        found.append(target)
+    return found
+
+
+def proxies_of(mpiexec_args: Iterable) -> list[int]:
+    """The hydra proxies on this machine of an `mpiexec` started through a launcher (its -bootstrap-exec): their
+    command lines name it. None for another mpiexec."""
+    args = [str(a) for a in mpiexec_args]
+    if "-bootstrap-exec" not in args[:-1]:
+        return []
+    launcher = args[args.index("-bootstrap-exec") + 1].encode()
+    found = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            with contextlib.suppress(OSError):
+                with open(f"/proc/{entry}/cmdline", "rb") as f:
+                    argv = f.read().split(b"\0")
+                if argv[0].endswith(b"hydra_pmi_proxy") and launcher in argv:
+                    found.append(int(entry))
+    return found
+
+
+def remove_files(paths: Iterable[str]) -> None:
+    for path in paths:
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+
+
+def kill_leaving_nothing(pids: Iterable[int]) -> None:
+    """SIGKILL each process, then remove the hydra topology files they held, which a proxy killed so cannot."""
+    pids = list(pids)
+    files = hydra_topology_files(pids)
+    for pid in pids:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.kill(pid, signal.SIGKILL)
+    remove_files(files)
 
 
 def core_binding(ranks: int, cores: int | None = None) -> str:

@@ -36,6 +36,7 @@ from pathlib import Path
 
 from nac_onboard.child_process import process_running
 from nac_onboard.compute.checkpoint import checkpoint_path, load_checkpoint
+from nac_onboard.compute.launch import hydra_topology_files, proxies_of, remove_files
 from nac_onboard.errors import BadInput
 from nac_onboard.flight_log import JsonlLog
 from nac_onboard.records import kinds
@@ -61,6 +62,9 @@ class Launch:
     unanswering: set[str] = field(default_factory=set)  # its workers unresponsive or failed, and not back
     failed: set[str] = field(default_factory=set)  # its workers whose MPI calls failed: their ranks are gone
     boots: dict[str, str] = field(default_factory=dict)  # each worker's agent boot as first heard in this launch
+    # the hydra topology files its proxies here hold (launch.py): a proxy that outlives mpiexec, or is killed,
+    # dies without removing its own (two per reboot on the sleep network, 2026-11-28), so the launch's end does
+    scratch: list[str] | None = None
 
 
 class JobSupervisor:
@@ -94,6 +98,8 @@ class JobSupervisor:
         if launch is None:
             return self._retry()
         self._read_records(launch)
+        if launch.scratch is None and launch.master_pid:  # set up: every proxy has written its file
+            launch.scratch = hydra_topology_files(proxies_of(getattr(launch.proc, "args", ())))
         if launch.proc.poll() is None:
             if launch.master_pid and not process_running(launch.master_pid):  # mpiexec would wait on for the workers
                 with contextlib.suppress(ProcessLookupError):
@@ -110,6 +116,7 @@ class JobSupervisor:
                 self._kill_master(launch)
             return None
         self._read_records(launch)
+        remove_files(launch.scratch or [])
         code = launch.proc.returncode
         ended_by = launch.summary.get("ended_by") if launch.summary else None
         self.log.write(kinds.JOB_ENDED, launch=launch.number, exit_code=code, ended_by=ended_by,
@@ -140,6 +147,7 @@ class JobSupervisor:
         launch = self.launch
         if launch is not None and launch.proc.poll() is not None:
             self._read_records(launch)
+            remove_files(launch.scratch or [])
             self.log.write(kinds.JOB_ENDED, launch=launch.number, exit_code=launch.proc.returncode,
                            ended_by=launch.summary.get("ended_by") if launch.summary else None, t_sim_s=self.now_s())
         self.launch = None

@@ -37,6 +37,7 @@ from nac_onboard.child_process import (
     process_running,
 )
 from nac_onboard.compute.device import load_device_profile
+from nac_onboard.compute.launch import kill_leaving_nothing
 from nac_onboard.compute.options import options_from_argv
 from nac_onboard.compute.supervisor import JobSupervisor
 from nac_onboard.errors import BadInput, NacError, OperationFailed, Terminated
@@ -606,9 +607,11 @@ class Experiment:
             self.rank_pids.pop(vehicle.id, None)  # a rank started again has another pid
         if self.air is None:
             self.frozen[index] = pids
-        for pid in pids:
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, signal.SIGSTOP if self.air is None else signal.SIGKILL)
+            for pid in pids:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGSTOP)
+        else:
+            kill_leaving_nothing(pids)
         if self.air is not None:  # and no connection state: a dead computer retransmits no FIN when it is back
             forget_connections(self.air.stations[index].netns)
         return stopped
@@ -618,9 +621,7 @@ class Experiment:
         the run ends."""
         if index not in self.frozen:
             return
-        for pid in self.frozen.pop(index):
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, signal.SIGKILL)
+        kill_leaving_nothing(self.frozen.pop(index))
         self.agents[index].kill()
 
     def _companion_off(self, index: int, now_s: float) -> None:

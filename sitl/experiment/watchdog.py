@@ -21,6 +21,8 @@ import signal
 import subprocess
 import sys
 
+from nac_onboard.compute.launch import kill_leaving_nothing
+
 log = logging.getLogger(__name__)
 TOKEN_ENV = "NAC_RUN_TOKEN"
 KILL_PASSES = 5  # a process may fork while the previous pass killed its parent: look again until none is found
@@ -55,9 +57,7 @@ def kill_run(token: str) -> list[int]:
         pids = processes_with(token)
         if not pids:
             break
-        for pid in pids:
-            with contextlib.suppress(ProcessLookupError, PermissionError):
-                os.kill(pid, signal.SIGKILL)
+        kill_leaving_nothing(pids)
         killed += pids
     return killed
 

@@ -16,12 +16,12 @@ import os
 import re
 import secrets
 import shutil
-import signal
 import socket
 import subprocess
 import threading
 import time
 
+from nac_onboard.compute.launch import kill_leaving_nothing
 from nac_onboard.errors import BadInput, OperationFailed
 
 log = logging.getLogger(__name__)
@@ -135,9 +135,7 @@ def forget_connections(name: str) -> None:
 
 def delete_namespace(name: str) -> None:
     """Kill what runs inside, then delete the namespace: its veth ends, bridge, qdiscs and tables go with it."""
-    for pid in pids_in(name):
-        with contextlib.suppress(ProcessLookupError, PermissionError):
-            os.kill(pid, signal.SIGKILL)
+    kill_leaving_nothing(pids_in(name))
     with contextlib.suppress(OSError, subprocess.TimeoutExpired):
         subprocess.run(["ip", "netns", "del", name], capture_output=True, timeout=10.0)
 
