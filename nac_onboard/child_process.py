@@ -63,8 +63,9 @@ def die_with_parent(signum: int = signal.SIGKILL) -> None:
         prctl(PR_SET_PDEATHSIG, signum)
 
 
-def die_with_parent_preexec() -> Callable[[], None] | None:
-    """A preexec_fn for subprocess.Popen that gives the child the parent-death signal. prctl is looked up here, in
+def die_with_parent_preexec(signum: int = signal.SIGKILL) -> Callable[[], None] | None:
+    """A preexec_fn for subprocess.Popen that gives the child the parent-death signal (SIGTERM for a child whose own
+    clean-up matters: mpiexec's, which ends its proxies so that they remove their files). prctl is looked up here, in
     the parent: between fork and exec the child only calls it (no import, no library loading, so other threads'
     locks cannot deadlock it), then exits if the parent already died before the signal was set. The signal
     survives exec (`ip netns exec`, mpiexec, iperf3 keep it) and is sent when the *thread* that started the child
@@ -75,7 +76,7 @@ def die_with_parent_preexec() -> Callable[[], None] | None:
     parent = os.getpid()
 
     def preexec() -> None:
-        prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+        prctl(PR_SET_PDEATHSIG, signum)
         if os.getppid() != parent:
             os._exit(1)
 

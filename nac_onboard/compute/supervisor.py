@@ -70,8 +70,10 @@ class Launch:
 class JobSupervisor:
     def __init__(self, fleet_workers: list[str], start: Callable[[list[str], bool], subprocess.Popen],
                  live_workers: Callable[[], dict[str, str] | None], out_dir: Path, task: str,
-                 now_s: Callable[[], float], rejoin_after_s: float = REJOIN_AFTER_S):
+                 now_s: Callable[[], float], rejoin_after_s: float = REJOIN_AFTER_S,
+                 scratch_noted: Callable[[list[str]], None] | None = None):
         self.fleet_workers, self.start, self.live_workers = list(fleet_workers), start, live_workers
+        self.scratch_noted = scratch_noted  # told each launch's hydra files: whoever cleans up if we are killed
         self.out_dir, self.task, self.now_s, self.rejoin_after_s = Path(out_dir), task, now_s, rejoin_after_s
         self.log = JsonlLog(self.out_dir / kinds.JOB_LOG.name)
         self.launch: Launch | None = None
@@ -100,6 +102,8 @@ class JobSupervisor:
         self._read_records(launch)
         if launch.scratch is None and launch.master_pid:  # set up: every proxy has written its file
             launch.scratch = hydra_topology_files(proxies_of(getattr(launch.proc, "args", ())))
+            if launch.scratch and self.scratch_noted:
+                self.scratch_noted(launch.scratch)
         if launch.proc.poll() is None:
             if launch.master_pid and not process_running(launch.master_pid):  # mpiexec would wait on for the workers
                 with contextlib.suppress(ProcessLookupError):

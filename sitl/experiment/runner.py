@@ -450,7 +450,8 @@ class Experiment:
         else:
             self.feed_socket = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.job = JobSupervisor([w.id for w in s.workers], self._launch_mpi, self._workers_heard,
-                                 kinds.COMPUTE_LOG.at(self.run_dir).parent, s.compute.task, lambda: self.sim.t_s)
+                                 kinds.COMPUTE_LOG.at(self.run_dir).parent, s.compute.task, lambda: self.sim.t_s,
+                                 scratch_noted=self.watchdog.remove_at_end if self.watchdog else None)
         self.job.begin()
         print(f"MPI job started (pid {self.mpi.pid}): {s.compute.task}, {len(s.workers)} workers", file=self.out,
               flush=True)
@@ -466,7 +467,7 @@ class Experiment:
                            .encode())
         self.mpi_log.flush()
         self.mpi = subprocess.Popen(command, stdout=self.mpi_log, stderr=subprocess.STDOUT, start_new_session=True,
-                                    env=self._child_env(), preexec_fn=die_with_parent_preexec())
+                                    env=self._child_env(), preexec_fn=die_with_parent_preexec(signal.SIGTERM))
         self.rank_pids.clear()
         if self.mission_start_sim_s is not None:  # a start again, not the first
             print(f"MPI job started again (pid {self.mpi.pid}) with {', '.join(workers)}"
