@@ -6,8 +6,8 @@ processes. So the runner starts this process first (`Watchdog.start`), hands it 
 environment of every process the run starts, and so of their children, ranks included) and its namespace prefix,
 and holds the write end of its stdin. When that pipe closes, however the runner ended, the watchdog kills every
 process that carries the token, removes the run's namespaces (with whatever still runs inside) and the MPI proxies'
-topology files it was told of (launch.py), then exits. After
-a clean end it finds nothing left; after SIGKILL it is the clean-up, within a second.
+topology files it was told of (launch.py), then exits. After a clean end it finds nothing left; after SIGKILL it is
+the clean-up, within a second.
 
     python -m sitl.experiment.watchdog    (stdin: `token T`, `netns PREFIX`, `file PATH` lines; EOF: clean up, exit)
 """
