@@ -40,12 +40,26 @@ def variance_larger_moving(moving: RunTables, static: RunTables) -> str:
             f"{a:.2f} Mbit/s ({moving.name}) vs {b:.2f} Mbit/s ({static.name}), averaged over the links.")
 
 
-def static_more_iterations(moving: RunTables, static: RunTables) -> str:
-    a, b = moving.summary.get("iterations_per_min"), static.summary.get("iterations_per_min")
-    if a is None or b is None:
+def faster_before_link_loss(moving: RunTables, static: RunTables) -> str:
+    """The research's moving flight computed faster up to its link loss than its static flight over 200 s (310
+    iterations in 75 s against 640 in 200 s); here the same comparison: the moving run up to its first iteration
+    without a worker (the whole run if none), the static run whole, per minute of computing."""
+    its, per_min_static = moving.iterations, static.summary.get("iterations_per_min")
+    if its.empty or per_min_static is None:
         return "Iterations per minute: a run has no compute iterations."
-    return (f"Static completes more iterations per minute: {_verdict(b > a)}; {b:.1f} ({static.name}) vs "
-            f"{a:.1f} ({moving.name}), per minute of computing (simulated minutes in SITL).")
+    since = _since_start_s(moving).to_numpy()
+    lost = (its["absent"] != "").to_numpy()
+    upto_s = float(since[lost.argmax()]) if lost.any() else float(since[-1] + its["duration_s"].iloc[-1])
+    if upto_s <= 0:
+        return f"Iterations per minute: {moving.name} lost a worker at its first iteration."
+    per_min_moving = 60.0 * int((since < upto_s).sum()) / upto_s
+    paper_moving, paper_static = (60.0 * PAPER_MOVING_ITERATIONS / PAPER_MOVING_LOSS_S,
+                                  60.0 * PAPER_STATIC_ITERATIONS / PAPER_STATIC_S)
+    clock = "simulated" if moving.clock.simulated else "wall-clock"
+    return (f"Moving computes faster than static until its link loss (research: {paper_moving:.0f} vs "
+            f"{paper_static:.0f} per minute): {_verdict(per_min_moving > per_min_static)}; {per_min_moving:.1f} "
+            f"({moving.name}, its first {upto_s:.0f} s {clock}) vs {per_min_static:.1f} ({static.name}), per "
+            f"minute of computing.")
 
 
 def trains_through_link_loss(moving: RunTables) -> str:
@@ -84,7 +98,7 @@ def _radio(*runs: RunTables) -> str:
 def research_findings(moving: RunTables, static: RunTables) -> list[str]:
     return [falls_with_distance(moving) + _radio(moving),
             variance_larger_moving(moving, static) + _radio(moving, static),
-            static_more_iterations(moving, static) + _radio(moving, static),
+            faster_before_link_loss(moving, static) + _radio(moving, static),
             trains_through_link_loss(moving) + _radio(moving)]
 
 
