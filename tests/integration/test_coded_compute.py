@@ -12,7 +12,14 @@ from nac_onboard.compute import forestfires, kernels
 from nac_onboard.compute.tasks.matmul import matmul_inputs
 from nac_onboard.flight_log import read_jsonl
 from tests.conftest import SHARED_DATA
-from tests.integration.test_compute import iterations_logged, job, refused_by_every_rank, run_mpi, wait_until
+from tests.integration.test_compute import (
+    iterations_logged,
+    job,
+    per_worker,
+    refused_by_every_rank,
+    run_mpi,
+    wait_until,
+)
 
 # The runs with a killed or a slow worker go beside the exclusive tests, in the idle class (make test): they judge
 # results, not times, and the master's 10 s timeout only matters for a worker that is alive but starved, which the
@@ -58,8 +65,16 @@ def _coded_matmul_with_a_worker_killed(tmp_path, task: str, rank: int):
     read = read_jsonl(tmp_path / "compute.jsonl")
     summary = read.of_kind("run_summary")
     assert summary, proc.stderr.read().decode()[-2000:]
-    assert summary[0]["iterations"] == summary[0]["complete_iterations"] > killed_at + 10
+    assert all(r["complete"] or missed_by_a_live_worker(r, rank) for r in read.of_kind("iteration"))
+    assert summary[0]["complete_iterations"] > killed_at + 10
     return read, summary, killed_at
+
+
+def missed_by_a_live_worker(record: dict, killed_rank: int) -> bool:
+    """An iteration that a worker still alive did not answer within its timeout: starved in the idle class, as a
+    clean-clone run's BPCC job was once in 659 iterations (2026-11-28). It is incomplete by design (on_missing
+    "incomplete"), the worker's doing and not the killed one's; every other iteration must decode."""
+    return any(w["absent"] for w in per_worker(record) if w["rank"] != killed_rank)
 
 
 @beside_the_exclusive_tests
@@ -69,7 +84,7 @@ def test_mds_matmul_decodes_a_times_b_every_iteration_with_a_worker_killed(tmp_p
     read, summary, killed_at = _coded_matmul_with_a_worker_killed(tmp_path, "matmul_mds", 3)
     assert summary[0]["lost_workers"] == [3] and summary[0]["code"] == "(3, 2) systematic, Cauchy parity"
     after = [r for r in read.of_kind("iteration") if r["iteration"] > killed_at + 1]
-    assert all(r["complete"] and 3 not in r["decoded_from"] for r in after)
+    assert all((r["complete"] and 3 not in r["decoded_from"]) or missed_by_a_live_worker(r, 3) for r in after)
     _products_are_a_times_b(tmp_path, summary[0], 12, 50, 5)
 
 
@@ -107,7 +122,8 @@ def test_bpcc_decodes_a_times_b_every_iteration_with_a_worker_killed(tmp_path):
     read, summary, killed_at = _coded_matmul_with_a_worker_killed(tmp_path, "matmul_bpcc", 2)
     assert summary[0]["lost_workers"] == [2] and summary[0]["code"].startswith("(9, 6) systematic")
     after = [r for r in read.of_kind("iteration") if r["iteration"] > killed_at + 1]
-    wrong = [r for r in after if not (r["complete"] and r["units"][1] == 0 and sum(r["units"]) >= 6)]
+    wrong = [r for r in after if not (r["complete"] and r["units"][1] == 0 and sum(r["units"]) >= 6)
+             and not missed_by_a_live_worker(r, 2)]
     assert not wrong, (killed_at, wrong[:3])
     _products_are_a_times_b(tmp_path, summary[0], 12, 50, 5)
     taken = [read_jsonl(tmp_path / f"rank-{rank}.jsonl").of_kind("block_taken")[0] for rank in (1, 3)]
