@@ -63,12 +63,24 @@ def _port_range() -> tuple[int, int]:
     return 10000, max(low, 12000)
 
 
+# every port this process has handed out: free when handed out, but bound only later by whoever it went to (an
+# agent binds its SITL companion port when it starts), so never handed out twice (a clean-clone CI run, 2026-11-28:
+# an agent's state feed took the companion port of the SITL the same test had been given, and the second agent
+# found it in use)
+_handed_out: set[int] = set()
+
+
+def _usable(port: int) -> bool:
+    return port not in _handed_out and _free(port, socket.SOCK_DGRAM) and _free(port, socket.SOCK_STREAM)
+
+
 def free_port() -> int:
     """A loopback port free for both UDP and TCP right now, for a local SITL or agent process to bind."""
     first, end = _port_range()
     for _ in range(200):
         port = random.randrange(first, end)
-        if _free(port, socket.SOCK_DGRAM) and _free(port, socket.SOCK_STREAM):
+        if _usable(port):
+            _handed_out.add(port)
             return port
     raise RuntimeError("no free port found")
 
@@ -80,6 +92,7 @@ def allocate_base_port(vehicles: int, step: int = 10, slots: int = 2) -> int:
     for _ in range(200):
         base = random.randrange(first, end - step * vehicles, 2)
         ports = [base + step * i + k for i in range(vehicles) for k in range(slots)]
-        if all(_free(p, socket.SOCK_DGRAM) and _free(p, socket.SOCK_STREAM) for p in ports):
+        if all(_usable(p) for p in ports):
+            _handed_out.update(ports)
             return base
     raise RuntimeError("no free port range found")
