@@ -20,10 +20,15 @@ from pathlib import Path
 from nac_onboard.errors import BadInput
 
 HOST_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # a vehicle id or a namespace: safe in the launcher
-# hydra_pmi_proxy writes its node's topology for the ranks to a file of this name, kept open while it runs and
-# removed at its exit; the path is compiled into the mpich wheel's proxy (TMPDIR is not read), and a proxy killed
-# with SIGKILL leaves its file there for good (five per run of the lost-companion tests, 2026-11-28)
+# What an MPICH job leaves behind when its processes are killed, each file kept open by its owner while it runs:
+# hydra_pmi_proxy's topology of its node for the ranks (the path compiled into the mpich wheel's proxy; TMPDIR is
+# not read), removed at the proxy's exit (five per run of the lost-companion tests, 2026-11-28); and each rank's
+# shared-memory segment, 1-2 MB of RAM, removed when the job ends well (4,434 of them, 4.5 GB of /dev/shm, after
+# two days of this machine's tests and runs, 2026-11-28)
 HYDRA_TOPOLOGY_PREFIX = "/tmp/hydra_hwloc_xmlfile_"
+MPICH_SHM_PREFIX = "/dev/shm/mpich_shm_"
+MPI_SCRATCH = re.compile(re.escape(HYDRA_TOPOLOGY_PREFIX) + r"[A-Za-z0-9]{6}|" + re.escape(MPICH_SHM_PREFIX)
+                         + r"[0-9a-f]+_[0-9]+")
 
 
 def mpiexec_path() -> str:
@@ -32,36 +37,38 @@ def mpiexec_path() -> str:
     return str(mpiexec if mpiexec.exists() else "mpiexec")
 
 
-def hydra_topology_files(pids: Iterable[int]) -> list[str]:
-    """The hydra topology files these processes hold open (their proxies'), read from /proc: none for a process
-    gone or not ours to read."""
+def mpi_scratch_files(pids: Iterable[int]) -> list[str]:
+    """The MPI scratch files (MPI_SCRATCH: the proxies' topology files, the ranks' shared-memory segments) these
+    processes hold open, read from /proc: none for a process gone or not ours to read."""
     found = []
     for pid in pids:
         with contextlib.suppress(OSError):
             for fd in os.listdir(f"/proc/{pid}/fd"):
                 with contextlib.suppress(OSError):
                     target = os.readlink(f"/proc/{pid}/fd/{fd}")
-                    if target.startswith(HYDRA_TOPOLOGY_PREFIX):
+                    if MPI_SCRATCH.fullmatch(target):
                         found.append(target)
     return found
 
 
-def proxies_of(mpiexec_args: Iterable) -> list[int]:
-    """The hydra proxies on this machine of an `mpiexec` started through a launcher (its -bootstrap-exec): their
-    command lines name it. None for another mpiexec."""
+def job_processes(mpiexec_args: Iterable) -> list[int]:
+    """The hydra proxies on this machine of an `mpiexec` started through a launcher (its -bootstrap-exec: their
+    command lines name it), and their children, the ranks. None for another mpiexec."""
     args = [str(a) for a in mpiexec_args]
     if "-bootstrap-exec" not in args[:-1]:
         return []
     launcher = args[args.index("-bootstrap-exec") + 1].encode()
-    found = []
+    proxies, parent = [], {}
     for entry in os.listdir("/proc"):
         if entry.isdigit():
-            with contextlib.suppress(OSError):
+            with contextlib.suppress(OSError, ValueError, IndexError):
                 with open(f"/proc/{entry}/cmdline", "rb") as f:
                     argv = f.read().split(b"\0")
                 if argv[0].endswith(b"hydra_pmi_proxy") and launcher in argv:
-                    found.append(int(entry))
-    return found
+                    proxies.append(int(entry))
+                with open(f"/proc/{entry}/stat", "rb") as f:
+                    parent[int(entry)] = int(f.read().rsplit(b")", 1)[1].split()[1])
+    return proxies + [pid for pid, ppid in parent.items() if ppid in proxies]
 
 
 def remove_files(paths: Iterable[str]) -> None:
@@ -71,9 +78,9 @@ def remove_files(paths: Iterable[str]) -> None:
 
 
 def kill_leaving_nothing(pids: Iterable[int]) -> None:
-    """SIGKILL each process, then remove the hydra topology files they held, which a proxy killed so cannot."""
+    """SIGKILL each process, then remove the MPI scratch files they held, which a process killed so cannot."""
     pids = list(pids)
-    files = hydra_topology_files(pids)
+    files = mpi_scratch_files(pids)
     for pid in pids:
         with contextlib.suppress(ProcessLookupError, PermissionError):
             os.kill(pid, signal.SIGKILL)

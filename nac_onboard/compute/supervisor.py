@@ -36,7 +36,7 @@ from pathlib import Path
 
 from nac_onboard.child_process import process_running
 from nac_onboard.compute.checkpoint import checkpoint_path, load_checkpoint
-from nac_onboard.compute.launch import hydra_topology_files, proxies_of, remove_files
+from nac_onboard.compute.launch import job_processes, mpi_scratch_files, remove_files
 from nac_onboard.errors import BadInput
 from nac_onboard.flight_log import JsonlLog
 from nac_onboard.records import kinds
@@ -62,8 +62,9 @@ class Launch:
     unanswering: set[str] = field(default_factory=set)  # its workers unresponsive or failed, and not back
     failed: set[str] = field(default_factory=set)  # its workers whose MPI calls failed: their ranks are gone
     boots: dict[str, str] = field(default_factory=dict)  # each worker's agent boot as first heard in this launch
-    # the hydra topology files its proxies here hold (launch.py): a proxy that outlives mpiexec, or is killed,
-    # dies without removing its own (two per reboot on the sleep network, 2026-11-28), so the launch's end does
+    # the MPI scratch files its proxies and ranks here hold (launch.py): one killed, or outliving mpiexec, dies
+    # without removing its own (two topology files per reboot on the sleep network, 2026-11-28), so the launch's
+    # end does
     scratch: list[str] | None = None
 
 
@@ -73,7 +74,7 @@ class JobSupervisor:
                  now_s: Callable[[], float], rejoin_after_s: float = REJOIN_AFTER_S,
                  scratch_noted: Callable[[list[str]], None] | None = None):
         self.fleet_workers, self.start, self.live_workers = list(fleet_workers), start, live_workers
-        self.scratch_noted = scratch_noted  # told each launch's hydra files: whoever cleans up if we are killed
+        self.scratch_noted = scratch_noted  # told each launch's MPI files: whoever cleans up if we are killed
         self.out_dir, self.task, self.now_s, self.rejoin_after_s = Path(out_dir), task, now_s, rejoin_after_s
         self.log = JsonlLog(self.out_dir / kinds.JOB_LOG.name)
         self.launch: Launch | None = None
@@ -100,8 +101,8 @@ class JobSupervisor:
         if launch is None:
             return self._retry()
         self._read_records(launch)
-        if launch.scratch is None and launch.master_pid:  # set up: every proxy has written its file
-            launch.scratch = hydra_topology_files(proxies_of(getattr(launch.proc, "args", ())))
+        if launch.scratch is None and launch.master_pid:  # set up: every rank and proxy has made its files
+            launch.scratch = mpi_scratch_files(job_processes(getattr(launch.proc, "args", ())))
             if launch.scratch and self.scratch_noted:
                 self.scratch_noted(launch.scratch)
         if launch.proc.poll() is None:

@@ -5,8 +5,8 @@ but MPI's proxies and ranks run in sessions of their own and the kernel network'
 processes. So the runner starts this process first (`Watchdog.start`), hands it the run's token (set in the
 environment of every process the run starts, and so of their children, ranks included) and its namespace prefix,
 and holds the write end of its stdin. When that pipe closes, however the runner ended, the watchdog kills every
-process that carries the token, removes the run's namespaces (with whatever still runs inside) and the MPI proxies'
-topology files it was told of (launch.py), then exits. After a clean end it finds nothing left; after SIGKILL it is
+process that carries the token, removes the run's namespaces (with whatever still runs inside) and the MPI scratch
+files it was told of (launch.py), then exits. After a clean end it finds nothing left; after SIGKILL it is
 the clean-up, within a second.
 
     python -m sitl.experiment.watchdog    (stdin: `token T`, `netns PREFIX`, `file PATH` lines; EOF: clean up, exit)
@@ -17,19 +17,17 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import re
 import secrets
 import signal
 import subprocess
 import sys
 
-from nac_onboard.compute.launch import HYDRA_TOPOLOGY_PREFIX, kill_leaving_nothing, remove_files
+from nac_onboard.compute.launch import MPI_SCRATCH, kill_leaving_nothing, remove_files
 
 log = logging.getLogger(__name__)
 TOKEN_ENV = "NAC_RUN_TOKEN"
 KILL_PASSES = 5  # a process may fork while the previous pass killed its parent: look again until none is found
 EXIT_TIMEOUT_S = 10.0
-HYDRA_FILE = re.compile(re.escape(HYDRA_TOPOLOGY_PREFIX) + r"[A-Za-z0-9]{6}")  # nothing else is removed on request
 
 
 def new_token() -> str:
@@ -89,7 +87,7 @@ def main() -> int:
             token = value
         elif word == "netns" and value.startswith("nacnet-"):
             prefixes.append(value)
-        elif word == "file" and HYDRA_FILE.fullmatch(value):
+        elif word == "file" and MPI_SCRATCH.fullmatch(value):  # nothing else is removed on request
             files.append(value)
     clean_up(token, prefixes, files)
     return 0
@@ -120,8 +118,9 @@ class Watchdog:
         self._send(f"netns {prefix}")
 
     def remove_at_end(self, paths: list[str]) -> None:
-        """Files to remove when the run ends, however it ends: hydra's topology files, which the proxies do not
-        remove when mpiexec dies with a SIGKILLed runner (three per run of the SIGKILL test, 2026-11-28)."""
+        """Files to remove when the run ends, however it ends: the MPI job's scratch files, which its proxies and
+        ranks do not remove when mpiexec dies with a SIGKILLed runner (three topology files and three shared-memory
+        segments per run of the SIGKILL test, 2026-11-28)."""
         for path in paths:
             self._send(f"file {path}")
 

@@ -548,32 +548,35 @@ def test_a_worker_with_another_data_set_is_refused_by_name_and_the_job_goes_on(t
     assert np.allclose(np.load(out / "results.npz")["weights"], w, rtol=1e-9, atol=1e-12)
 
 
-def test_a_proxy_killed_with_sigkill_leaves_no_topology_file_behind(tmp_path):
-    """hydra's proxy keeps its node's topology in /tmp and removes it only at its own exit: a companion lost, a run
-    killed or a namespace deleted SIGKILLs it, and kill_leaving_nothing removes the file it held, no other's."""
+def test_a_companion_killed_with_sigkill_leaves_no_mpi_file_behind(tmp_path):
+    """hydra's proxy keeps its node's topology in /tmp and each rank a shared-memory segment in /dev/shm, removed
+    only at their own ends: a companion lost, a run killed or a namespace deleted SIGKILLs them, and
+    kill_leaving_nothing removes the files they held, no other's."""
     ranks = subprocess.Popen([*launch.mpiexec_command(["m", "w1"], tmp_path / "mpi"), sys.executable, "-c",
                               "from mpi4py import MPI; import time; time.sleep(60)"],
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    proxies: list[int] = []
+    procs: list[int] = []
     held: list[str] = []
     try:
         deadline = time.monotonic() + 30.0
-        while len(held) < 2 and time.monotonic() < deadline:
+        while len(held) < 4 and time.monotonic() < deadline:  # a topology file per proxy, a segment per rank
             time.sleep(0.05)
-            proxies = launch.proxies_of(ranks.args)
-            held = launch.hydra_topology_files(proxies)
-        killed, kept = (launch.hydra_topology_files(proxies[k:k + 1]) for k in (0, 1))
-        assert len(killed) == len(kept) == 1 and Path(killed[0]).exists(), (proxies, killed, kept)
-        rank = subprocess.run(["pgrep", "-P", str(proxies[0])], capture_output=True, text=True).stdout.split()
-        launch.kill_leaving_nothing([proxies[0], *map(int, rank)])  # the companion's proxy and rank, as lost
-        assert not Path(killed[0]).exists() and Path(kept[0]).exists()
+            procs = launch.job_processes(ranks.args)
+            held = launch.mpi_scratch_files(procs)
+        proxies = [p for p in procs if b"hydra_pmi_proxy" in Path(f"/proc/{p}/cmdline").read_bytes()]
+        companions = [[p, *map(int, subprocess.run(["pgrep", "-P", str(p)], capture_output=True,
+                                                   text=True).stdout.split())] for p in proxies]
+        killed, kept = (launch.mpi_scratch_files(c) for c in companions)
+        assert len(killed) == len(kept) == 2 and all(map(os.path.exists, killed)), (companions, held)
+        launch.kill_leaving_nothing(companions[0])  # the companion's proxy and rank, as lost
+        assert not any(map(os.path.exists, killed)) and all(map(os.path.exists, kept))
     finally:
-        # mpiexec ends the job now, and the other proxy dies without removing its file: what the job supervisor
-        # does at a launch's end, the test does here
+        # mpiexec ends the job now, and the other proxy and rank die without removing their files: what the job
+        # supervisor does at a launch's end, the test does here
         with contextlib.suppress(ProcessLookupError):
             os.killpg(ranks.pid, signal.SIGTERM)
         with contextlib.suppress(subprocess.TimeoutExpired):
             ranks.wait(10.0)
-        launch.kill_leaving_nothing([*proxies, ranks.pid])
+        launch.kill_leaving_nothing([*procs, ranks.pid])
         launch.remove_files(held)
         ranks.wait(10.0)

@@ -339,8 +339,9 @@ def stop_a_running_experiment(tmp_path: Path, signum: int, exit_code: int) -> tu
     end with exit_code (after its partial report, whose analysis alone can take 10 s on a loaded machine: 60 s).
     The 10 s bound holds on a loaded 2-core machine: the runner stops its agents with SIGTERM (milliseconds each)
     and the MPI job's session (SIGKILL after 5 s); after SIGKILL the kernel delivers the parent-death signals at
-    once and the watchdog needs one pass over /proc. Nor may the MPI proxies' topology files stay in /tmp (hydra's
-    proxies die with mpiexec without removing them). Returns the runner's console and run directory."""
+    once and the watchdog needs one pass over /proc. Nor may MPI's files stay behind (its proxies' topology files in
+    /tmp, its ranks' shared memory in /dev/shm, which die with mpiexec without removing them). Returns the runner's
+    console and run directory."""
     scenario = write_scenario(tmp_path / "scenario", duration_s=600.0)
     run = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "sitl.cli", "experiment", str(scenario), "--speedup", "4",
@@ -358,12 +359,12 @@ def stop_a_running_experiment(tmp_path: Path, signum: int, exit_code: int) -> tu
             time.sleep(0.1)
         pids = children_of(proc.pid)
         assert len(pids) >= 7, "the watchdog, agents, mpiexec and the ranks are running"
-        held = launch.hydra_topology_files(pids)  # one per MPI proxy
-        assert len(held) == 3, held
+        held = launch.mpi_scratch_files(pids)  # a topology file per MPI proxy, a shared-memory segment per rank
+        assert len(held) == 6, held
         proc.send_signal(signum)
         left = wait_for_none_alive(pids, timeout_s=10.0)
         assert left == [], f"left running 10 s after {signal.Signals(signum).name}: {left}"
-        assert [f for f in held if Path(f).exists()] == [], "the proxies' files are left in /tmp"
+        assert [f for f in held if Path(f).exists()] == [], "MPI's files are left behind"
         assert proc.wait(60.0) == exit_code, console.text()
     finally:
         if proc.poll() is None:
