@@ -613,7 +613,7 @@ class Experiment:
                     os.kill(pid, signal.SIGSTOP)
         else:
             kill_leaving_nothing(pids)
-        if self.air is not None:  # and no connection state: a dead computer retransmits no FIN when it is back
+            # and no connection state: a dead computer retransmits no FIN when it is back
             forget_connections(self.air.stations[index].netns)
         return stopped
 

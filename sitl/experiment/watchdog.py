@@ -63,7 +63,7 @@ def kill_run(token: str) -> list[int]:
     return killed
 
 
-def clean_up(token: str | None, prefixes: list[str], files: list[str] = ()) -> None:
+def clean_up(token: str | None, prefixes: list[str], files: tuple[str, ...] | list[str] = ()) -> None:
     from sitl.network import netns
 
     if token:
