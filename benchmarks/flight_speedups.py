@@ -8,9 +8,10 @@ bins are judged only over several runs.
     python benchmarks/flight_speedups.py [--scenarios paper-flight-moving ...] [--speedups 1 4] [--runs 3]
         [--duration-s S] [--smoke]
 
-Printed: a line per run (iterations per simulated minute, Spearman rho of w1's time per 10 with its distance), a
-line per judged quantity and bin (both medians, their ratio, whether they can agree within 10 %), and a line per
-scenario (the runs' mean iterations per simulated minute at each speed-up and their ratio). Needs root.
+Printed: a line per run (iterations per simulated minute, Spearman rho of w1's time per 10 with its distance over the
+run and before w1's first link loss), a line per judged quantity and bin (both medians, their ratio, whether they can
+agree within 10 %), and a line per scenario (the runs' mean iterations per simulated minute at each speed-up and their
+ratio; rho before the link loss over each speed-up's runs pooled, with its 95 % interval). Needs root.
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ground.logs.agreement import compare, pooled_tables
+from ground.logs import iteration_pace
+from ground.logs.agreement import compare, pooled_rho_before_loss, pooled_tables
 from sitl.experiment.runner import Outcome, run_scenario
 from sitl.experiment.scenario import load_scenario
 from sitl.launcher import allocate_base_port
@@ -47,7 +49,9 @@ def one_run(name: str, speedup: float, duration_s: float | None, folder: Path) -
             "ok": result.outcome is Outcome.COMPLETED, "run_dir": str(folder),
             "iterations": summary.get("iterations"),
             "iterations_per_sim_min": _round(summary.get("iterations_per_min")),
-            "rho_w1": _round((summary.get("time_per_10_spearman") or {}).get("w1"), 3)}
+            "rho_w1": _round((summary.get("time_per_10_spearman") or {}).get("w1"), 3),
+            "rho_w1_before_loss": _round((summary.get("time_per_10_spearman_before_loss") or {}).get("w1"), 3),
+            "blocks_w1_before_loss": (summary.get("time_per_10_blocks_before_loss") or {}).get("w1")}
 
 
 def judged(name: str, runs: list[dict], speedups: list[float]) -> list[dict]:
@@ -61,6 +65,15 @@ def judged(name: str, runs: list[dict], speedups: list[float]) -> list[dict]:
                       "samples": list(row.samples), "medians": [_round(m, 3) for m in row.medians],
                       "ratio": _round(row.ratio, 3), "can_agree_within_10_percent": row.agrees})
     return lines
+
+
+def _rho_said(pooled: tuple[float, int] | None) -> dict | None:
+    """A pooled rho with its blocks and 95 % interval."""
+    if pooled is None:
+        return None
+    rho, blocks = pooled
+    return {"rho": _round(rho, 3), "blocks": blocks,
+            "interval_95": [_round(x, 3) for x in iteration_pace.spearman_interval(rho, blocks)]}
 
 
 def _round(value, digits: int = 1):
@@ -92,9 +105,12 @@ def main() -> int:
             pace = [[r["iterations_per_sim_min"] for r in runs if r["speedup"] == s and r["iterations_per_sim_min"]]
                     for s in args.speedups]
             means = [_round(np.mean(p)) if p else None for p in pace]
+            pooled = [pooled_rho_before_loss([r["run_dir"] for r in runs if r["speedup"] == s and r["ok"]], "w1")
+                      for s in args.speedups]
             print(json.dumps({"scenario": {"name": name, "speedups": args.speedups, "runs": args.runs,
                                            "mean_iterations_per_sim_min": means,
-                                           "ratio": _round(means[1] / means[0], 3) if all(means) else None}}),
+                                           "ratio": _round(means[1] / means[0], 3) if all(means) else None,
+                                           "pooled_rho_w1_before_loss": [_rho_said(p) for p in pooled]}}),
                   flush=True)
     finally:
         shutil.rmtree(folder, ignore_errors=True)

@@ -21,6 +21,8 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from ground.logs import iteration_pace
+
 #: below this, a median's 95 % interval is the whole sample's range (n = 5: k = 1) and says little: not judged
 MIN_SAMPLES = 8
 ALL = "all"  # every worker's samples together, as the report's throughput by distance pools the links
@@ -132,6 +134,21 @@ def _judged(quantity: str, worker: str, distance_from_m: float | None, samples, 
     return BinAgreement(quantity, worker, distance_from_m, (len(samples[0]), len(samples[1])),
                         (float(np.median(samples[0])), float(np.median(samples[1]))), (intervals[0], intervals[1]),
                         low_b <= high_a * (1 + rel) and high_b >= low_a * (1 - rel))
+
+
+def pooled_rho_before_loss(run_dirs, worker: str) -> tuple[float, int] | None:
+    """Spearman's rho of the worker's time per 10 iterations with its distance over every run's blocks before that
+    run's first link loss of the worker (RUN/analysis/time_per_10.csv and iteration_workers.csv), and the blocks:
+    runs of one scenario pooled, as one run's dozen blocks say little. None with fewer than
+    iteration_pace.MIN_BLOCKS_FOR_RHO blocks."""
+    tables = []
+    for run in run_dirs:
+        blocks = pd.read_csv(f"{run}/analysis/time_per_10.csv")
+        workers = pd.read_csv(f"{run}/analysis/iteration_workers.csv")
+        tables.append(iteration_pace.until_first_absence(blocks, workers))
+    pooled = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame(columns=iteration_pace.BLOCK_COLUMNS)
+    rho = iteration_pace.spearman(pooled[pooled["worker"] == worker])
+    return (rho[worker], int((pooled["worker"] == worker).sum())) if worker in rho else None
 
 
 def pooled_tables(run_dirs) -> dict[str, pd.DataFrame]:

@@ -362,6 +362,12 @@ def analyze(run: RunLog, master: str | None = None, bin_m: float = DEFAULT_BIN_M
     rho = iteration_pace.spearman(per_10)
     if rho:
         summary["time_per_10_spearman"] = rho
+    before_loss = iteration_pace.until_first_absence(per_10, workers)
+    rho_before_loss = iteration_pace.spearman(before_loss)
+    if rho_before_loss:  # the span the research's moving flight has: its training ended at its first link loss
+        summary["time_per_10_spearman_before_loss"] = rho_before_loss
+        summary["time_per_10_blocks_before_loss"] = {w: int((before_loss["worker"] == w).sum())
+                                                     for w in rho_before_loss}
     power = energy_.power(run.energy)
     vehicles = energy_.by_vehicle(power, run.battery_empty)
     summary.update(energy_.summarize(vehicles, summary))

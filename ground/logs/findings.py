@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ground.logs import iteration_pace
 from ground.logs.analysis import RunTables
 
 
@@ -85,6 +86,49 @@ def trains_through_link_loss(moving: RunTables) -> str:
             f"{cost_text}{rejoined}. The research's moving run stopped at its first link loss.")
 
 
+def _farthest_flown(moving: RunTables) -> str | None:
+    """The worker whose time per 10 iterations has a rho and that flew farthest from the master."""
+    rho = moving.summary.get("time_per_10_spearman") or {}
+    reach = moving.summary.get("max_distance_m") or {}
+    return max((w for w in rho if w in reach), key=lambda w: reach[w], default=None)
+
+
+def _rho_said(moving: RunTables, worker: str) -> str:
+    """Spearman's rho of the worker's time per 10 with its distance before its first link loss, with its 95 %
+    interval and blocks, and over the whole run."""
+    whole = (moving.summary.get("time_per_10_spearman") or {})[worker]
+    whole_blocks = int((moving.time_per_10["worker"] == worker).sum())
+    before = (moving.summary.get("time_per_10_spearman_before_loss") or {}).get(worker)
+    if before is None:
+        low, high = iteration_pace.spearman_interval(whole, whole_blocks)
+        return (f"Spearman rho {whole:.2f} over the whole run (95 % interval {low:.2f} to {high:.2f}; "
+                f"{whole_blocks} blocks)")
+    blocks = moving.summary["time_per_10_blocks_before_loss"][worker]
+    low, high = iteration_pace.spearman_interval(before, blocks)
+    if blocks == whole_blocks:
+        return f"Spearman rho {before:.2f} (95 % interval {low:.2f} to {high:.2f}; {blocks} blocks, no link loss)"
+    return (f"Spearman rho {before:.2f} before its first link loss (95 % interval {low:.2f} to {high:.2f}; {blocks} "
+            f"blocks), {whole:.2f} over the whole run ({whole_blocks} blocks)")
+
+
+def time_rises_with_distance(moving: RunTables) -> str:
+    """The research's Fig. 14(b): time per 10 iterations rises as the worker flies away, over its flight up to its
+    first link loss (where its training ended). Holds when Spearman's rho of the farthest-flown worker's time per 10
+    with its distance over that span is above 0 with 95 % confidence: a rise beyond the blocks' chance order."""
+    worker = _farthest_flown(moving)
+    if worker is None:
+        return f"Time per 10 iterations vs distance: too few blocks of 10 iterations in {moving.name} to tell."
+    before = moving.summary.get("time_per_10_spearman_before_loss") or {}
+    if worker in before:
+        rho, blocks = before[worker], moving.summary["time_per_10_blocks_before_loss"][worker]
+    else:  # too few blocks before its link loss: the whole run's
+        rho = moving.summary["time_per_10_spearman"][worker]
+        blocks = int((moving.time_per_10["worker"] == worker).sum())
+    rises = iteration_pace.spearman_interval(rho, blocks)[0] > 0
+    return (f"Time per 10 iterations rises with {worker}'s distance until its link loss (research: its Fig. 14(b)) "
+            f"({moving.name}): {_verdict(rises)}; {_rho_said(moving, worker)}.")
+
+
 def _radio(*runs: RunTables) -> str:
     """Which radio model made the runs' links, with its parameters (a finding is only as good as its model)."""
     radios = {t.summary.get("radio") for t in runs}
@@ -99,7 +143,8 @@ def research_findings(moving: RunTables, static: RunTables) -> list[str]:
     return [falls_with_distance(moving) + _radio(moving),
             variance_larger_moving(moving, static) + _radio(moving, static),
             faster_before_link_loss(moving, static) + _radio(moving, static),
-            trains_through_link_loss(moving) + _radio(moving)]
+            trains_through_link_loss(moving) + _radio(moving),
+            time_rises_with_distance(moving) + _radio(moving)]
 
 
 # The research's flight test (DESIGN.md section 5, from its Figs 13(a) and 14(b)): linreg, a master and 2 workers.
@@ -121,14 +166,17 @@ def _ratio(nac: float | None, paper: float) -> str:
 
 
 def _time_per_10_row(moving: RunTables) -> list[tuple[str, str, str, str]]:
-    """The worker that flew farthest: its blocks' time per 10 iterations in the nearer and the farther half of
-    their distances (halves, not 2 m bins: when iterations take tenths of a second, a far bin holds a block or two)."""
-    rho = moving.summary.get("time_per_10_spearman") or {}
-    reach = moving.summary.get("max_distance_m") or {}
-    flown = max((w for w in rho if w in reach), key=lambda w: reach[w], default=None)
+    """The worker that flew farthest: its blocks' time per 10 iterations before its first link loss (the research's
+    span: its training ended there) in the nearer and the farther half of their distances (halves, not 2 m bins:
+    when iterations take tenths of a second, a far bin holds a block or two)."""
+    flown = _farthest_flown(moving)
     if flown is None:
         return []
-    mine = moving.time_per_10[moving.time_per_10["worker"] == flown].sort_values("distance_m")
+    before = iteration_pace.until_first_absence(moving.time_per_10, moving.iteration_workers)
+    mine = before[before["worker"] == flown]
+    if len(mine) < 2:  # lost at once: the whole run's blocks
+        mine = moving.time_per_10[moving.time_per_10["worker"] == flown]
+    mine = mine.sort_values("distance_m")
     near, far = mine.iloc[:len(mine) // 2], mine.iloc[len(mine) // 2:]
 
     def half(b) -> str:
@@ -136,7 +184,7 @@ def _time_per_10_row(moving: RunTables) -> list[tuple[str, str, str, str]]:
                 f"({len(b)} blocks)")
 
     return [(f"time per 10 iterations against {flown}'s distance ({moving.name})", "rises (its Fig. 14(b))",
-             f"Spearman rho {rho[flown]:.2f}; median {half(near)} and {half(far)}", "-")]
+             f"{_rho_said(moving, flown)}; median {half(near)} and {half(far)}", "-")]
 
 
 def beside_the_research(moving: RunTables, static: RunTables) -> list[str]:

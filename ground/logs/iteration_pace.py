@@ -11,6 +11,7 @@ import pandas as pd
 BLOCK_ITERATIONS = 10
 MIN_BLOCKS_PER_BIN = 3  # a bin's median from fewer blocks is shown but not judged (the report says so)
 MIN_BLOCKS_FOR_RHO = 8  # Spearman's rho from fewer blocks says little
+Z_95 = 1.959964  # the normal distribution's two-sided 95 % quantile
 
 BLOCK_COLUMNS = ["worker", "first_iteration", "t_rel_s", "distance_m", "time_per_10_s"]
 BIN_COLUMNS = ["worker", "distance_from_m", "distance_to_m", "median_s", "p25_s", "p75_s", "blocks"]
@@ -51,6 +52,27 @@ def by_distance(table: pd.DataFrame, bin_m: float) -> pd.DataFrame:
     out = out.rename(columns={"distance_m": "distance_from_m"})
     out["distance_to_m"] = out["distance_from_m"] + bin_m
     return out[BIN_COLUMNS]
+
+
+def until_first_absence(table: pd.DataFrame, workers: pd.DataFrame) -> pd.DataFrame:
+    """Each worker's blocks before the first iteration it missed (its first link loss): the span the research's
+    moving flight has, as its training ended at its first link loss."""
+    if table.empty or workers.empty or "present" not in workers:
+        return table
+    missed = workers[~workers["present"].astype(bool)].groupby("vehicle")["iteration"].min()
+    first_missed = table["worker"].map(missed)
+    keep = first_missed.isna() | (table["first_iteration"] + BLOCK_ITERATIONS <= first_missed)
+    return table[keep]
+
+
+def spearman_interval(rho: float, blocks: int) -> tuple[float, float]:
+    """A 95 % interval of Spearman's rho from its number of pairs: Fisher's z with Bonett and Wright's standard
+    error for Spearman, sqrt((1 + rho^2 / 2) / (n - 3)) (Psychometrika 65(1), 2000), good from about 10 pairs."""
+    if blocks <= 3:
+        return (-1.0, 1.0)
+    half = Z_95 * np.sqrt((1.0 + rho * rho / 2.0) / (blocks - 3))
+    z = np.arctanh(np.clip(rho, -0.999999, 0.999999))
+    return (float(np.tanh(z - half)), float(np.tanh(z + half)))
 
 
 def spearman(table: pd.DataFrame) -> dict[str, float]:

@@ -23,6 +23,8 @@ SUMMARY_LABELS = {
     "complete_iterations": "complete iterations", "mean_iteration_s": "mean iteration time (s)",
     "p95_iteration_s": "p95 iteration time (s)", "iterations_per_min": "iterations per minute",
     "time_per_10_spearman": "time per 10 iterations vs the worker's distance: Spearman rho",
+    "time_per_10_spearman_before_loss": "the same, before the worker's first link loss: Spearman rho",
+    "time_per_10_blocks_before_loss": "blocks of 10 iterations before the worker's first link loss",
     "compute_span_s": "compute time (s)", "first_cost": "first training cost", "final_cost": "final training cost",
     "absent_iterations": "absent iterations per worker", "absence_reasons": "absence reasons",
     "device": "companions' CPU (device profile)", "late_cpu_segments": "work segments slower here than on it",
@@ -158,7 +160,20 @@ def _time_per_10_section(t: RunTables) -> list[str]:
     if t.time_per_10_by_distance.empty:
         return []
     rho = t.summary.get("time_per_10_spearman", {})
-    said = "; ".join(f"{w}: {r:.2f} over {int((t.time_per_10['worker'] == w).sum())} blocks" for w, r in rho.items())
+    before = t.summary.get("time_per_10_spearman_before_loss", {})
+    blocks_before = t.summary.get("time_per_10_blocks_before_loss", {})
+
+    def one(w: str, r: float) -> str:
+        blocks = int((t.time_per_10["worker"] == w).sum())
+        low, high = iteration_pace.spearman_interval(r, blocks)
+        text = f"{w}: {r:.2f} over {blocks} blocks (95 % interval {low:.2f} to {high:.2f})"
+        if w in before and blocks_before[w] < blocks:
+            low, high = iteration_pace.spearman_interval(before[w], blocks_before[w])
+            text += (f", {before[w]:.2f} over the {blocks_before[w]} before its first link loss ({low:.2f} to "
+                     f"{high:.2f})")
+        return text
+
+    said = "; ".join(one(w, r) for w, r in rho.items())
     return ["## Time per 10 iterations vs distance", "",
             f"Blocks of 10 consecutive iterations with the worker present in all ten (simulated seconds), by that "
             f"worker's mean distance from the master; bins of fewer than {iteration_pace.MIN_BLOCKS_PER_BIN} blocks "

@@ -78,3 +78,28 @@ def test_the_ratio_interval_holds_the_true_ratio_and_tells_a_real_difference():
     assert ratio_interval(steady, 1.3 * steady * rng.normal(1, 0.05, 12))[1] > 1
     few = pd.Series([1.0] * (MIN_WINDOWS - 1), index=index[:MIN_WINDOWS - 1])
     assert ratio_interval(few, pd.Series(shared, index=index)) is None
+
+
+def test_rho_before_the_link_loss_pools_each_runs_blocks_up_to_its_own_first_miss(tmp_path):
+    """Two runs whose w1 blocks rise with distance until w1 misses an iteration (run a at 60, run b at 40) and are
+    fast after it: pooled, the blocks before each loss (6 and 4) rise together (rho 1); with the later blocks the
+    rise would be broken. Fewer than 8 blocks before the losses: nothing to state."""
+    from ground.logs.agreement import pooled_rho_before_loss
+
+    def run(name: str, first_miss: int) -> str:
+        folder = tmp_path / name / "analysis"
+        folder.mkdir(parents=True)
+        n = 10
+        pd.DataFrame({"worker": "w1", "first_iteration": np.arange(n) * 10, "t_rel_s": np.arange(n) * 3.0,
+                      "distance_m": 6.0 + 2.0 * np.arange(n),
+                      "time_per_10_s": [2.0 + 0.1 * k if 10 * k + 10 <= first_miss else 0.5 for k in range(n)]}
+                     ).to_csv(folder / "time_per_10.csv", index=False)
+        pd.DataFrame({"iteration": [first_miss - 1, first_miss], "vehicle": "w1", "present": [True, False]}
+                     ).to_csv(folder / "iteration_workers.csv", index=False)
+        return str(tmp_path / name)
+
+    a, b = run("a", 60), run("b", 40)
+    rho, blocks = pooled_rho_before_loss([a, b], "w1")
+    assert blocks == 10 and rho > 0.9, (rho, blocks)
+    assert pooled_rho_before_loss([a], "w1") is None, "6 blocks say little"
+    assert pooled_rho_before_loss([a, b], "w2") is None

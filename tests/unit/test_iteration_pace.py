@@ -49,3 +49,25 @@ def test_too_few_blocks_or_no_iterations_give_nothing_to_judge():
     assert iteration_pace.spearman(iteration_pace.blocks(its, workers, dist)) == {}
     empty = iteration_pace.blocks(its.iloc[:0], workers.iloc[:0], dist)
     assert empty.empty and iteration_pace.by_distance(empty, 2.0).empty
+
+
+def test_blocks_before_the_first_link_loss_end_with_the_last_whole_block_before_it():
+    """w1 misses iterations 57 and 150: its blocks before its first link loss are 0-49 (50-59 holds 57); w2 never
+    misses one, so all its blocks are kept."""
+    its, workers, dist = _run(205, absent_w1={57, 150})
+    blocks = iteration_pace.blocks(its, workers, dist)
+    before = iteration_pace.until_first_absence(blocks, workers)
+    assert list(before[before["worker"] == "w1"]["first_iteration"]) == [0, 10, 20, 30, 40]
+    assert len(before[before["worker"] == "w2"]) == len(blocks[blocks["worker"] == "w2"]) == 20
+    assert iteration_pace.until_first_absence(blocks, workers.iloc[:0]).equals(blocks), "nothing known: all kept"
+
+
+def test_spearman_interval_holds_rho_and_narrows_with_blocks():
+    """Fisher's z with Bonett and Wright's standard error: rho 0.34 from 24 blocks spans about -0.09 to 0.66
+    (sqrt(1.058 / 21) = 0.224 in z, times 1.96); with 4 times the blocks the interval is about half as wide."""
+    low, high = iteration_pace.spearman_interval(0.34, 24)
+    assert low == pytest.approx(-0.087, abs=0.005) and high == pytest.approx(0.661, abs=0.005)
+    low4, high4 = iteration_pace.spearman_interval(0.34, 96)
+    assert low < low4 < 0.34 < high4 < high and (high4 - low4) < 0.55 * (high - low)
+    assert iteration_pace.spearman_interval(1.0, 10)[1] == pytest.approx(1.0) and \
+        iteration_pace.spearman_interval(0.5, 3) == (-1.0, 1.0)
