@@ -93,21 +93,27 @@ def _farthest_flown(moving: RunTables) -> str | None:
     return max((w for w in rho if w in reach), key=lambda w: reach[w], default=None)
 
 
+def _judged_rho(moving: RunTables, worker: str) -> tuple[float, int, bool]:
+    """Spearman's rho of the worker's time per 10 with its distance and its blocks: before its first link loss (the
+    research's span), or over the whole run where too few blocks came before it; and whether it is the former."""
+    before = moving.summary.get("time_per_10_spearman_before_loss") or {}
+    if worker in before:
+        return before[worker], moving.summary["time_per_10_blocks_before_loss"][worker], True
+    return (moving.summary["time_per_10_spearman"][worker], int((moving.time_per_10["worker"] == worker).sum()),
+            False)
+
+
 def _rho_said(moving: RunTables, worker: str) -> str:
-    """Spearman's rho of the worker's time per 10 with its distance before its first link loss, with its 95 %
-    interval and blocks, and over the whole run."""
-    whole = (moving.summary.get("time_per_10_spearman") or {})[worker]
+    """The judged rho with its 95 % interval and blocks, and the whole run's beside it when it differs."""
+    rho, blocks, before = _judged_rho(moving, worker)
+    low, high = iteration_pace.spearman_interval(rho, blocks)
     whole_blocks = int((moving.time_per_10["worker"] == worker).sum())
-    before = (moving.summary.get("time_per_10_spearman_before_loss") or {}).get(worker)
-    if before is None:
-        low, high = iteration_pace.spearman_interval(whole, whole_blocks)
-        return (f"Spearman rho {whole:.2f} over the whole run (95 % interval {low:.2f} to {high:.2f}; "
-                f"{whole_blocks} blocks)")
-    blocks = moving.summary["time_per_10_blocks_before_loss"][worker]
-    low, high = iteration_pace.spearman_interval(before, blocks)
+    if not before:
+        return f"Spearman rho {rho:.2f} over the whole run (95 % interval {low:.2f} to {high:.2f}; {blocks} blocks)"
     if blocks == whole_blocks:
-        return f"Spearman rho {before:.2f} (95 % interval {low:.2f} to {high:.2f}; {blocks} blocks, no link loss)"
-    return (f"Spearman rho {before:.2f} before its first link loss (95 % interval {low:.2f} to {high:.2f}; {blocks} "
+        return f"Spearman rho {rho:.2f} (95 % interval {low:.2f} to {high:.2f}; {blocks} blocks, no link loss)"
+    whole = moving.summary["time_per_10_spearman"][worker]
+    return (f"Spearman rho {rho:.2f} before its first link loss (95 % interval {low:.2f} to {high:.2f}; {blocks} "
             f"blocks), {whole:.2f} over the whole run ({whole_blocks} blocks)")
 
 
@@ -118,12 +124,7 @@ def time_rises_with_distance(moving: RunTables) -> str:
     worker = _farthest_flown(moving)
     if worker is None:
         return f"Time per 10 iterations vs distance: too few blocks of 10 iterations in {moving.name} to tell."
-    before = moving.summary.get("time_per_10_spearman_before_loss") or {}
-    if worker in before:
-        rho, blocks = before[worker], moving.summary["time_per_10_blocks_before_loss"][worker]
-    else:  # too few blocks before its link loss: the whole run's
-        rho = moving.summary["time_per_10_spearman"][worker]
-        blocks = int((moving.time_per_10["worker"] == worker).sum())
+    rho, blocks, _ = _judged_rho(moving, worker)
     rises = iteration_pace.spearman_interval(rho, blocks)[0] > 0
     return (f"Time per 10 iterations rises with {worker}'s distance until its link loss (research: its Fig. 14(b)) "
             f"({moving.name}): {_verdict(rises)}; {_rho_said(moving, worker)}.")
