@@ -145,7 +145,7 @@ def pooled_rho_before_loss(run_dirs, worker: str) -> tuple[float, int] | None:
     for run in run_dirs:
         blocks = pd.read_csv(f"{run}/analysis/time_per_10.csv")
         workers = pd.read_csv(f"{run}/analysis/iteration_workers.csv")
-        tables.append(iteration_pace.until_first_absence(blocks, workers))
+        tables.append(iteration_pace.until_link_loss(blocks, workers))
     pooled = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame(columns=iteration_pace.BLOCK_COLUMNS)
     rho = iteration_pace.spearman(pooled[pooled["worker"] == worker])
     return (rho[worker], int((pooled["worker"] == worker).sum())) if worker in rho else None

@@ -362,7 +362,7 @@ def analyze(run: RunLog, master: str | None = None, bin_m: float = DEFAULT_BIN_M
     rho = iteration_pace.spearman(per_10)
     if rho:
         summary["time_per_10_spearman"] = rho
-    before_loss = iteration_pace.until_first_absence(per_10, workers)
+    before_loss = iteration_pace.until_link_loss(per_10, workers)
     rho_before_loss = iteration_pace.spearman(before_loss)
     if rho_before_loss:  # the span the research's moving flight has: its training ended at its first link loss
         summary["time_per_10_spearman_before_loss"] = rho_before_loss

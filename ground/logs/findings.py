@@ -43,13 +43,15 @@ def variance_larger_moving(moving: RunTables, static: RunTables) -> str:
 
 def faster_before_link_loss(moving: RunTables, static: RunTables) -> str:
     """The research's moving flight computed faster up to its link loss than its static flight over 200 s (310
-    iterations in 75 s against 640 in 200 s); here the same comparison: the moving run up to its first iteration
-    without a worker (the whole run if none), the static run whole, per minute of computing."""
+    iterations in 75 s against 640 in 200 s); here the same comparison: the moving run up to its first link loss
+    (a worker's first absence other than a late answer; the whole run if none), the static run whole, per minute of
+    computing."""
     its, per_min_static = moving.iterations, static.summary.get("iterations_per_min")
     if its.empty or per_min_static is None:
         return "Iterations per minute: a run has no compute iterations."
     since = _since_start_s(moving).to_numpy()
-    lost = (its["absent"] != "").to_numpy()
+    lost = its["absent"].map(lambda cell: any(iteration_pace.is_link_loss(a.split(":", 1)[-1])
+                                              for a in str(cell).split())).to_numpy()
     upto_s = float(since[lost.argmax()]) if lost.any() else float(since[-1] + its["duration_s"].iloc[-1])
     if upto_s <= 0:
         return f"Iterations per minute: {moving.name} lost a worker at its first iteration."
@@ -173,7 +175,7 @@ def _time_per_10_row(moving: RunTables) -> list[tuple[str, str, str, str]]:
     flown = _farthest_flown(moving)
     if flown is None:
         return []
-    before = iteration_pace.until_first_absence(moving.time_per_10, moving.iteration_workers)
+    before = iteration_pace.until_link_loss(moving.time_per_10, moving.iteration_workers)
     mine = before[before["worker"] == flown]
     if len(mine) < 2:  # lost at once: the whole run's blocks
         mine = moving.time_per_10[moving.time_per_10["worker"] == flown]

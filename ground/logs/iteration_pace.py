@@ -54,14 +54,26 @@ def by_distance(table: pd.DataFrame, bin_m: float) -> pd.DataFrame:
     return out[BIN_COLUMNS]
 
 
-def until_first_absence(table: pd.DataFrame, workers: pd.DataFrame) -> pd.DataFrame:
-    """Each worker's blocks before the first iteration it missed (its first link loss): the span the research's
-    moving flight has, as its training ended at its first link loss."""
+LATE_ANSWER = "timeout"  # an absence that is no link loss: the worker answered late and is waited for again
+
+
+def is_link_loss(reason) -> bool:
+    """Whether a worker's absence (its reason as the job records it) is a link loss: anything but an answer that came
+    after the iteration's timeout (a slow iteration; the next one waits for the worker again). Unknown: a loss."""
+    return str(reason).strip() != LATE_ANSWER
+
+
+def until_link_loss(table: pd.DataFrame, workers: pd.DataFrame) -> pd.DataFrame:
+    """Each worker's blocks before its first link loss (is_link_loss): the span the research's moving flight has,
+    as its training ended at its first link loss. Blocks that hold a late answer are no blocks (blocks())."""
     if table.empty or workers.empty or "present" not in workers:
         return table
-    missed = workers[~workers["present"].astype(bool)].groupby("vehicle")["iteration"].min()
-    first_missed = table["worker"].map(missed)
-    keep = first_missed.isna() | (table["first_iteration"] + BLOCK_ITERATIONS <= first_missed)
+    absent = workers[~workers["present"].astype(bool)]
+    if "absent" in absent:
+        absent = absent.loc[absent["absent"].map(is_link_loss).astype(bool)]
+    lost_at = absent.groupby("vehicle")["iteration"].min()
+    first_lost = table["worker"].map(lost_at)
+    keep = first_lost.isna() | (table["first_iteration"] + BLOCK_ITERATIONS <= first_lost)
     return table[keep]
 
 

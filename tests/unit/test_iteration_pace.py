@@ -56,10 +56,26 @@ def test_blocks_before_the_first_link_loss_end_with_the_last_whole_block_before_
     misses one, so all its blocks are kept."""
     its, workers, dist = _run(205, absent_w1={57, 150})
     blocks = iteration_pace.blocks(its, workers, dist)
-    before = iteration_pace.until_first_absence(blocks, workers)
+    before = iteration_pace.until_link_loss(blocks, workers)
     assert list(before[before["worker"] == "w1"]["first_iteration"]) == [0, 10, 20, 30, 40]
     assert len(before[before["worker"] == "w2"]) == len(blocks[blocks["worker"] == "w2"]) == 20
-    assert iteration_pace.until_first_absence(blocks, workers.iloc[:0]).equals(blocks), "nothing known: all kept"
+    assert iteration_pace.until_link_loss(blocks, workers.iloc[:0]).equals(blocks), "nothing known: all kept"
+
+
+def test_a_late_answer_is_no_link_loss_but_every_other_absence_is():
+    """w1 answers late at iteration 25 (a timeout: the block 20-29 is no block, the next iteration waits for it
+    again) and is no longer waited for from 57 (unresponsive): its blocks before the link loss are 0, 10, 30, 40."""
+    its, workers, dist = _run(205, absent_w1={25, 57, 58, 150})
+    workers["absent"] = None
+    for k, reason in ((25, "timeout"), (57, "unresponsive"), (58, "agent_lost"), (150, "timeout")):
+        workers.loc[(workers["vehicle"] == "w1") & (workers["iteration"] == k), "absent"] = reason
+    blocks = iteration_pace.blocks(its, workers, dist)
+    before = iteration_pace.until_link_loss(blocks, workers)
+    assert list(before[before["worker"] == "w1"]["first_iteration"]) == [0, 10, 30, 40]
+    present = workers.assign(present=True, absent=None)
+    assert iteration_pace.until_link_loss(blocks, present).equals(blocks), "no absence: every block"
+    assert not iteration_pace.is_link_loss("timeout") and not iteration_pace.is_link_loss(" timeout")
+    assert all(map(iteration_pace.is_link_loss, ("unresponsive", "agent_lost", "out_of_range", "no_position", "dead")))
 
 
 def test_spearman_interval_holds_rho_and_narrows_with_blocks():

@@ -263,6 +263,8 @@ def test_findings_state_whether_they_hold_with_their_numbers():
            "from iteration 3" in lines[3]
     static.summary["iterations_per_min"] = 119.0
     assert "**holds**; 120.0 (golden-run" in research_findings(moving, static)[2]
+    moving.iterations.loc[2, "absent"] = "w2:timeout"  # a late answer, not a link loss: the whole run counts
+    assert "(golden-run, its first 2 s wall-clock)" in research_findings(moving, static)[2]
 
 
 def test_training_through_a_link_loss_is_judged_on_the_cost_over_the_same_rows():
