@@ -1,7 +1,9 @@
 """Time per 10 iterations against each worker's distance from the master, as the research plots it (its Fig.
 14(b)): the run's iterations cut into consecutive blocks of 10, a worker's block kept while that worker took part
-in all ten (in range), the block's time the sum of its iterations' (simulated) durations, its distance the worker's
-mean distance at the ten starts. Pure: DataFrames in, DataFrames out."""
+in all ten (in range: present, or answering after the iteration's timeout, which the iteration waited out for it as
+the research's job, which had no timeout, would have waited longer), the block's time the sum of its iterations'
+(simulated) durations, its distance the worker's mean distance at the ten starts. Pure: DataFrames in, DataFrames
+out."""
 
 from __future__ import annotations
 
@@ -26,7 +28,11 @@ def blocks(its: pd.DataFrame, workers: pd.DataFrame, dist: pd.DataFrame) -> pd.D
     whole = pd.Series(block).map(pd.Series(block).value_counts()) == BLOCK_ITERATIONS  # the last may be short
     rows = []
     for worker, track in dist.sort_values("t_s").groupby("worker"):
-        mine = workers[workers["vehicle"] == worker].set_index("iteration")["present"].astype(bool)
+        own = workers[workers["vehicle"] == worker]
+        took_part = own["present"].astype(bool)
+        if "absent" in own:
+            took_part |= ~own["absent"].map(is_link_loss).astype(bool)
+        mine = took_part.set_axis(own["iteration"])
         mine = mine[~mine.index.duplicated(keep="last")]  # a folder holding two jobs' logs numbers iterations twice
         present = its["iteration"].map(mine).fillna(False).astype(bool)
         distance = np.interp(its["t_s"].astype(float), track["t_s"].astype(float), track["distance_m"].astype(float))

@@ -63,15 +63,20 @@ def test_blocks_before_the_first_link_loss_end_with_the_last_whole_block_before_
 
 
 def test_a_late_answer_is_no_link_loss_but_every_other_absence_is():
-    """w1 answers late at iteration 25 (a timeout: the block 20-29 is no block, the next iteration waits for it
-    again) and is no longer waited for from 57 (unresponsive): its blocks before the link loss are 0, 10, 30, 40."""
+    """w1 answers late at iteration 25 (a timeout: the iteration waited for it, and the next one waits again, so it
+    took part and the block 20-29 is kept with the time waited) and is no longer waited for from 57 (unresponsive):
+    its blocks before the link loss are 0-40; the blocks with 57-58 and 150 are none."""
     its, workers, dist = _run(205, absent_w1={25, 57, 58, 150})
     workers["absent"] = None
     for k, reason in ((25, "timeout"), (57, "unresponsive"), (58, "agent_lost"), (150, "timeout")):
         workers.loc[(workers["vehicle"] == "w1") & (workers["iteration"] == k), "absent"] = reason
     blocks = iteration_pace.blocks(its, workers, dist)
     before = iteration_pace.until_link_loss(blocks, workers)
-    assert list(before[before["worker"] == "w1"]["first_iteration"]) == [0, 10, 30, 40]
+    assert list(before[before["worker"] == "w1"]["first_iteration"]) == [0, 10, 20, 30, 40]
+    kept = blocks[blocks["worker"] == "w1"]["first_iteration"]
+    assert 20 in set(kept) and 150 in set(kept) and 50 not in set(kept)
+    assert blocks[(blocks["worker"] == "w1") & (blocks["first_iteration"] == 20)]["time_per_10_s"].iloc[0] == \
+        pytest.approx(its["duration_s"][20:30].sum())
     present = workers.assign(present=True, absent=None)
     assert iteration_pace.until_link_loss(blocks, present).equals(blocks), "no absence: every block"
     assert not iteration_pace.is_link_loss("timeout") and not iteration_pace.is_link_loss(" timeout")
