@@ -14,13 +14,21 @@ BLOCK_ITERATIONS = 10
 MIN_BLOCKS_PER_BIN = 3  # a bin's median from fewer blocks is shown but not judged (the report says so)
 MIN_BLOCKS_FOR_RHO = 8  # Spearman's rho from fewer blocks says little
 Z_95 = 1.959964  # the normal distribution's two-sided 95 % quantile
+LATE_ANSWER = "timeout"  # an absence that is no link loss: the worker answered late and is waited for again
 
 BLOCK_COLUMNS = ["worker", "first_iteration", "t_rel_s", "distance_m", "time_per_10_s"]
 BIN_COLUMNS = ["worker", "distance_from_m", "distance_to_m", "median_s", "p25_s", "p75_s", "blocks"]
 
 
+def is_link_loss(reason) -> bool:
+    """Whether a worker's absence (its reason as the job records it) is a link loss: anything but an answer that came
+    after the iteration's timeout (a slow iteration; the next one waits for the worker again). Unknown: a loss."""
+    return str(reason).strip() != LATE_ANSWER
+
+
 def blocks(its: pd.DataFrame, workers: pd.DataFrame, dist: pd.DataFrame) -> pd.DataFrame:
-    """One row per worker and block of 10 consecutive iterations in which that worker was present in all ten."""
+    """One row per worker and block of 10 consecutive iterations in all ten of which that worker took part (present,
+    or answering late)."""
     if its.empty or workers.empty or dist.empty or "present" not in workers:
         return pd.DataFrame(columns=BLOCK_COLUMNS)
     its = its.sort_values("iteration").reset_index(drop=True)
@@ -60,18 +68,9 @@ def by_distance(table: pd.DataFrame, bin_m: float) -> pd.DataFrame:
     return out[BIN_COLUMNS]
 
 
-LATE_ANSWER = "timeout"  # an absence that is no link loss: the worker answered late and is waited for again
-
-
-def is_link_loss(reason) -> bool:
-    """Whether a worker's absence (its reason as the job records it) is a link loss: anything but an answer that came
-    after the iteration's timeout (a slow iteration; the next one waits for the worker again). Unknown: a loss."""
-    return str(reason).strip() != LATE_ANSWER
-
-
 def until_link_loss(table: pd.DataFrame, workers: pd.DataFrame) -> pd.DataFrame:
     """Each worker's blocks before its first link loss (is_link_loss): the span the research's moving flight has,
-    as its training ended at its first link loss. Blocks that hold a late answer are no blocks (blocks())."""
+    as its training ended at its first link loss."""
     if table.empty or workers.empty or "present" not in workers:
         return table
     absent = workers[~workers["present"].astype(bool)]

@@ -175,7 +175,7 @@ def _time_per_10_section(t: RunTables) -> list[str]:
 
     said = "; ".join(one(w, r) for w, r in rho.items())
     return ["## Time per 10 iterations vs distance", "",
-            f"Blocks of 10 consecutive iterations in all ten of which the worker took part (present, or answering "
+            "Blocks of 10 consecutive iterations in all ten of which the worker took part (present, or answering "
             "after the iteration's timeout) (simulated seconds), by that "
             f"worker's mean distance from the master; bins of fewer than {iteration_pace.MIN_BLOCKS_PER_BIN} blocks "
             f"say little. Spearman's rank correlation of time with distance: {said or 'too few blocks'}.", "",
