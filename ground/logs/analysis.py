@@ -14,6 +14,7 @@ On a kernel network each probe is set beside the rate the shaper applied to its 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -233,6 +234,21 @@ def throughput_by_distance(table: pd.DataFrame, bin_m: float = DEFAULT_BIN_M) ->
     return out[columns]
 
 
+def station_queue_waits(air_medium: list[dict], vehicle: str | None) -> pd.DataFrame:
+    """The vehicle's station's median queue wait in each of the frame-level air's records (t_s, wait_s; NaN where
+    it sent nothing), from records that name their stations; empty where none does."""
+    rows = []
+    for r in air_medium:
+        stations, waits = r.get("stations"), r.get("queue_p50_by_station_s")
+        if vehicle is None or not isinstance(stations, list) or vehicle not in stations or not isinstance(waits, list) \
+                or len(waits) != len(stations):
+            continue
+        wait = waits[stations.index(vehicle)]
+        ok = isinstance(wait, int | float) and not isinstance(wait, bool) and math.isfinite(wait) and wait >= 0
+        rows.append({"t_s": float(r["t_s"]), "wait_s": float(wait) if ok else np.nan})
+    return pd.DataFrame(rows, columns=["t_s", "wait_s"])
+
+
 def iterations(run: RunLog, clock: RunClock) -> tuple[pd.DataFrame, pd.DataFrame]:
     rows, worker_rows = [], []
     for r in sorted(run.iterations, key=lambda r: r["start_s"]):
@@ -359,6 +375,9 @@ def analyze(run: RunLog, master: str | None = None, bin_m: float = DEFAULT_BIN_M
         missing.append(f"master: no vehicle logged role 'master' and no probes tell (give --master ID; vehicles: "
                        f"{', '.join(sorted(run.vehicles)) or 'none'}): no distances")
     per_10 = iteration_pace.blocks(its, workers, dist)
+    waits = station_queue_waits(run.air_medium, master)
+    if not waits.empty:  # the frame-level air: the master's queue, where the job's messages wait behind the probes
+        per_10["master_queue_s"] = iteration_pace.queue_wait_by_block(per_10, its, waits)
     rho = iteration_pace.spearman(per_10)
     if rho:
         summary["time_per_10_spearman"] = rho
@@ -368,6 +387,11 @@ def analyze(run: RunLog, master: str | None = None, bin_m: float = DEFAULT_BIN_M
         summary["time_per_10_spearman_before_loss"] = rho_before_loss
         summary["time_per_10_blocks_before_loss"] = {w: int((before_loss["worker"] == w).sum())
                                                      for w in rho_before_loss}
+    if "master_queue_s" in before_loss:
+        with_queue = {w: iteration_pace.spearman_of(b["master_queue_s"], b["time_per_10_s"])
+                      for w, b in before_loss.groupby("worker")}
+        if any(r is not None for r in with_queue.values()):
+            summary["time_per_10_queue_spearman"] = {w: r for w, r in with_queue.items() if r is not None}
     power = energy_.power(run.energy)
     vehicles = energy_.by_vehicle(power, run.battery_empty)
     summary.update(energy_.summarize(vehicles, summary))

@@ -128,8 +128,11 @@ def time_rises_with_distance(moving: RunTables) -> str:
         return f"Time per 10 iterations vs distance: too few blocks of 10 iterations in {moving.name} to tell."
     rho, blocks, _ = _judged_rho(moving, worker)
     rises = iteration_pace.spearman_interval(rho, blocks)[0] > 0
+    queue = (moving.summary.get("time_per_10_queue_spearman") or {}).get(worker)
+    cause = (f"; with the master's queue wait in the air's records over the same blocks, rho {queue:.2f}"
+             if queue is not None else "")
     return (f"Time per 10 iterations rises with {worker}'s distance until its link loss (research: its Fig. 14(b)) "
-            f"({moving.name}): {_verdict(rises)}; {_rho_said(moving, worker)}.")
+            f"({moving.name}): {_verdict(rises)}; {_rho_said(moving, worker)}{cause}.")
 
 
 def _radio(*runs: RunTables) -> str:

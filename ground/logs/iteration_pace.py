@@ -82,6 +82,36 @@ def until_link_loss(table: pd.DataFrame, workers: pd.DataFrame) -> pd.DataFrame:
     return table[keep]
 
 
+def queue_wait_by_block(table: pd.DataFrame, its: pd.DataFrame, waits: pd.DataFrame) -> np.ndarray:
+    """Per block, a station's queue wait while it ran: the median of `waits` (t_s, wait_s: each the station's median
+    wait over the period up to its t_s, as the delay line counts it) from the block's first iteration's start to one
+    period past its last one's (the record covering it). NaN where no record fell in that span."""
+    out = np.full(len(table), np.nan)
+    waits = waits.dropna().sort_values("t_s")
+    if table.empty or len(waits) < 2:
+        return out
+    period_s = float(np.median(np.diff(waits["t_s"].to_numpy(float))))
+    start_s = its.set_index("iteration")["t_s"].astype(float)
+    t_s, wait_s = waits["t_s"].to_numpy(float), waits["wait_s"].to_numpy(float)
+    for row, first in enumerate(table["first_iteration"].astype(int)):
+        if first not in start_s.index or first + BLOCK_ITERATIONS - 1 not in start_s.index:
+            continue
+        inside = (t_s >= start_s[first]) & (t_s <= start_s[first + BLOCK_ITERATIONS - 1] + period_s)
+        if inside.any():
+            out[row] = float(np.median(wait_s[inside]))
+    return out
+
+
+def spearman_of(x, y) -> float | None:
+    """Spearman's rank correlation of two columns over the rows where both are known (None below
+    MIN_BLOCKS_FOR_RHO rows or with either constant)."""
+    both = pd.DataFrame({"x": np.asarray(x, float), "y": np.asarray(y, float)}).dropna()
+    if len(both) < MIN_BLOCKS_FOR_RHO or both["x"].nunique() < 2 or both["y"].nunique() < 2:
+        return None
+    ranks = both.rank()
+    return float(np.corrcoef(ranks["x"], ranks["y"])[0, 1])
+
+
 def spearman_interval(rho: float, blocks: int) -> tuple[float, float]:
     """A 95 % interval of Spearman's rho from its number of pairs: Fisher's z with Bonett and Wright's standard
     error for Spearman, sqrt((1 + rho^2 / 2) / (n - 3)) (Psychometrika 65(1), 2000), good from about 10 pairs."""
@@ -97,7 +127,7 @@ def spearman(table: pd.DataFrame) -> dict[str, float]:
     least MIN_BLOCKS_FOR_RHO blocks over more than one distance)."""
     out = {}
     for worker, b in table.groupby("worker"):
-        if len(b) >= MIN_BLOCKS_FOR_RHO and b["distance_m"].nunique() > 1 and b["time_per_10_s"].nunique() > 1:
-            ranks = b[["distance_m", "time_per_10_s"]].rank()
-            out[str(worker)] = float(np.corrcoef(ranks["distance_m"], ranks["time_per_10_s"])[0, 1])
+        rho = spearman_of(b["distance_m"], b["time_per_10_s"])
+        if rho is not None:
+            out[str(worker)] = rho
     return out

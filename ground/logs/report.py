@@ -25,6 +25,7 @@ SUMMARY_LABELS = {
     "time_per_10_spearman": "time per 10 iterations vs the worker's distance: Spearman rho",
     "time_per_10_spearman_before_loss": "the same, before the worker's first link loss: Spearman rho",
     "time_per_10_blocks_before_loss": "blocks of 10 iterations before the worker's first link loss",
+    "time_per_10_queue_spearman": "the same blocks' time vs the master's queue wait (frame-level air): Spearman rho",
     "compute_span_s": "compute time (s)", "first_cost": "first training cost", "final_cost": "final training cost",
     "absent_iterations": "absent iterations per worker", "absence_reasons": "absence reasons",
     "device": "companions' CPU (device profile)", "late_cpu_segments": "work segments slower here than on it",
@@ -174,6 +175,10 @@ def _time_per_10_section(t: RunTables) -> list[str]:
         return text
 
     said = "; ".join(one(w, r) for w, r in rho.items())
+    queue = t.summary.get("time_per_10_queue_spearman", {})
+    if queue:
+        said += (". The blocks' time against the master's queue wait while they ran (the frame-level air's records), "
+                 "before each worker's first link loss: " + "; ".join(f"{w}: {r:.2f}" for w, r in queue.items()))
     return ["## Time per 10 iterations vs distance", "",
             "Blocks of 10 consecutive iterations in all ten of which the worker took part (present, or answering "
             "after the iteration's timeout) (simulated seconds), by that "

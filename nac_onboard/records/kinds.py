@@ -362,6 +362,8 @@ AIR_MEDIUM = Kind("air_medium", NETWORK_LOG, "the frame-level air's counters (de
     req("busy_s", "number", "s", "air time used (simulated)"),
     req("backlog", "list", "", "each station's queue now, in packets"),
     opt("queue_p50_s", "number", "s", "median wait from queue to air since the last record (simulated)"),
+    opt("queue_p50_by_station_s", "list", "s", "the same per sending station, in backlog's order (null: sent nothing)"),
+    opt("stations", "list", "", "the vehicle of each station, in backlog's order"),
     opt("air_p50_s", "number", "s", "median time on the air, tries included, since the last record"),
     req("late", "integer", "", "deliveries written over 1 ms (simulated) after their time: the host fell behind"),
     req("max_late_s", "number", "s", "the latest of them"),

@@ -133,6 +133,7 @@ class DelayLine:
                          "updates": 0, "bad_updates": 0, "runs_cut": 0, "passed": 0}
         self.lead_s: float | None = None  # wall; None: not given yet, packets pass straight through
         self.queue_s: list[float] = []  # since the last counters line
+        self.queue_by_station_s: list[list[float]] = [[] for _ in namespaces]  # the same, by the sending station
         self.air_s: list[float] = []
         self._stop = False
 
@@ -221,6 +222,7 @@ class DelayLine:
                 self.counters["late"] += 1
                 self.counters["max_late_s"] = max(self.counters["max_late_s"], late)
             self.queue_s.append(delivery.queue_s)
+            self.queue_by_station_s[delivery.frame.src].append(delivery.queue_s)
             self.air_s.append(delivery.delivered_s - delivery.frame.first_sent_s)
             packets = [delivery.frame.item]
             if delivery.lost_segments:
@@ -268,10 +270,12 @@ class DelayLine:
                 "queue_drops": s.queue_drops, "retry_drops": s.retry_drops, "exchanges": s.exchanges,
                 "collisions": s.collisions, "busy_s": round(s.busy_s, 6),
                 "backlog": [self.medium.backlog(k) for k in range(len(self.fds))],
-                "queue_p50_s": _median(self.queue_s), "air_p50_s": _median(self.air_s)}
+                "queue_p50_s": _median(self.queue_s), "air_p50_s": _median(self.air_s),
+                "queue_p50_by_station_s": [_median(q) for q in self.queue_by_station_s]}
         if self.lead_s is not None:
             line["lead_s"] = self.lead_s
         self.queue_s, self.air_s = [], []
+        self.queue_by_station_s = [[] for _ in self.fds]
         print(json.dumps(line), file=self.out, flush=True)
 
 

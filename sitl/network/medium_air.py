@@ -127,7 +127,8 @@ class MediumAir(AirNetwork):
                 continue
             self.counters = counters
             if self._records is not None:
-                self._records.write(kinds.AIR_MEDIUM, **{k: v for k, v in counters.items() if k in fields})
+                self._records.write(kinds.AIR_MEDIUM, stations=[s.vehicle_id for s in self.stations],
+                                    **{k: v for k, v in counters.items() if k in fields})
 
     @staticmethod
     def _running(station: Station) -> bool:

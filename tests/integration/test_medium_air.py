@@ -15,6 +15,7 @@ import time
 from types import SimpleNamespace
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from nac_onboard.radio.medium import MacTiming, expected_echo_s, expected_message_s
@@ -311,8 +312,10 @@ def _may_hold_cpu_latency() -> bool:
 @needs_kernel
 def test_an_experiment_on_the_frame_level_air_trains_probes_and_records_its_queues(tmp_path):
     """write_scenario's short run with `[network] air = "medium"` at 4x: the job trains, the master's probes
-    measure the links through the same queues, network.jsonl holds the medium's counters beside the rates, the
-    report names the air, and the namespaces go at the end. Nothing here is timed."""
+    measure the links through the same queues, network.jsonl holds the medium's counters beside the rates, with
+    each station's queue wait named by its vehicle (the master's, which sends the probes' bulk, the longest: the
+    workers' queues hold acknowledgements and the job's answers), the report names the air, and the namespaces go
+    at the end. Nothing here is timed."""
     from nac_onboard.flight_log import read_jsonl
     from sitl.experiment.runner import Experiment, Outcome
     from sitl.experiment.scenario import load_scenario
@@ -330,6 +333,12 @@ def test_an_experiment_on_the_frame_level_air_trains_probes_and_records_its_queu
     medium = network.of_kind("air_medium")
     assert network.problems == [] and medium and medium[-1]["delivered"] > 100, medium[-1:]
     assert network.of_kind("link_rates"), "the shaper's rates beside the medium's counters"
+    stations = medium[-1]["stations"]
+    assert stations == [s.vehicle_id for s in experiment.air.stations] and "master" in stations, stations
+    waits = {v: [r["queue_p50_by_station_s"][k] for r in medium if r["queue_p50_by_station_s"][k] is not None]
+             for k, v in enumerate(stations)}
+    medians = {v: statistics.median(w) for v, w in waits.items() if w}
+    assert medians["master"] == max(medians.values()) and len(medians) == len(stations), medians
     assert result.summary["iterations"] > 10 and result.summary["final_cost"] < result.summary["first_cost"]
     assert result.summary["probes"] > 5 and result.summary["mean_throughput_mbps"] > 1.0
     report = (result.run_dir / "report.md").read_text()
@@ -361,11 +370,17 @@ def test_the_flights_on_the_frame_level_air_give_the_same_results_at_1x_and_4x(t
     alone (exclusive), and an interval from some 80 iterations, 16 blocks or 12 probes spans their run-to-run spread
     (30 s runs at one speed-up differ by more than 10 %), so only a difference beyond that spread fails. A run whose
     air, probes or job waited in wall seconds at 4x would read up to 4 times the iterations' durations and fail.
+    The moving flight's blocks of 10 must follow the master's queue wait in the air's records (issue 28's
+    acceptance 1: the cause in the network): Spearman's rho of w1's blocks' time with that wait, both runs pooled,
+    with its 95 % interval above 0. Four pairs by hand gave 0.75, 0.75, 0.68 and 0.68 (23-25 blocks; intervals from
+    0.32 up), where the test fails below about 0.4; the static flight's 13 blocks, all at one distance, spread too
+    little to tell (0.42, -0.20-0.80), so it is not judged there.
     Not judged here: Spearman's rho of w1's time per 10 with its distance (issue 28's acceptance 1). From a 40 s
     pair's two dozen blocks it is too loose even to tell a rise: 20 whole flights by hand, each cut to the blocks a
     40 s run computes (their first 33 s after the go) and pooled two by two, gave rho 0.16-0.94 (median 0.57), the
     95 % interval reaching 0 in 41 of the 190 pairs (docs/benchmarks.md)."""
     from ground.logs.agreement import compare, pooled_tables
+    from ground.logs.iteration_pace import spearman_interval, spearman_of
     from nac_onboard.flight_log import read_jsonl
     from sitl.experiment.runner import Outcome, run_scenario
     from sitl.experiment.scenario import load_scenario
@@ -389,3 +404,8 @@ def test_the_flights_on_the_frame_level_air_give_the_same_results_at_1x_and_4x(t
         assert read_jsonl(run / "compute" / "compute.jsonl").of_kind("run_started")[0]["emulate"] == "none"
         air = read_jsonl(run / "network.jsonl").of_kind("air_medium")
         assert any(r["queue_p50_s"] is not None and r["air_p50_s"] is not None for r in air), air[-1:]
+    if flight == "paper-flight-moving":  # the rise's cause is in the air's records: the master's queue
+        w1 = pd.concat([pd.read_csv(run / "analysis" / "time_per_10.csv") for run in run_dirs])
+        w1 = w1[w1["worker"] == "w1"].dropna(subset=["master_queue_s"])
+        rho = spearman_of(w1["master_queue_s"], w1["time_per_10_s"])
+        assert rho is not None and spearman_interval(rho, len(w1))[0] > 0, (rho, len(w1))

@@ -92,3 +92,20 @@ def test_spearman_interval_holds_rho_and_narrows_with_blocks():
     assert low < low4 < 0.34 < high4 < high and (high4 - low4) < 0.55 * (high - low)
     assert iteration_pace.spearman_interval(1.0, 10)[1] == pytest.approx(1.0) and \
         iteration_pace.spearman_interval(0.5, 3) == (-1.0, 1.0)
+
+
+def test_a_blocks_queue_wait_is_the_median_of_the_records_that_cover_it():
+    """Records once a second (each the station's median wait over the second before it); iterations every 0.5 s, so
+    a block spans 4.5 s and the records from its start to one second past its last iteration's start: the block
+    at 0 s takes the records at 1-5 s, its wait their median. A block no record covers has none (NaN)."""
+    its, workers, dist = _run(60, absent_w1=set())
+    blocks = iteration_pace.blocks(its, workers, dist)
+    w1 = blocks[blocks["worker"] == "w1"].reset_index(drop=True)
+    waits = pd.DataFrame({"t_s": 1000.0 + np.arange(1, 21), "wait_s": np.arange(1, 21) * 0.01})  # up to 20 s
+    got = iteration_pace.queue_wait_by_block(w1, its, waits)
+    assert got[0] == pytest.approx(np.median(np.arange(1, 6) * 0.01))
+    assert list(np.isnan(got)) == [False, False, False, False, False, True], "the last block starts at 25 s"
+    assert np.all(np.diff(got[:5]) > 0), "a wait that grows gives blocks' waits that grow"
+    assert iteration_pace.spearman_of(got, w1["time_per_10_s"]) is None, "5 known blocks: too few"
+    assert iteration_pace.spearman_of(range(9), range(9)) == pytest.approx(1.0)
+    assert np.isnan(iteration_pace.queue_wait_by_block(w1, its, waits.iloc[:1])).all(), "one record: no period"

@@ -327,6 +327,9 @@ def test_time_per_10_is_judged_before_the_first_link_loss_as_the_research_flight
                            "interval 0.53 to 0.98; 10 blocks), 0.20 over the whole run (14 blocks)."), line
     row = [line for line in beside_the_research(run, copy.deepcopy(run)) if "against w2's distance" in line]
     assert "; median 2 s at 6-10 m (5 blocks) and 4 s at 11-15 m (5 blocks) |" in row[0], "the 10 blocks before"
+    run.summary["time_per_10_queue_spearman"] = {"w2": 0.8}  # the air's records say where the time went
+    assert research_findings(run, copy.deepcopy(run))[4].endswith(
+        "(14 blocks); with the master's queue wait in the air's records over the same blocks, rho 0.80."), "the cause"
     del run.summary["time_per_10_spearman_before_loss"]
     line = research_findings(run, copy.deepcopy(run))[4]
     assert "**does not hold**; Spearman rho 0.20 over the whole run (95 % interval -0.37 to 0.66; 14 blocks)" in line
@@ -413,3 +416,20 @@ def test_the_report_says_which_probes_ran_and_where_their_traffic_went():
     line = _probes_line({"period_s": 2.0, "duration_s": 0.5, "tool": "iperf3"}, {"mode": "kernel", "air": "htb"})
     assert line.startswith("iperf3, 0.5 s every 2 s (25 % of the time), one worker at a time")
     assert "rate class of their own" in line
+
+
+def test_a_stations_queue_waits_come_from_records_that_name_their_stations():
+    """The frame-level air's records name their stations from 2026-11-29 on: the master's waits are its entries,
+    a station that sent nothing in a record (null) or a damaged entry is NaN, and records without names give
+    nothing (older runs)."""
+    from ground.logs.analysis import station_queue_waits
+
+    records = [{"t_s": 1.0, "stations": ["master", "w1"], "queue_p50_by_station_s": [0.5, 0.004]},
+               {"t_s": 2.0, "stations": ["master", "w1"], "queue_p50_by_station_s": [None, 0.004]},
+               {"t_s": 3.0, "stations": ["master", "w1"], "queue_p50_by_station_s": ["x", 0.004]},
+               {"t_s": 4.0, "stations": ["master"], "queue_p50_by_station_s": [0.1, 0.2]},
+               {"t_s": 5.0, "queue_p50_by_station_s": [0.7, 0.004]}]
+    waits = station_queue_waits(records, "master")
+    assert list(waits["t_s"]) == [1.0, 2.0, 3.0] and waits["wait_s"].iloc[0] == 0.5
+    assert waits["wait_s"].iloc[1:].isna().all()
+    assert station_queue_waits(records, "w9").empty and station_queue_waits(records, None).empty
