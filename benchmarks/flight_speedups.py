@@ -67,7 +67,7 @@ def judged(name: str, runs: list[dict], speedups: list[float]) -> list[dict]:
     return lines
 
 
-def _rho_said(pooled: tuple[float, int] | None) -> dict | None:
+def _pooled_rho(pooled: tuple[float, int] | None) -> dict | None:
     """A pooled rho with its blocks and 95 % interval."""
     if pooled is None:
         return None
@@ -110,7 +110,7 @@ def main() -> int:
             print(json.dumps({"scenario": {"name": name, "speedups": args.speedups, "runs": args.runs,
                                            "mean_iterations_per_sim_min": means,
                                            "ratio": _round(means[1] / means[0], 3) if all(means) else None,
-                                           "pooled_rho_w1_before_loss": [_rho_said(p) for p in pooled]}}),
+                                           "pooled_rho_w1_before_loss": [_pooled_rho(p) for p in pooled]}}),
                   flush=True)
     finally:
         shutil.rmtree(folder, ignore_errors=True)

@@ -388,10 +388,10 @@ def analyze(run: RunLog, master: str | None = None, bin_m: float = DEFAULT_BIN_M
         summary["time_per_10_blocks_before_loss"] = {w: int((before_loss["worker"] == w).sum())
                                                      for w in rho_before_loss}
     if "master_queue_s" in before_loss:
-        with_queue = {w: iteration_pace.spearman_of(b["master_queue_s"], b["time_per_10_s"])
-                      for w, b in before_loss.groupby("worker")}
-        if any(r is not None for r in with_queue.values()):
-            summary["time_per_10_queue_spearman"] = {w: r for w, r in with_queue.items() if r is not None}
+        with_queue = {w: r for w, b in before_loss.groupby("worker")
+                      if (r := iteration_pace.spearman_of(b["master_queue_s"], b["time_per_10_s"])) is not None}
+        if with_queue:
+            summary["time_per_10_queue_spearman"] = with_queue
     power = energy_.power(run.energy)
     vehicles = energy_.by_vehicle(power, run.battery_empty)
     summary.update(energy_.summarize(vehicles, summary))

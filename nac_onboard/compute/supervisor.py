@@ -63,8 +63,8 @@ class Launch:
     failed: set[str] = field(default_factory=set)  # its workers whose MPI calls failed: their ranks are gone
     boots: dict[str, str] = field(default_factory=dict)  # each worker's agent boot as first heard in this launch
     # the MPI scratch files its proxies and ranks here hold (launch.py): one killed, or outliving mpiexec, dies
-    # without removing its own (two topology files per reboot on the sleep network, 2026-11-28), so the launch's
-    # end does
+    # without removing its own (two topology files per reboot on the sleep network, 2026-11-28), so the launch's end
+    # removes them
     scratch: list[str] | None = None
 
 

@@ -21,6 +21,7 @@ import secrets
 import signal
 import subprocess
 import sys
+from collections.abc import Iterable
 
 from nac_onboard.compute.launch import MPI_SCRATCH, kill_leaving_nothing, remove_files
 
@@ -63,7 +64,7 @@ def kill_run(token: str) -> list[int]:
     return killed
 
 
-def clean_up(token: str | None, prefixes: list[str], files: tuple[str, ...] | list[str] = ()) -> None:
+def clean_up(token: str | None, prefixes: list[str], files: Iterable[str] = ()) -> None:
     from sitl.network import netns
 
     if token:
