@@ -6,7 +6,8 @@ stated confidence, k from the binomial(n, 1/2) distribution. A bin with too few 
 and is not judged. Two medians can agree within `rel` when their intervals, one widened by rel, meet.
 
 A run's pace (iterations per simulated minute) is one number, whose spread shows only across its windows: the pace in
-each window of simulated time, and two runs' ratio with an interval from those windows (ratio_interval).
+each window of simulated time, and two runs' ratio with an interval from those windows (ratio_interval), or two
+scenarios' difference (difference_interval).
 
 The runs' samples are pooled per distance bin: a moving flight's worker spends a few seconds in each 2 m bin, so
 one run holds one or two blocks of 10 iterations there, and only several runs together say anything per bin.
@@ -84,6 +85,23 @@ def ratio_interval(first: pd.Series, second: pd.Series, confidence: float = 0.95
     se = math.sqrt(((b - ratio * a) ** 2).sum() / (n * (n - 1))) / a.mean()
     half = stats.t.ppf(0.5 + confidence / 2, n - 1) * se
     return float(ratio), float(ratio - half), float(ratio + half)
+
+
+def difference_interval(first: pd.Series, second: pd.Series, confidence: float = 0.95
+                        ) -> tuple[float, float, float] | None:
+    """The first sample's mean minus the second's, and the interval holding it with about `confidence`: Welch's, for
+    two runs' windows that share no stretch of time (two scenarios, not two speed-ups of one, for which
+    ratio_interval cancels what the windows share). None with fewer than MIN_WINDOWS windows in either."""
+    a, b = np.asarray(first, dtype=float), np.asarray(second, dtype=float)
+    if min(len(a), len(b)) < MIN_WINDOWS:
+        return None
+    var_a, var_b = a.var(ddof=1) / len(a), b.var(ddof=1) / len(b)
+    if var_a + var_b == 0:  # every window alike: the difference is known
+        return float(a.mean() - b.mean()), float(a.mean() - b.mean()), float(a.mean() - b.mean())
+    df = (var_a + var_b) ** 2 / (var_a ** 2 / (len(a) - 1) + var_b ** 2 / (len(b) - 1))
+    diff = float(a.mean() - b.mean())
+    half = float(stats.t.ppf(0.5 + confidence / 2, df) * math.sqrt(var_a + var_b))
+    return diff, diff - half, diff + half
 
 
 @dataclass(frozen=True)
