@@ -278,8 +278,8 @@ def _paced_iterations(per_s: float, span_s: float, seed: int) -> pd.DataFrame:
 @pytest.mark.parametrize("moving_per_s, static_per_s, verdict", [
     (4.0, 3.0, "**holds**"), (3.0, 4.0, "**does not hold**"), (3.2, 3.0, "**not told apart**")])
 def test_moving_faster_than_static_is_judged_on_the_windows_spread(moving_per_s, static_per_s, verdict):
-    """Poisson paces: 60 s of moving against 200 s of static give 6 and 20 windows of 10 s, whose counts spread by
-    about sqrt(40) iterations: 60 a minute apart is told apart, 12 a minute (3.2 vs 3.0 a second) is not, and the
+    """Poisson paces: 60 s of moving against 200 s of static give 12 and 40 windows of 5 s, whose counts spread by
+    about sqrt(20) iterations: 60 a minute apart is told apart, 12 a minute (3.2 vs 3.0 a second) is not, and the
     finding says so instead of calling the nearer figure's side."""
     moving = analyze(read_run(GOLDEN))
     static = copy.deepcopy(moving)
@@ -288,9 +288,9 @@ def test_moving_faster_than_static_is_judged_on_the_windows_spread(moving_per_s,
     static.summary["iterations_per_min"] = 60.0 * len(static.iterations) / 200.0
     line = research_findings(moving, static)[2]
     assert f"until its link loss (research: 248 vs 192 per minute): {verdict}; " in line, line
-    assert "by 10 s windows moving minus static" in line and "(95 % interval " in line, line
+    assert "by 5 s windows moving minus static" in line and "(95 % interval " in line, line
     moving.iterations.loc[25, "absent"] = "w1:out_of_range"  # lost before its fifth window: too few for a spread
-    assert "too few 10 s windows for an interval" in research_findings(moving, static)[2]
+    assert "too few 5 s windows for an interval" in research_findings(moving, static)[2]
 
 
 def test_training_through_a_link_loss_is_judged_on_the_cost_over_the_same_rows():
