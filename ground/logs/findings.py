@@ -4,6 +4,7 @@ holds and by which figures, so a report states its evidence rather than its hope
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 
 from ground.logs import agreement, iteration_pace
 from ground.logs.analysis import RunTables
@@ -60,8 +61,7 @@ def faster_before_link_loss(moving: RunTables, static: RunTables) -> str:
     paper_moving, paper_static = (60.0 * PAPER_MOVING_ITERATIONS / PAPER_MOVING_LOSS_S,
                                   60.0 * PAPER_STATIC_ITERATIONS / PAPER_STATIC_S)
     clock = "simulated" if moving.clock.simulated else "wall-clock"
-    told = agreement.difference_interval(agreement.pace_by_window(its[since < upto_s], PACE_WINDOW_S),
-                                         agreement.pace_by_window(static.iterations, PACE_WINDOW_S))
+    told = agreement.difference_interval(_pace_by_window(moving, upto_s), _pace_by_window(static))
     if told is None:
         verdict, spread = _verdict(per_min_moving > per_min_static), (
             f"; too few {PACE_WINDOW_S:g} s windows for an interval, so the two figures alone decide")
@@ -179,6 +179,15 @@ def _since_start_s(t: RunTables):
     its = t.iterations
     start = its["start_sim_s"] if its["start_sim_s"].notna().all() else its["t_s"]  # simulated, if recorded
     return start - start.iloc[0]
+
+
+def _pace_by_window(t: RunTables, upto_s: float = float("inf")):
+    """The run's pace in each PACE_WINDOW_S from its first iteration (simulated time, else the wall clock's, as
+    _since_start_s), over its iterations begun before upto_s."""
+    since = _since_start_s(t)
+    kept = since < upto_s
+    return agreement.pace_by_window(pd.DataFrame({"start_sim_s": since[kept],
+                                                  "duration_s": t.iterations["duration_s"][kept]}), PACE_WINDOW_S)
 
 
 def _ratio(nac: float | None, paper: float) -> str:
