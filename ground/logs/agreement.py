@@ -95,11 +95,11 @@ def difference_interval(first: pd.Series, second: pd.Series, confidence: float =
     a, b = np.asarray(first, dtype=float), np.asarray(second, dtype=float)
     if min(len(a), len(b)) < MIN_WINDOWS:
         return None
+    diff = float(a.mean() - b.mean())
     var_a, var_b = a.var(ddof=1) / len(a), b.var(ddof=1) / len(b)
     if var_a + var_b == 0:  # every window alike: the difference is known
-        return float(a.mean() - b.mean()), float(a.mean() - b.mean()), float(a.mean() - b.mean())
+        return diff, diff, diff
     df = (var_a + var_b) ** 2 / (var_a ** 2 / (len(a) - 1) + var_b ** 2 / (len(b) - 1))
-    diff = float(a.mean() - b.mean())
     half = float(stats.t.ppf(0.5 + confidence / 2, df) * math.sqrt(var_a + var_b))
     return diff, diff - half, diff + half
 

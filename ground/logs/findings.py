@@ -47,7 +47,8 @@ def faster_before_link_loss(moving: RunTables, static: RunTables) -> str:
     iterations in 75 s against 640 in 200 s); here the same comparison: the moving run up to its first link loss
     (a worker's first absence other than a late answer; the whole run if none), the static run whole, per minute of
     computing. Judged on the paces of their windows of PACE_WINDOW_S (Welch's 95 % interval of the difference): a
-    difference within the windows' spread is said to be one, not a verdict that would flip from run to run."""
+    difference within the windows' spread is reported as not told apart, not as a verdict that would flip from run
+    to run."""
     its, per_min_static = moving.iterations, static.summary.get("iterations_per_min")
     if its.empty or per_min_static is None:
         return "Iterations per minute: a run has no compute iterations."

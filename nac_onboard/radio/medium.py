@@ -144,6 +144,7 @@ class Medium:
         self.fallback_per = np.ones((stations, stations))
         self.stats = MediumStats(airtime_s={i: 0.0 for i in range(stations)})
         self._done: list[Delivery] = []  # delivered by the last transmission run, not yet handed out
+        self._start: tuple[float, list[int], int] | None | bool = False  # _next_start's answer (False: not known)
 
     def set_links(self, phy_bps, per, fallback_bps=None, fallback_per=None) -> None:
         """Each ordered pair's PHY rate (0: out of range) and frame error rate; the retry chain's fallback (MCS 0)."""
@@ -165,6 +166,7 @@ class Medium:
             return False
         self.queues[src].append(Frame(src, dst, size_bytes, item, t_s, segments, queued=room))
         self.queued[src] += room
+        self._start = False
         if self.backoff[src] is None:
             self.backoff[src] = int(self.rng.integers(0, self.cw[src] + 1))
             self.counting_from_s[src] = max(t_s, self.idle_from_s)
@@ -186,6 +188,8 @@ class Medium:
         on a real clock need not wake for each start), done; the deliveries completed by t_s, in time order."""
         while (start := self._next_start()) is not None and start[0] <= t_s + start_horizon_s:
             self._transmit(*start)
+        if not self._done:
+            return []
         ready = [d for d in self._done if d.delivered_s <= t_s]
         self._done = [d for d in self._done if d.delivered_s > t_s]
         return sorted(ready, key=lambda d: d.delivered_s)
@@ -202,6 +206,14 @@ class Medium:
         return self._slots_before_counting(station) + self.backoff[station]
 
     def _next_start(self) -> tuple[float, list[int], int] | None:
+        """When the next transmission starts, who sends, in which slot. Kept until a packet is offered or a
+        transmission is made, the only changes to what it depends on: a delay line asks several times a frame, and
+        at 4x a frame's whole hold is some 40 us of wall time."""
+        if self._start is False:
+            self._start = self._find_next_start()
+        return self._start
+
+    def _find_next_start(self) -> tuple[float, list[int], int] | None:
         backlogged = [i for i in range(self.n) if self.queues[i]]
         if not backlogged:
             return None
@@ -211,6 +223,7 @@ class Medium:
         return self.idle_from_s + self.timing.aifs_s + first * self.timing.slot_s, winners, first
 
     def _transmit(self, start_s: float, winners: list[int], slot: int) -> None:
+        self._start = False
         for i in range(self.n):  # the losers froze their count where the medium went busy
             if self.queues[i] and i not in winners:
                 counted = max(slot - self._slots_before_counting(i), 0)
