@@ -167,7 +167,9 @@ def test_mavflightmodes_reads_the_sped_up_runs_tlog_in_simulated_seconds(short_r
     hours, minutes, seconds = re.search(r"^AUTO\s+(\d+):(\d\d):(\d\d)", done.stdout, re.M).groups()
     auto_s = 3600 * int(hours) + 60 * int(minutes) + int(seconds)
     method_error = abs(rate_auto / rate_before - 1.0)
-    assert auto_s == pytest.approx(flown_s, rel=method_error, abs=2.0), (done.stdout, flown_s, method_error)
+    # the errors add (pytest.approx would take the larger): 28 s against 30.7 with a method error of 3 % (0.9 s)
+    # failed a clean-clone run that way, the tool's whole seconds and the first heartbeat's period both shortening it
+    assert abs(auto_s - flown_s) <= method_error * flown_s + 2.0, (done.stdout, flown_s, method_error)
 
 
 @needs_browser
