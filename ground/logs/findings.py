@@ -58,11 +58,13 @@ def faster_before_link_loss(moving: RunTables, static: RunTables) -> str:
     upto_s = float(since[lost.argmax()]) if lost.any() else float(since[-1] + its["duration_s"].iloc[-1])
     if upto_s <= 0:
         return f"Iterations per minute: {moving.name} lost a worker at its first iteration."
-    per_min_moving = 60.0 * int((since < upto_s).sum()) / upto_s
+    before = since < upto_s
+    per_min_moving = 60.0 * int(before.sum()) / upto_s
     paper_moving, paper_static = (60.0 * PAPER_MOVING_ITERATIONS / PAPER_MOVING_LOSS_S,
                                   60.0 * PAPER_STATIC_ITERATIONS / PAPER_STATIC_S)
     clock = "simulated" if moving.clock.simulated else "wall-clock"
-    told = agreement.difference_interval(_pace_by_window(moving, upto_s), _pace_by_window(static))
+    told = agreement.difference_interval(_pace_by_window(since[before], its["duration_s"].to_numpy()[before]),
+                                         _pace_by_window(_since_start_s(static), static.iterations["duration_s"]))
     if told is None:
         verdict, spread = _verdict(per_min_moving > per_min_static), (
             f"; too few {PACE_WINDOW_S:g} s windows for an interval, so the two figures alone decide")
@@ -182,13 +184,10 @@ def _since_start_s(t: RunTables):
     return start - start.iloc[0]
 
 
-def _pace_by_window(t: RunTables, upto_s: float = float("inf")):
-    """The run's pace in each PACE_WINDOW_S from its first iteration (simulated time, else the wall clock's, as
-    _since_start_s), over its iterations begun before upto_s."""
-    since = _since_start_s(t)
-    kept = since < upto_s
-    return agreement.pace_by_window(pd.DataFrame({"start_sim_s": since[kept],
-                                                  "duration_s": t.iterations["duration_s"][kept]}), PACE_WINDOW_S)
+def _pace_by_window(since_s, duration_s):
+    """Iterations' pace in each PACE_WINDOW_S from the run's first iteration (their starts as _since_start_s gives
+    them: simulated time, else the wall clock's)."""
+    return agreement.pace_by_window(pd.DataFrame({"start_sim_s": since_s, "duration_s": duration_s}), PACE_WINDOW_S)
 
 
 def _ratio(nac: float | None, paper: float) -> str:
