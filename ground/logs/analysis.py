@@ -273,7 +273,8 @@ def iterations(run: RunLog, clock: RunClock) -> tuple[pd.DataFrame, pd.DataFrame
 
 
 def events(run: RunLog, its: pd.DataFrame, clock: RunClock) -> pd.DataFrame:
-    """Each fault and MPI job restart, at its time and the iteration running then (the cost figure's axis)."""
+    """Each fault and MPI job restart, at its time and the iteration running then (the cost figure's axis); none
+    before the job's first iteration."""
     rows = []
     for e in run.events:
         t_rel_s = clock.rel_s(e["t_s"])

@@ -105,7 +105,9 @@ def training_cost(ax, t: RunTables) -> None:
     if t.training_cost.empty:
         return _empty(ax, "training cost (linear regression)")
     ax.plot(t.training_cost["iteration"], t.training_cost["cost"])
-    _mark_events(ax, t.events, "iteration")
+    # a fault before the job's first iteration (a slow MPI start) ran during no iteration: its mark goes at the
+    # first one, the first the fault could have slowed, so that the figure still shows it
+    _mark_events(ax, t.events.fillna({"iteration": t.training_cost["iteration"].iloc[0]}), "iteration")
 
 
 def power(ax, t: RunTables) -> None:

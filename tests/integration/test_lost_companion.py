@@ -135,9 +135,12 @@ def test_a_rebooted_companion_is_trained_without_then_taken_back_and_no_step_is_
     resumed = [r["iteration"] for r in compute if r["kind"] == "resumed"]
     assert all(b == a + 1 or b in resumed for a, b in zip(numbers, numbers[1:], strict=False)), \
         "the count goes on, or starts again at a checkpoint"
-    events = analyze(read_run(result.run_dir)).events  # marked in the iteration-time and cost figures
+    tables = analyze(read_run(result.run_dir))  # its events are marked in the iteration-time and cost figures
+    events, first_rel_s = tables.events, tables.iterations["t_rel_s"].min()
     assert {"reboot_companion on: w1", "reboot_companion off: w1"} <= set(events["what"])
-    assert events["what"].str.startswith("job started again").any() and events["iteration"].notna().all()
+    # a loaded machine can start MPI after w1's loss at 4 s: that event ran during no iteration (a clean-clone CI)
+    assert events["what"].str.startswith("job started again").any()
+    assert (events["iteration"].notna() == (events["t_rel_s"] >= first_rel_s)).all(), events.to_string()
     saved = np.load(compute_dir / "results.npz")
     assert int(saved["iteration"]) == numbers[-1] + 1
     assert np.allclose(saved["weights"], replayed_weights(compute), rtol=1e-9, atol=1e-12)

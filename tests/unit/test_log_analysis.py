@@ -10,21 +10,24 @@ import struct
 from pathlib import Path
 
 import matplotlib.image
+import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 import pytest
 
 from ground import cli
+from ground.logs import figures
 from ground.logs.analysis import analyze
 from ground.logs.autopilot_logs import dataflash_positions, read_tlog, tlog_positions, ulog_positions
 from ground.logs.calibration import CalibrationError, fit_channel
 from ground.logs.findings import beside_the_research, research_findings
 from ground.logs.report import _probes_line, analyze_run
 from ground.logs.runlog import read_run
-from nac_onboard.flight_log import TlogWriter
+from nac_onboard.flight_log import JsonlLog, TlogWriter
 from nac_onboard.mavlink.dialect import M
 from nac_onboard.radio.air_link import Radio
 from nac_onboard.radio.channel import PRESETS
+from nac_onboard.records import kinds
 from tests.conftest import SHARED_DATA
 from tests.logfiles import write_dataflash, write_ulog
 
@@ -83,6 +86,24 @@ def test_a_sped_up_sitl_runs_tables_are_on_its_simulated_clock(tmp_path):
     assert t.iterations["t_rel_s"].tolist() == [4.0, 6.0, 8.0, 12.0]
     assert t.training_cost["elapsed_s"].tolist() == [0.0, 2.0, 4.0, 8.0]
     assert not analyze(read_run(GOLDEN)).clock.simulated
+
+
+def test_a_fault_before_the_first_iteration_has_none_in_the_table_and_is_marked_at_the_first_on_the_figure(tmp_path):
+    """A slow MPI start (a loaded machine) can leave a fault before any iteration: the events table says no iteration
+    ran then, and the cost figure still marks it, at the first iteration; a fault during iteration 2 is at 2."""
+    run = tmp_path / "run"
+    shutil.copytree(GOLDEN, run)
+    log = JsonlLog(run / "experiment.json", t_s=999.0)
+    for t_s, state in ((1000.2, "on"), (1002.5, "off")):
+        log.write(kinds.FAULT, t_s, vehicle="w1", fault="reboot_companion", state=state, t_sim_s=t_s - 1000.0)
+    log.close()
+    t = analyze(read_run(run))
+    assert t.events["what"].tolist() == ["reboot_companion on: w1", "reboot_companion off: w1"]
+    assert t.events["iteration"].isna().tolist() == [True, False] and t.events["iteration"].iloc[1] == 2
+    fig, ax = plt.subplots()
+    figures.training_cost(ax, t)
+    assert sorted(line.get_xdata()[0] for line in ax.lines[1:]) == [0, 2], "one mark per fault, at 0 and 2"
+    plt.close(fig)
 
 
 def test_analyze_writes_tables_figures_and_a_report(tmp_path):
