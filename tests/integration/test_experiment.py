@@ -122,7 +122,9 @@ def test_a_short_scenario_runs_end_to_end_and_leaves_a_report(short_run):
     assert "- probes: nac-onboard's probe, 0.2 s every 0.5 s (40 % of the time), one worker at a time, over this " \
            "host's loopback" in report
     experiment = short_run[4]
-    assert not any(agent.alive() for agent in experiment.agents) and experiment.mpi.poll() == 0
+    # 0, or hydra's SIGPIPE in its own teardown once the master's summary is written (asserted above), which the
+    # job's supervisor and test_compute's judged_exit count as done (a clean-clone CI run, 2026-11-29)
+    assert not any(agent.alive() for agent in experiment.agents) and experiment.mpi.poll() in (0, -signal.SIGPIPE)
     assert not experiment.sim.alive, "every part was stopped"
     truth = [experiment.sim.truth(i) for i in range(len(scenario.vehicles))]
     assert all(not t["armed"] and t["pos_m"][2] < 0.1 for t in truth), f"landed and disarmed at the end: {truth}"
