@@ -18,6 +18,7 @@ import functools
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -69,7 +70,7 @@ class MacTiming:
 DEFAULT_QUEUE_PACKETS = 1000
 
 
-@dataclass
+@dataclass(slots=True)
 class Frame:
     """What a station queued: one IP packet, or a TCP segmentation offload's run of them (`segments` packets of
     one flow handed over as one, as Linux hands them to a TUN device): on the air each segment is its own MPDU."""
@@ -81,10 +82,10 @@ class Frame:
     enqueued_s: float
     segments: int = 1
     first_sent_s: float | None = None
-    tries: list[int] = field(default_factory=list)  # per segment still to send: failed tries so far
-    pending: list[int] = field(default_factory=list)  # those segments' places in the run, in step with tries
-    lost: list[int] = field(default_factory=list)  # places of the segments dropped at the queue or failed every try
     queued: int | None = None  # how many of the run's segments found room in the queue (None: all)
+    tries: list[int] = field(init=False)  # per segment still to send: failed tries so far
+    pending: list[int] = field(init=False)  # those segments' places in the run, in step with tries
+    lost: list[int] = field(init=False)  # places of the segments dropped at the queue or failed every try
 
     def __post_init__(self):
         self.queued = self.segments if self.queued is None else self.queued
@@ -97,8 +98,7 @@ class Frame:
         return -(-self.size_bytes // self.segments)
 
 
-@dataclass(frozen=True)
-class Delivery:
+class Delivery(NamedTuple):  # a tuple: built for every frame, where a frozen dataclass costs a microsecond more
     frame: Frame
     dst: int
     delivered_s: float
@@ -145,12 +145,19 @@ class Medium:
         self.stats = MediumStats(airtime_s={i: 0.0 for i in range(stations)})
         self._done: list[Delivery] = []  # delivered by the last transmission run, not yet handed out
         self._start: tuple[float, list[int], int] | None | bool = False  # _next_start's answer (False: not known)
+        # the timing's sums once, and the links as lists: a frame's work at 4x must fit in some 40 us of wall time
+        self._slot_s, self._aifs_s = timing.slot_s, timing.aifs_s
+        self._sifs_s, self._block_ack_s = timing.sifs_s, timing.block_ack_s()
+        self._links: tuple[list, list, list, list] = ([], [], [], [])
+        self._ppdu_bytes: dict[float, int] = {}  # rate -> _ppdu_bytes_within's answer
 
     def set_links(self, phy_bps, per, fallback_bps=None, fallback_per=None) -> None:
         """Each ordered pair's PHY rate (0: out of range) and frame error rate; the retry chain's fallback (MCS 0)."""
         self.phy_bps, self.per = np.asarray(phy_bps, float), np.clip(np.asarray(per, float), 0.0, 1.0)
         self.fallback_bps = self.phy_bps if fallback_bps is None else np.asarray(fallback_bps, float)
         self.fallback_per = self.per if fallback_per is None else np.clip(np.asarray(fallback_per, float), 0.0, 1.0)
+        self._links = (self.phy_bps.tolist(), self.per.tolist(), self.fallback_bps.tolist(),
+                       self.fallback_per.tolist())
 
     def offer(self, t_s: float, src: int, dst: int, size_bytes: int, item: object = None, segments: int = 1) -> bool:
         """Queue a packet (or a run of `segments` packets) at station src, in time order after run_until(t_s);
@@ -191,15 +198,17 @@ class Medium:
         if not self._done:
             return []
         ready = [d for d in self._done if d.delivered_s <= t_s]
-        self._done = [d for d in self._done if d.delivered_s > t_s]
-        return sorted(ready, key=lambda d: d.delivered_s)
+        if ready:
+            self._done = [d for d in self._done if d.delivered_s > t_s]
+            ready.sort(key=_delivered_s)
+        return ready
 
     # ---- one channel access ----------------------------------------------------------------------------------
     def _slots_before_counting(self, station: int) -> int:
         """Slots after the idle medium's AIFS that passed before the station began counting (it became backlogged
         during them)."""
-        base = self.idle_from_s + self.timing.aifs_s
-        return max(0, math.ceil((self.counting_from_s[station] - base) / self.timing.slot_s - 1e-9))
+        base = self.idle_from_s + self._aifs_s
+        return max(0, math.ceil((self.counting_from_s[station] - base) / self._slot_s - 1e-9))
 
     def _slot_of(self, station: int) -> int:
         """The slot (counted from the end of AIFS after the medium went idle) in which the station's count ends."""
@@ -214,13 +223,17 @@ class Medium:
         return self._start
 
     def _find_next_start(self) -> tuple[float, list[int], int] | None:
-        backlogged = [i for i in range(self.n) if self.queues[i]]
-        if not backlogged:
+        first, winners = None, []
+        for i, queue in enumerate(self.queues):
+            if queue:
+                slot = self._slots_before_counting(i) + self.backoff[i]
+                if first is None or slot < first:
+                    first, winners = slot, [i]
+                elif slot == first:
+                    winners.append(i)
+        if first is None:
             return None
-        slots = {i: self._slot_of(i) for i in backlogged}
-        first = min(slots.values())
-        winners = [i for i in backlogged if slots[i] == first]
-        return self.idle_from_s + self.timing.aifs_s + first * self.timing.slot_s, winners, first
+        return self.idle_from_s + self._aifs_s + first * self._slot_s, winners, first
 
     def _transmit(self, start_s: float, winners: list[int], slot: int) -> None:
         self._start = False
@@ -242,6 +255,20 @@ class Medium:
             if i in winners:  # a new count for its next frame, from a window reset or doubled by the outcome
                 self.backoff[i] = int(self.rng.integers(0, self.cw[i] + 1))
             self.counting_from_s[i] = self.idle_from_s
+
+    def _ppdu_bytes_within(self, rate_bps: float) -> int:
+        """The most bytes a PPDU at this rate carries within the timing's max_ppdu_s (ppdu_s grows with the bytes)."""
+        most = self._ppdu_bytes.get(rate_bps)
+        if most is None:
+            t = self.timing
+            symbols = (t.max_ppdu_s - t.ht_preamble_s - t.signal_extension_s) / t.symbol_s
+            most = max(int((symbols * rate_bps * t.symbol_s - 22) // 8), 0)  # near it; then exactly, by ppdu_s
+            while most > 0 and t.ppdu_s(most, rate_bps) > t.max_ppdu_s:
+                most -= 1
+            while t.ppdu_s(most + 1, rate_bps) <= t.max_ppdu_s:
+                most += 1
+            self._ppdu_bytes[rate_bps] = most
+        return most
 
     def _exchange(self, src: int, start_s: float, collided: bool) -> float:
         """src sends its head frames (an aggregate to one receiver, or one broadcast); returns when the medium is
@@ -265,44 +292,50 @@ class Medium:
             self.stats.airtime_s[src] += end - start_s
             return end
         dst = head.dst
+        phy_bps, per_of, fallback_bps, fallback_per = self._links
         fallback = max(head.tries) >= (self.retry_limit + 1) // 2
-        rate = (self.fallback_bps if fallback else self.phy_bps)[src, dst]
-        per = (self.fallback_per if fallback else self.per)[src, dst]
+        rate = (fallback_bps if fallback else phy_bps)[src][dst]
+        per = (fallback_per if fallback else per_of)[src][dst]
         if rate <= 0:  # out of range: the tries go at the lowest rate and all fail
             rate, per = t.control_rate_bps, 1.0
         batch, count, size = [], 0, 0  # (frame, how many of its segments) in this aggregate
+        # after the first subframe, one more fits while the aggregate stays within both byte limits
+        max_frames, max_bytes = t.max_ampdu_frames, t.max_ampdu_bytes
+        cap = min(max_bytes, self._ppdu_bytes_within(rate))
         for frame in queue:
             if frame.dst != dst:
                 break
             sub = t.subframe_bytes(frame.segment_bytes)
-            fit = 0
-            while fit < len(frame.tries) and count < t.max_ampdu_frames and size + sub <= t.max_ampdu_bytes \
-                    and (count == 0 or t.ppdu_s(size + sub, rate) <= t.max_ppdu_s):
-                fit, count, size = fit + 1, count + 1, size + sub
+            fit, left = 0, len(frame.tries)
+            if count == 0 and left and sub <= max_bytes:
+                fit, count, size = 1, 1, sub
+            more = min(left - fit, max_frames - count, max((cap - size) // sub, 0))
+            fit, count, size = fit + more, count + more, size + more * sub
             if fit:
                 batch.append((frame, fit))
-            if fit < len(frame.tries):
+            if fit < left:
                 break
         data_end = start_s + t.ppdu_s(size, rate)
-        end = data_end + t.sifs_s + t.block_ack_s()
+        end = data_end + self._sifs_s + self._block_ack_s
         self.stats.airtime_s[src] += end - start_s
         through = 0
         for frame, sent in batch:
             frame.first_sent_s = start_s if frame.first_sent_s is None else frame.first_sent_s
+            tries, places = frame.tries, frame.pending
+            if collided:
+                failed = [True] * sent
+            else:  # one draw a subframe sent, in order: rng.random(n) is n calls of rng.random()
+                failed = [self.rng.random() < per] if sent == 1 else (self.rng.random(sent) < per).tolist()
             kept, pending = [], []
-            for k, (tries, place) in enumerate(zip(frame.tries, frame.pending, strict=True)):
-                if k >= sent:
-                    kept.append(tries)
-                    pending.append(place)
-                elif collided or self.rng.random() < per:
-                    if tries + 1 > self.retry_limit:
-                        frame.lost.append(place)
-                    else:
-                        kept.append(tries + 1)
-                        pending.append(place)
-                else:
+            for k in range(sent):
+                if not failed[k]:
                     through += 1
-            frame.tries, frame.pending = kept, pending
+                elif tries[k] + 1 > self.retry_limit:
+                    frame.lost.append(places[k])
+                else:
+                    kept.append(tries[k] + 1)
+                    pending.append(places[k])
+            frame.tries, frame.pending = kept + tries[sent:], pending + places[sent:]
         # in the queue's order, as the receiver's reorder buffer releases them: a frame through (or lost) behind
         # one still being retried waits for it
         while queue and queue[0].dst == dst and not queue[0].tries:
@@ -317,6 +350,10 @@ class Medium:
         # no block ack came back (nothing got through): the window doubles; any acknowledgement resets it
         self.cw[src] = t.cw_min if through else min(2 * self.cw[src] + 1, t.cw_max)
         return end
+
+
+def _delivered_s(delivery: Delivery) -> float:
+    return delivery.delivered_s
 
 
 def expected_message_s(timing: MacTiming, message_bytes: int, phy_bps: float, per: float = 0.0,

@@ -106,6 +106,22 @@ def test_saturated_goodput_is_what_aggregation_and_the_timing_allow(rate_bps):
     assert 0.85 * rate_bps < goodput < 0.95 * rate_bps
 
 
+@pytest.mark.parametrize("rate_bps", [1e6, 6.5e6, 24e6, 30e6, 58.5e6, 65e6])
+def test_an_aggregate_holds_the_most_subframes_within_4_ms_and_no_more(rate_bps):
+    """The aggregate's airtime limit as bytes (worked out once a rate): the most a PPDU carries within 4 ms by
+    ppdu_s itself, so an aggregate of packets of one size takes as many as fit and one more would not."""
+    m = medium(2, rate_bps, queue_packets=200)
+    most = m._ppdu_bytes_within(rate_bps)
+    assert T.ppdu_s(most, rate_bps) <= T.max_ppdu_s < T.ppdu_s(most + 1, rate_bps)
+    for _ in range(200):
+        m.offer(0.0, 0, 1, 300)
+    m.run_until(m.next_event_s())  # the first exchange starts
+    sub = T.subframe_bytes(300)
+    sent = 200 - m.backlog(0)
+    expected = min(T.max_ampdu_frames, T.max_ampdu_bytes // sub, max(most // sub, 1))
+    assert sent == expected and T.ppdu_s(sent * sub, rate_bps) <= max(T.max_ppdu_s, T.ppdu_s(sub, rate_bps))
+
+
 def test_two_saturated_stations_share_the_air_and_sometimes_collide():
     """Two stations sending to a third: each gets half the frames (within 5 %), and some exchanges collide: with
     both drawing from 16 slots, about 1 in 16 (Bianchi's model for 2 stations); here between 2 % and 15 %."""
