@@ -48,7 +48,7 @@ coded-demo: $(STAMP)
 # taking only what the exclusive tests leave. A test that waits on a simulated clock is not for this: starved, the
 # documented commands' copter disarmed between two commands. Their output follows the exclusive tests'. Last, alone,
 # the tests that time tens of microseconds of wall time (marked `quiet`: on this VM a wake-up on a CPU running any
-# other task, even one in the idle class, costs some 35 us more).
+# other task, even one in the idle class, costs some 40 us more).
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -m "not exclusive and not niced and not quiet" -n 3 --dist worksteal --durations=20

@@ -170,7 +170,7 @@ def test_a_small_messages_round_trip_is_the_mediums(tmp_path, speedup):
     trips at the lead's own cadence, which a stray wake-up widens rather than shifts.
 
     Why alone (`make test` runs the quiet tests after the exclusive and niced ones): on this 2-core VM a wake-up on
-    a CPU that runs another task costs an interrupt through the hypervisor, some 35 us, where a CPU idling in its
+    a CPU that runs another task costs an interrupt through the hypervisor, some 40 us, where a CPU idling in its
     poll loop (the delay line holds /dev/cpu_dma_latency at 0) takes it at once. With two single-threaded numpy
     loops beside the test in the idle class, as the niced tests run beside the exclusive ones, the echo took
     1.10-1.15 times the model at 1x and 2.7-2.8 at 4x, where a round trip is 0.1 ms of wall time; alone, 15 runs
