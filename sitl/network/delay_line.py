@@ -53,9 +53,13 @@ TCP_FIN, TCP_PSH, TCP_CWR = 0x01, 0x08, 0x80
 PR_SET_TIMERSLACK = 29
 MAX_WAIT_S = 0.05  # wall: the longest select() sleeps, so stdin and the counters are served
 # Wall seconds a timed wake-up is begun early and the rest spun on the clock; also how far ahead (times the pace)
-# a transmission's start is decided, so a frame costs one wake-up (its delivery), not two. Measured on this
-# machine: select's wake-ups come 50-100 us late.
-EARLY_S = 0.0002
+# a transmission's start is decided, so a frame costs one wake-up (its delivery), not two. Measured on this VM with
+# this process's scheduling (SCHED_FIFO, 1 us of timer slack, /dev/cpu_dma_latency at 0), 300 waits of 20 us to
+# 1 ms each: select's wake-ups came 19-23 us late (median; 99th percentile 31-48 us) on an idle host, and 24-49 us
+# (99th percentile 40-85 us) beside two CPU-bound loops, normal or idle class. The spin is most of this process's
+# CPU at 4x (a frame's whole hold is shorter than it): with iperf3 through the air at 7,400 packets a second,
+# 19.9 % of a core at 200 us, 11.9 % at 100 us, 8.0 % at 50 us, which a loaded host's wake-ups would outrun.
+EARLY_S = 0.0001
 STATS_PERIOD_S = 1.0
 LATE_S = 0.001  # simulated: a delivery written this much after its time counts as late
 MAX_LEAD_S = 0.005  # wall: no pass of a working host takes this long (a longer one measured is taken as this)
