@@ -226,7 +226,7 @@ class Medium:
         first, winners = None, []
         for i, queue in enumerate(self.queues):
             if queue:
-                slot = self._slots_before_counting(i) + self.backoff[i]
+                slot = self._slot_of(i)
                 if first is None or slot < first:
                     first, winners = slot, [i]
                 elif slot == first:

@@ -175,7 +175,7 @@ def test_a_small_messages_round_trip_is_the_mediums(tmp_path, speedup):
     loops beside the test in the idle class, as the niced tests run beside the exclusive ones, the echo took
     1.10-1.15 times the model at 1x and 2.7-2.8 at 4x, where a round trip is 0.1 ms of wall time; alone, 15 runs
     at 4x gave medians of 0.96-1.04 (intervals 0.94-1.08) and at 1x 1.01 (2026-11-29, docs/benchmarks.md). A pass
-    costs more after the host idled (5 ms apart: 1.05-1.17 at 4x), so the test holds for traffic as dense as the
+    costs more after the host idled (5 ms apart: 1.02-1.17 at 4x), so the test holds for traffic as dense as the
     lead's echoes."""
     clock_path = tmp_path / "clock.json"
     publish_clock(str(clock_path), speedup, 0.0)
