@@ -370,12 +370,12 @@ def test_the_flights_on_the_frame_level_air_give_the_same_results_at_1x_and_4x(t
     """Each flight scenario as shipped (the frame-level air, the probes back to back in the stations' queues, Reno),
     shortened to its first seconds (FLIGHT_PAIRS_S), at 1x and at 4x: the iterations' simulated durations, the time
     per 10 iterations (the pace, 10 iterations at a time: single durations are bimodal, so their median is loose)
-    and the probes' throughput, over the whole flight and per 2 m bin, for both workers together and for each where
-    it has samples enough, can agree within 10 %. Judged as far as the sample
+    and the probes' throughput, over the whole flight and per 2 m bin, for both workers together (and the time per
+    10 for each where it has samples enough), can agree within 10 %. Judged as far as the sample
     allows (ground.logs.agreement): the two medians' 95 % order-statistic intervals, one widened by 10 %, must meet;
     what holds fewer than 8 samples at either speed-up is not judged, but the pace and both workers' time per 10
-    and throughput together must be. Each link alone is not required: which of the two Reno flows wins more of the
-    master's queue is drawn anew each run (docs/benchmarks.md). Why this holds on a loaded 2-core machine: it runs
+    and throughput together must be. A link's own throughput is not judged: which of the two Reno flows wins more of
+    the master's queue is drawn anew each run (docs/benchmarks.md). Why this holds on a loaded 2-core machine: it runs
     alone (exclusive), and an interval from some 80 iterations, 16 blocks or 12 probes spans their run-to-run spread
     (30 s runs at one speed-up differ by more than 10 %), so only a difference beyond that spread fails. A run whose
     air, probes or job waited in wall seconds at 4x would read up to 4 times the iterations' durations and fail.
@@ -388,7 +388,7 @@ def test_the_flights_on_the_frame_level_air_give_the_same_results_at_1x_and_4x(t
     pair's two dozen blocks it is too loose even to tell a rise: 20 whole flights by hand, each cut to the blocks a
     40 s run computes (their first 33 s after the go) and pooled two by two, gave rho 0.16-0.94 (median 0.57), the
     95 % interval reaching 0 in 41 of the 190 pairs (docs/benchmarks.md)."""
-    from ground.logs.agreement import compare, pooled_tables
+    from ground.logs.agreement import ALL, compare, pooled_tables
     from ground.logs.iteration_pace import spearman_interval, spearman_of
     from nac_onboard.flight_log import read_jsonl
     from sitl.experiment.runner import Outcome, run_scenario
@@ -407,7 +407,10 @@ def test_the_flights_on_the_frame_level_air_give_the_same_results_at_1x_and_4x(t
     rows = compare((runs[0], runs[1]))
     whole = {(r.quantity, r.worker) for r in rows if r.distance_from_m is None}
     assert whole >= {("duration_s", "all"), ("time_per_10_s", "all"), ("throughput_mbps", "all")}, rows
-    apart = [r for r in rows if not r.agrees]
+    # as said above: in a clean-clone CI run (2026-11-29) w1's flow won the master's queue at 1x (median 9.8
+    # Mbit/s) and w2's at 4x (w1 2.3), while both links together agreed
+    judged = [r for r in rows if r.quantity != "throughput_mbps" or r.worker == ALL]
+    apart = [r for r in judged if not r.agrees]
     assert not apart, [(r.quantity, r.worker, r.distance_from_m, r.medians, r.intervals) for r in apart]
     for run in run_dirs:  # the job's times are the air's: no model of its links in the compute, the air's recorded
         assert read_jsonl(run / "compute" / "compute.jsonl").of_kind("run_started")[0]["emulate"] == "none"
