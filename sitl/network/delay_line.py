@@ -159,14 +159,13 @@ class DelayLine:
             self._deliver()
             due = self.medium.next_event_s()  # simulated
             # from the clock read after the medium's work, so that work does not lengthen the hold
-            now = self.clock.now_s()
-            wait = MAX_WAIT_S if due is None else min((due - now) / self.clock.speedup - (self.lead_s or 0.0),
-                                                      MAX_WAIT_S)
+            now, speedup = self.clock.now_s(), self.clock.speedup
+            wait = MAX_WAIT_S if due is None else min((due - now) / speedup - (self.lead_s or 0.0), MAX_WAIT_S)
             ready = select.select(watched, [], [], max(wait - EARLY_S, 0.0))[0]
             if not ready and due is not None:
-                until_s = now + wait * self.clock.speedup
+                until_s = now + wait * speedup
                 while self.clock.now_s() < until_s:
-                    pass  # the last stretch spun on the clock: a timed wake-up comes 50-100 us late
+                    pass  # the last stretch spun on the clock: a timed wake-up comes late (EARLY_S)
             now = self._deliver()
             for fd in ready:
                 if fd == control_fd:
