@@ -23,6 +23,7 @@ from nac_onboard.radio.channel import PRESETS
 from nac_onboard.radio.files import save_channel
 from nac_onboard.records import kinds
 from tests.conftest import SHARED_DATA
+from tests.integration.logs import records_logged
 from tests.stats import agrees_within
 
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
@@ -267,7 +268,7 @@ def wait_until(condition, proc, timeout_s: float = 30.0) -> None:
 
 
 def iterations_logged(out: Path) -> int:
-    return len(read_jsonl(out / "compute.jsonl").of_kind("iteration")) if (out / "compute.jsonl").exists() else 0
+    return records_logged(out / kinds.COMPUTE_LOG.name, kinds.ITERATION.name)
 
 
 @pytest.mark.exclusive
@@ -342,6 +343,8 @@ def test_a_killed_master_leaves_its_last_checkpoint_the_workers_give_up_and_resu
         refused = run_mpi(3, "--iterations", "5", "--out", str(tmp_path), *args, "--resume", timeout_s=60)
         assert refused_by_every_rank(refused, said), (refused.returncode, refused.stderr[-2000:])
         assert "Traceback" not in refused.stderr
+
+
 @pytest.mark.exclusive
 def test_a_stopped_worker_is_no_longer_waited_for_and_rejoins_when_it_answers(tmp_path):
     """Each iteration once waited the whole timeout for a worker that had stopped (SIGSTOP: a hung companion)."""
@@ -349,7 +352,7 @@ def test_a_stopped_worker_is_no_longer_waited_for_and_rejoins_when_it_answers(tm
         wait_until(lambda: iterations_logged(tmp_path) >= 5, proc)  # past the warm-up, which needs everyone
         worker = read_jsonl(tmp_path / "rank-2.jsonl").of_kind("worker_started")[0]
         os.kill(worker["pid"], signal.SIGSTOP)
-        wait_until(lambda: read_jsonl(tmp_path / "compute.jsonl").of_kind("worker_unresponsive"), proc)
+        wait_until(lambda: records_logged(tmp_path / "compute.jsonl", "worker_unresponsive"), proc)
         os.kill(worker["pid"], signal.SIGCONT)
         code = proc.wait(timeout=30)
     stderr = proc.stderr.read().decode()
@@ -372,7 +375,7 @@ def test_every_worker_stopped_at_once_is_taken_back_when_they_answer(tmp_path):
         pids = [read_jsonl(tmp_path / f"rank-{r}.jsonl").of_kind("worker_started")[0]["pid"] for r in (1, 2)]
         for pid in pids:
             os.kill(pid, signal.SIGSTOP)
-        wait_until(lambda: len(read_jsonl(tmp_path / "compute.jsonl").of_kind("worker_unresponsive")) == 2, proc)
+        wait_until(lambda: records_logged(tmp_path / "compute.jsonl", "worker_unresponsive") == 2, proc)
         for pid in pids:
             os.kill(pid, signal.SIGCONT)
         code = proc.wait(timeout=30)

@@ -21,6 +21,7 @@ from nac_onboard.flight_log import read_jsonl
 from nac_onboard.node.mpi_build import mpi_build
 from tests.conftest import SHARED_DATA, free_port
 from tests.integration.agents import agent_toml, kind, wait_for_record
+from tests.integration.logs import first_record, records_logged
 
 NAC_ONBOARD = str(Path(sys.executable).parent / "nac-onboard")
 
@@ -78,10 +79,10 @@ def test_keep_going_starts_a_job_whose_master_was_killed_again_from_its_checkpoi
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
         deadline = time.monotonic() + 60
-        while not ((out / "results.npz").exists() and len(read_jsonl(out / "compute.jsonl").of_kind("iteration")) > 20):
+        while not ((out / "results.npz").exists() and records_logged(out / "compute.jsonl", "iteration") > 20):
             assert time.monotonic() < deadline and job.poll() is None, "the job should be running"
             time.sleep(0.05)
-        os.kill(read_jsonl(out / "compute.jsonl").of_kind("run_started")[0]["pid"], signal.SIGKILL)
+        os.kill(first_record(out / "compute.jsonl", "run_started")["pid"], signal.SIGKILL)
         _, stderr = job.communicate(timeout=120)
     finally:
         if job.poll() is None:
