@@ -38,6 +38,7 @@ from nac_onboard.compute.allocation import Planner
 from nac_onboard.compute.checkpoint import checkpoint_path, load_checkpoint
 from nac_onboard.compute.device import CpuStretch
 from nac_onboard.compute.iteration import IterationLinks
+from nac_onboard.compute.mailbox import Inbox, Poller
 from nac_onboard.compute.messages import (
     BITS_PER_FLOAT,
     KIND_EXTRA,
@@ -58,7 +59,9 @@ from nac_onboard.compute.messages import (
     TAG_RESULT,
     TAG_WORK,
     WARMUP_ANSWER,
+    WORK_EXTRA_ROWS,
     WORK_HEADER,
+    WORK_KIND,
     pad_floats,
     work_header,
 )
@@ -76,79 +79,6 @@ PING_S = 1.0  # how often an unresponsive worker is asked whether it is back
 DISK_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)  # a checkpoint that fails with these is skipped, not fatal
 
 
-class _Poller:
-    """Waits on MPI with a deadline: spins (yielding the core) for the first 2 ms, then naps, so that ranks
-    sharing a core neither starve each other nor add latency to fast exchanges."""
-
-    def __init__(self):
-        self.started = time.monotonic()
-
-    def pause(self) -> None:
-        if time.monotonic() - self.started < 0.002:
-            os.sched_yield()
-        else:
-            time.sleep(0.0005)
-
-
-class Inbox:
-    """One posted receive per peer, re-posted as each message is taken. Waiting polls the posted receives with a
-    deadline: on ranks that share a core, MPICH's own Probe and Iprobe loops starve the other rank (measured: 125
-    iterations/s instead of thousands), while testing posted receives does not."""
-
-    def __init__(self, comm, mpi, sources: list[int], tag: int, floats: int, pad: int = 0):
-        self.comm, self.mpi, self.tag, self.pad = comm, mpi, tag, pad
-        self.sources = list(sources)
-        self.buffers = [np.empty(floats + pad) for _ in self.sources]
-        self.requests = [self._post(k) for k in range(len(self.sources))]
-        self.status = mpi.Status()
-        self.failed: dict[int, str] = {}  # source -> the MPI error its receive ended with
-
-    def _drop_failed(self) -> None:
-        """After MPI reported an error on a posted receive (errors are returned, not fatal): find the peers whose
-        receives failed and stop receiving from them."""
-        for k, request in enumerate(self.requests):
-            try:
-                request.Test()
-            except self.mpi.Exception as err:
-                self.failed[self.sources[k]] = str(err)
-                self.requests[k] = self.mpi.REQUEST_NULL
-
-    def _post(self, k: int):
-        return self.comm.Irecv([self.buffers[k], self.mpi.DOUBLE], source=self.sources[k], tag=self.tag)
-
-    def receive(self, deadline: float, source: int | None = None):
-        """(source, message) of the next message (from `source` only, if given), or (None, None) at the deadline."""
-        requests = self.requests if source is None else [self.requests[self.sources.index(source)]]
-        testany, undefined, status = self.mpi.Request.Testany, self.mpi.UNDEFINED, self.status
-        poller = None  # made on the first miss: a message already there costs no clock reads
-        while True:
-            try:
-                index, done = testany(requests, status)
-            except self.mpi.Exception:
-                self._drop_failed()
-                requests = self.requests if source is None else [self.requests[self.sources.index(source)]]
-                continue
-            if done and index != undefined:
-                k = index if source is None else self.sources.index(source)
-                message = self.buffers[k][:status.Get_count(self.mpi.DOUBLE) - self.pad].copy()
-                self.requests[k] = self._post(k)
-                return self.sources[k], message
-            if poller is None:
-                poller = _Poller()
-            elif time.monotonic() >= deadline:
-                return None, None
-            poller.pause()
-
-    def close(self, wait: bool = True) -> None:
-        """Cancel the posted receives; wait for the cancellations unless told not to (a rank that does not answer
-        can make that wait forever)."""
-        for request in self.requests:
-            if request != self.mpi.REQUEST_NULL:
-                request.Cancel()
-        if wait:
-            self.mpi.Request.Waitall(self.requests)
-
-
 # ---- workers ---------------------------------------------------------------------------------------------------
 def run_worker(comm, mpi, options: ComputeOptions, log: JsonlLog) -> bool:
     """Answers the master until its STOP; returns whether MPI_Finalize may run (no rank was lost)."""
@@ -163,27 +93,30 @@ def run_worker(comm, mpi, options: ComputeOptions, log: JsonlLog) -> bool:
     warmup_answer = message_buffer(WARMUP_ANSWER, 0, pad)
     answers = {}  # reused answer buffers by result size: no allocation per iteration
     early = None  # a message that came while a batched answer was still being worked on
+
+    def answer(buf: np.ndarray) -> bool:
+        """buf to the master; False if a STOP that does not finalize came first (the master will not take it)."""
+        sent = send_to_master(comm, mpi, inbox, buf, time.monotonic() + options.clock.wall_s(options.idle_timeout_s))
+        if sent is None:
+            give_up(rank, options, log, "the master took no answer")
+        return sent
+
     while True:
         if early is not None:
             message, early = early, None
         else:
             _, message = inbox.receive(time.monotonic() + options.clock.wall_s(options.idle_timeout_s))
         if message is None:
-            log.write(kinds.WORKER_GAVE_UP, rank=rank, idle_timeout_s=options.idle_timeout_s)
-            log.close()
-            sys.stderr.write(f"worker {rank}: nothing from the master for {options.idle_timeout_s:g} s; "
-                             "giving up (exit 3)\n")
-            # each worker gives up by its own timeout; MPI_Abort would kill its hydra proxy with it, which then
-            # leaves its hwloc file in /tmp (hard-coded in hydra_pmi_proxy: 2 a killed-master run, measured)
-            end_without_finalize(3)
+            give_up(rank, options, log, "nothing from the master")
         kind, iteration, rate_bps, extra_rows, loss, phy_bps = message[:WORK_HEADER].tolist()  # floats: cheap tests
-        if kind == KIND_STOP:
-            if extra_rows == 0:  # the master drains everything up to this before it finalizes
-                comm.Send([message_buffer(STOPPED_ANSWER, 0, pad), mpi.DOUBLE], dest=0, tag=TAG_RESULT)
+        if kind == KIND_STOP:  # the master drains everything up to STOPPED_ANSWER, for --timeout-s, to finalize
+            finalizes = extra_rows == 0 and bool(send_to_master(
+                comm, mpi, inbox, message_buffer(STOPPED_ANSWER, 0, pad),
+                time.monotonic() + options.clock.wall_s(options.timeout_s)))
             inbox.close()
-            return extra_rows == 0
+            return finalizes
         if kind == KIND_WARMUP:
-            comm.Send([warmup_answer, mpi.DOUBLE], dest=0, tag=TAG_RESULT)
+            answer(warmup_answer)
             continue
         if kind == KIND_PLAN:
             take_block(task, rank, plan_of(message[WORK_HEADER:]), log)
@@ -201,12 +134,40 @@ def run_worker(comm, mpi, options: ComputeOptions, log: JsonlLog) -> bool:
                 task.work_batch(message[WORK_HEADER:], batch)
             compute_s = stretch.hold() if stretch.active else time.perf_counter() - t0
             up_s = emulation.delay(result.size * BITS_PER_FLOAT, rate_bps, loss, phy_bps)
-            answer = answers.get(result.size)
-            if answer is None:
-                answer = answers[result.size] = message_buffer((), RESULT_HEADER + result.size, pad)
-            answer[:RESULT_HEADER] = (iteration, compute_s, up_s, rows, sse, stretch.late, batch, batch < batches - 1)
-            answer[RESULT_HEADER:RESULT_HEADER + result.size] = result
-            comm.Send([answer, mpi.DOUBLE], dest=0, tag=TAG_RESULT)
+            buf = answers.get(result.size)
+            if buf is None:
+                buf = answers[result.size] = message_buffer((), RESULT_HEADER + result.size, pad)
+            buf[:RESULT_HEADER] = (iteration, compute_s, up_s, rows, sse, stretch.late, batch, batch < batches - 1)
+            buf[RESULT_HEADER:RESULT_HEADER + result.size] = result
+            answer(buf)
+
+
+def send_to_master(comm, mpi, inbox: Inbox, buf: np.ndarray, deadline: float) -> bool | None:
+    """Send buf to the master, taking what comes from it meanwhile (mailbox.py: a blocked send waited forever for a
+    master that had stopped reading). True once sent; False as soon as a STOP that does not finalize is in (the master
+    will take nothing more: the send is left behind, and the rank ends without MPI_Finalize); None at the deadline."""
+    request = comm.Isend([buf, mpi.DOUBLE], dest=0, tag=TAG_RESULT)
+    poller = None
+    while not request.Test():
+        inbox.take_ready()
+        if any(m[WORK_KIND] == KIND_STOP and m[WORK_EXTRA_ROWS] != 0 for _, m in inbox.taken):
+            return False
+        if poller is None:
+            poller = Poller()
+        elif time.monotonic() >= deadline:
+            return None
+        poller.pause()
+    return True
+
+
+def give_up(rank: int, options: ComputeOptions, log: JsonlLog, why: str) -> None:
+    """End this worker (exit 3) after --idle-timeout-s without the master."""
+    log.write(kinds.WORKER_GAVE_UP, rank=rank, idle_timeout_s=options.idle_timeout_s)
+    log.close()
+    sys.stderr.write(f"worker {rank}: {why} for {options.idle_timeout_s:g} s; giving up (exit 3)\n")
+    # each worker gives up by its own timeout; MPI_Abort would kill its hydra proxy with it, which then
+    # leaves its hwloc file in /tmp (hard-coded in hydra_pmi_proxy: 2 a killed-master run, measured)
+    end_without_finalize(3)
 
 
 def take_block(task: Task, rank: int, bounds: list[tuple[int, int]], log: JsonlLog) -> None:
@@ -335,8 +296,10 @@ class Master:
         if request is None or self._test(rank, request):  # the usual case: a small message goes at once
             return True
         t0 = time.monotonic()
-        poller = _Poller()
+        poller = Poller()
         while not self._test(rank, request):
+            if self.inbox is not None:
+                self.inbox.take_ready()  # this worker's own answer may be waiting for a receive (mailbox.py)
             if time.monotonic() - t0 >= timeout_s:
                 self._stuck.append((rank, request, message))
                 self._stalled_s += time.monotonic() - t0

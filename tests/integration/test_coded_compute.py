@@ -12,6 +12,7 @@ from nac_onboard.compute import forestfires, kernels
 from nac_onboard.compute.tasks.matmul import matmul_inputs
 from nac_onboard.flight_log import read_jsonl
 from tests.conftest import SHARED_DATA
+from tests.integration.logs import first_record
 from tests.integration.test_compute import (
     iterations_logged,
     job,
@@ -19,6 +20,7 @@ from tests.integration.test_compute import (
     refused_by_every_rank,
     run_mpi,
     wait_until,
+    wifi,
 )
 
 # The runs with a killed or a slow worker go beside the exclusive tests, in the idle class (make test): they judge
@@ -36,6 +38,14 @@ IDLE_CLASS_WAIT_S = 240
 IDLE_CLASS_TIMEOUT_S = "120"
 
 
+def paced(tmp_path: Path) -> tuple[str, ...]:
+    """Emulated air whose every transfer takes some 10 ms (100 kbit of overhead at 15 m's 10 Mbit/s), for the jobs a
+    test kills midway: with no air, a job ran 500 iterations a second, and one whose test was starved in the idle
+    class wrote 467 MiB of log before the test could stop it (a clean-clone CI run, 2026-11-29)."""
+    return ("--emulate", "sleep", "--channel", wifi(tmp_path, 100_000), "--positions", "fixed",
+            "--distances", "15,15,15")
+
+
 def _kill_worker_midway_then_stop(out: Path, proc, rank: int) -> int:
     """SIGKILL worker `rank` once 20 iterations are logged, then, 12 iterations later, stop the master as its
     supervisor does (SIGTERM: it ends its iteration and writes its summary); the iterations logged at the kill.
@@ -49,7 +59,7 @@ def _kill_worker_midway_then_stop(out: Path, proc, rank: int) -> int:
     os.kill(worker["pid"], signal.SIGKILL)
     killed_at = iterations_logged(out)
     wait_until(lambda: iterations_logged(out) > killed_at + 12, proc, IDLE_CLASS_WAIT_S)
-    master, = read_jsonl(out / "compute.jsonl").of_kind("run_started")
+    master = first_record(out / "compute.jsonl", "run_started")
     os.kill(master["pid"], signal.SIGTERM)
     proc.wait(timeout=IDLE_CLASS_WAIT_S)
     return killed_at
@@ -59,7 +69,7 @@ def _coded_matmul_with_a_worker_killed(tmp_path, task: str, rank: int):
     """matmul (A 12 x 50, B 50 x 2, seed 5) by `task` on 3 workers, worker `rank` killed midway: its
     records, its summary and the iterations logged at the kill; every iteration complete, some 10 after the kill."""
     with job("--task", task, "--m", "12", "--n", "50", "--l", "2", "--seed", "5", "--duration-s", "600",
-             "--timeout-s", IDLE_CLASS_TIMEOUT_S, "--save-results", "--checkpoint-s", "0.5",
+             "--timeout-s", IDLE_CLASS_TIMEOUT_S, "--save-results", "--checkpoint-s", "0.5", *paced(tmp_path),
              "--out", str(tmp_path), ranks=4) as proc:
         killed_at = _kill_worker_midway_then_stop(tmp_path, proc, rank)
     read = read_jsonl(tmp_path / "compute.jsonl")
@@ -93,7 +103,7 @@ def test_gradient_coded_training_with_a_worker_killed_follows_uncoded_training_w
     """Three workers, s = 1: after worker 2 is killed the master still recovers the full gradient every
     iteration, so the cost curve and the weights are single-process gradient descent's over all the rows."""
     with job("--task", "linreg_gc", "--code-s", "1", "--duration-s", "600", "--timeout-s", IDLE_CLASS_TIMEOUT_S,
-             "--checkpoint-s", "0.5", "--out", str(tmp_path), ranks=4) as proc:
+             "--checkpoint-s", "0.5", *paced(tmp_path), "--out", str(tmp_path), ranks=4) as proc:
         killed_at = _kill_worker_midway_then_stop(tmp_path, proc, 2)
     read = read_jsonl(tmp_path / "compute.jsonl")
     summary = read.of_kind("run_summary")
@@ -105,6 +115,25 @@ def test_gradient_coded_training_with_a_worker_killed_follows_uncoded_training_w
     w, costs = kernels.gradient_descent(x, y, np.zeros(x.shape[1]), 0.05, len(iterations))
     assert np.allclose([r["cost"] for r in iterations], costs, rtol=1e-6, atol=0)
     assert np.allclose(np.load(tmp_path / "results.npz")["weights"], w, rtol=1e-6, atol=1e-9)
+
+
+@beside_the_exclusive_tests
+@pytest.mark.parametrize("task", ["linreg_gc", "matmul_mds"])
+def test_a_coded_job_whose_messages_go_by_rendezvous_ends_on_its_clock(tmp_path, task):
+    """The master decodes from the first two answers and leaves the third for later. With messages over MPICH's eager
+    limit (12.5 kB of --pad-bits; measured: 4 kB went eagerly, 8 kB did not), the slowest worker's next answer waited,
+    blocked in MPI_Send, for a receive the master had not re-posted: the job stalled, then its master ended without
+    that worker, which never took its STOP, and `mpiexec` never ended (each task: 3 runs of 3 hung). Now every rank
+    takes what is in while it waits: the job ends on its clock, every worker stopped by the master."""
+    args = ("--code-s", "1") if task == "linreg_gc" else ("--m", "12", "--n", "50", "--l", "2")
+    out = tmp_path / task
+    done = run_mpi(4, "--task", task, *args, "--duration-s", "2", "--pad-bits", "100000", "--timeout-s",
+                   IDLE_CLASS_TIMEOUT_S, "--out", str(out), timeout_s=IDLE_CLASS_WAIT_S)
+    assert done.returncode == 0, done.stderr[-2000:]
+    summary = read_jsonl(out / "compute.jsonl").of_kind("run_summary")[0]
+    assert summary["ended_by"] == "duration" and summary["lost_workers"] == [] and summary["stale_results"] > 0
+    for rank in (1, 2, 3):
+        assert read_jsonl(out / f"rank-{rank}.jsonl").of_kind("worker_stopped"), f"worker {rank} took its STOP"
 
 
 def _products_are_a_times_b(out: Path, summary: dict, m: int, n: int, seed: int) -> None:
