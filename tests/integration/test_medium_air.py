@@ -384,11 +384,14 @@ def test_the_flights_on_the_frame_level_air_give_the_same_results_at_1x_and_4x(t
     with its 95 % interval above 0. Four pairs by hand gave 0.75, 0.75, 0.68 and 0.68 (23-25 blocks; intervals from
     0.32 up), where the test fails below about 0.4; the static flight's 13 blocks, all at one distance, spread too
     little to tell (0.42, -0.20-0.80), so it is not judged there.
-    Not judged here: Spearman's rho of w1's time per 10 with its distance (issue 28's acceptance 1). From a 40 s
-    pair's two dozen blocks it is too loose even to tell a rise: 20 whole flights by hand, each cut to the blocks a
-    40 s run computes (their first 33 s after the go) and pooled two by two, gave rho 0.16-0.94 (median 0.57), the
-    95 % interval reaching 0 in 41 of the 190 pairs (docs/benchmarks.md)."""
-    from ground.logs.agreement import ALL, compare, pooled_tables
+    Spearman's rho of w1's time per 10 with its distance (issue 28's acceptance 1), both runs' blocks before w1's
+    first link loss pooled, is judged one-sided: the top of its 95 % interval must reach 0.5, so the test fails only
+    where the blocks show rho below 0.5. A 40 s pair's two dozen blocks are too few for more: 20 whole flights by
+    hand, each cut to the blocks a 40 s run computes (their first 33 s after the go) and pooled two by two, gave rho
+    0.16-0.94 (median 0.57), its interval reaching 0 in 41 of the 190 pairs (docs/benchmarks.md). The top of the
+    interval falls below 0.5 at rho under about 0.1 (0.07 from 20 blocks, 0.12 from 24): at none of the 190, and at
+    the 0.05 issue 28 measured before the air took time."""
+    from ground.logs.agreement import ALL, compare, pooled_rho_before_loss, pooled_tables
     from ground.logs.iteration_pace import spearman_interval, spearman_of
     from nac_onboard.flight_log import read_jsonl
     from sitl.experiment.runner import Outcome, run_scenario
@@ -421,3 +424,5 @@ def test_the_flights_on_the_frame_level_air_give_the_same_results_at_1x_and_4x(t
         w1 = w1[w1["worker"] == "w1"].dropna(subset=["master_queue_s"])
         rho = spearman_of(w1["master_queue_s"], w1["time_per_10_s"])
         assert rho is not None and spearman_interval(rho, len(w1))[0] > 0, (rho, len(w1))
+        with_distance = pooled_rho_before_loss(run_dirs, "w1")
+        assert with_distance is not None and spearman_interval(*with_distance)[1] >= 0.5, with_distance
