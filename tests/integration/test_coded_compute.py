@@ -123,8 +123,8 @@ def test_a_coded_job_whose_messages_go_by_rendezvous_ends_on_its_clock(tmp_path,
     """The master decodes from the first two answers and leaves the third for later. With messages over MPICH's eager
     limit (12.5 kB of --pad-bits; measured: 4 kB went eagerly, 8 kB did not), the slowest worker's next answer waited,
     blocked in MPI_Send, for a receive the master had not re-posted: the job stalled, then its master ended without
-    that worker, which never took its STOP, and `mpiexec` never ended (each task: 3 runs of 3 hung). Now every rank
-    takes what is in while it waits: the job ends on its clock, every worker stopped by the master."""
+    that worker, which never took its STOP, and `mpiexec` never ended (every run hung: 4 of linreg_gc, 3 of
+    matmul_mds). Now every rank takes what is in while it waits: the job ends on its clock, every worker stopped."""
     args = ("--code-s", "1") if task == "linreg_gc" else ("--m", "12", "--n", "50", "--l", "2")
     out = tmp_path / task
     done = run_mpi(4, "--task", task, *args, "--duration-s", "2", "--pad-bits", "100000", "--timeout-s",
