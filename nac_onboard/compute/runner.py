@@ -720,6 +720,24 @@ def problem_of(options: ComputeOptions) -> str:
             f"{o.code_redundancy:g}, learning rate {o.learning_rate:g}; {o.task_class.inputs_of(o)})")
 
 
+def joined(comm, mpi, wait_s: float) -> bool:
+    """Whether every rank came to the start within wait_s (wall): the start's collectives (gather, bcast), which
+    have no deadline, then complete at once. Without this, a rank that hung before them (a companion stopped while
+    starting) held every other rank, and the job, for ever."""
+    deadline, poller = time.monotonic() + wait_s, None
+    try:
+        request = comm.Ibarrier()
+        while not request.Test():
+            if poller is None:
+                poller = Poller()
+            elif time.monotonic() >= deadline:
+                return False
+            poller.pause()
+    except mpi.Exception:  # a rank that died before the start
+        return False
+    return True
+
+
 def end_without_finalize(code: int) -> None:
     """MPI_Finalize waits for every rank, a lost one too: with everything on disk, the rank ends here."""
     sys.stdout.flush()
@@ -751,6 +769,10 @@ def main(argv: list[str] | None = None) -> int:
         # not `return 2`: python -m mpi4py turns a failing exit into MPI_Abort, and hydra, with every rank
         # aborting at once, now and then dies of SIGPIPE instead of passing the 2 on (1 of 7 runs, measured)
         end_without_finalize(2)
+    if not joined(comm, MPI, options.clock.wall_s(options.idle_timeout_s)):
+        sys.stderr.write(f"nac-onboard compute rank {comm.Get_rank()} ({options.vehicle_of(comm.Get_rank())}): not "
+                         f"every rank started within --idle-timeout-s {options.idle_timeout_s:g} s; ending (exit 3)\n")
+        end_without_finalize(3)
     problem = problem_of(options)
     problems = comm.gather(problem, root=0)  # a companion back with another data set or NAC
     agreed = comm.bcast([p == problems[0] for p in problems] if comm.Get_rank() == 0 else None, root=0)

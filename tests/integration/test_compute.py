@@ -409,6 +409,24 @@ def test_bad_options_exit_2_before_any_work(tmp_path):
     assert result.returncode == 2 and "--emulate sleep needs positions" in result.stderr
     result = run_mpi(2, "--task", "matmul", "--channel", "moon", "--out", str(tmp_path))
     assert result.returncode == 2 and "not a preset" in result.stderr
+
+
+def test_a_rank_that_hangs_before_the_start_ends_the_others_at_the_idle_timeout(tmp_path):
+    """A companion whose rank started MPI and then hung (here a third rank of another program, which only sleeps)
+    held the other ranks in the start's gather, which has no deadline, for as long as it hung. Now they wait
+    --idle-timeout-s for every rank to come, then each says so and ends (exit 3), nothing trained."""
+    command = launch.mpiexec_command(["m", "w1", "w2"], tmp_path / "job-mpi")
+    command[command.index("-n") + 1] = "2"  # MPMD: ranks 0 and 1 the job, rank 2 the hung companion
+    hung = "import os, time; from mpi4py import MPI; time.sleep(8); os._exit(0)"
+    command += [sys.executable, "-m", "mpi4py", "-m", "nac_onboard.compute", "--task", "linreg", "--iterations", "5",
+                "--idle-timeout-s", "3", "--out", str(tmp_path / "job"), ":", "-n", "1", sys.executable, "-c", hung]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120, env=ENV)
+    assert done.returncode == 3, done.stderr[-2000:]
+    for rank in (0, 1):
+        assert f"rank {rank} (rank{rank}): not every rank started within --idle-timeout-s 3 s" in done.stderr
+    assert not (tmp_path / "job" / "compute.jsonl").exists(), "nothing trained"
+
+
 @pytest.mark.exclusive
 def test_emulation_takes_distances_from_the_masters_agent(start_sitl, start_agent, tmp_path):
     from tests.conftest import free_port
