@@ -1,6 +1,7 @@
 """Waiting on MPI with deadlines, for the master and the workers alike (runner.py).
 
-A rank never blocks in MPI: a blocking call waits for a peer that may be dead, stopped or out of range for good. And
+A rank never waits on a peer in a blocking MPI call (the start's collectives come after a barrier with a deadline,
+runner.joined): such a call waits for a peer that may be dead, stopped or out of range for good. And
 a rank that waits for anything keeps taking the messages already in. A message larger than MPI's eager limit (a
 matmul input of 10,000 rows, or any message with a channel's overhead as real bytes, --pad-bits) goes by rendezvous:
 its send waits, blocked, until the receiver posts a receive for it. With one posted receive per peer, a receive that
