@@ -31,6 +31,21 @@ class Poller:
             time.sleep(0.0005)
 
 
+def wait_for(done, deadline: float, meanwhile=None) -> bool | None:
+    """Poll done() until it holds: True; None at the deadline (time.monotonic); False as soon as meanwhile(), called
+    between polls, gives a reason to stop waiting."""
+    poller = None
+    while not done():
+        if meanwhile is not None and meanwhile():
+            return False
+        if poller is None:
+            poller = Poller()
+        elif time.monotonic() >= deadline:
+            return None
+        poller.pause()
+    return True
+
+
 class Inbox:
     """One posted receive per peer, re-posted as each message is taken. Waiting polls the posted receives with a
     deadline: on ranks that share a core, MPICH's own Probe and Iprobe loops starve the other rank (measured: 125

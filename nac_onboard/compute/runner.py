@@ -38,7 +38,7 @@ from nac_onboard.compute.allocation import Planner
 from nac_onboard.compute.checkpoint import checkpoint_path, load_checkpoint
 from nac_onboard.compute.device import CpuStretch
 from nac_onboard.compute.iteration import IterationLinks
-from nac_onboard.compute.mailbox import Inbox, Poller
+from nac_onboard.compute.mailbox import Inbox, wait_for
 from nac_onboard.compute.messages import (
     BITS_PER_FLOAT,
     KIND_EXTRA,
@@ -94,12 +94,11 @@ def run_worker(comm, mpi, options: ComputeOptions, log: JsonlLog) -> bool:
     answers = {}  # reused answer buffers by result size: no allocation per iteration
     early = None  # a message that came while a batched answer was still being worked on
 
-    def answer(buf: np.ndarray) -> bool:
-        """buf to the master; False if a STOP that does not finalize came first (the master will not take it)."""
-        sent = send_to_master(comm, mpi, inbox, buf, time.monotonic() + options.clock.wall_s(options.idle_timeout_s))
-        if sent is None:
+    def answer(buf: np.ndarray) -> None:
+        """buf to the master, or left behind if a STOP that does not finalize came first (the loop takes it next)."""
+        deadline = time.monotonic() + options.clock.wall_s(options.idle_timeout_s)
+        if send_to_master(comm, mpi, inbox, buf, deadline) is None:
             give_up(rank, options, log, "the master took no answer")
-        return sent
 
     while True:
         if early is not None:
@@ -146,18 +145,11 @@ def send_to_master(comm, mpi, inbox: Inbox, buf: np.ndarray, deadline: float) ->
     """Send buf to the master, taking what comes from it meanwhile (mailbox.py: a blocked send waited forever for a
     master that had stopped reading). True once sent; False as soon as a STOP that does not finalize is in (the master
     will take nothing more: the send is left behind, and the rank ends without MPI_Finalize); None at the deadline."""
-    request = comm.Isend([buf, mpi.DOUBLE], dest=0, tag=TAG_RESULT)
-    poller = None
-    while not request.Test():
+    def a_stop_without_finalize_came() -> bool:
         inbox.take_ready()
-        if any(m[WORK_KIND] == KIND_STOP and m[WORK_EXTRA_ROWS] != 0 for _, m in inbox.taken):
-            return False
-        if poller is None:
-            poller = Poller()
-        elif time.monotonic() >= deadline:
-            return None
-        poller.pause()
-    return True
+        return any(m[WORK_KIND] == KIND_STOP and m[WORK_EXTRA_ROWS] != 0 for _, m in inbox.taken)
+
+    return wait_for(comm.Isend([buf, mpi.DOUBLE], dest=0, tag=TAG_RESULT).Test, deadline, a_stop_without_finalize_came)
 
 
 def give_up(rank: int, options: ComputeOptions, log: JsonlLog, why: str) -> None:
@@ -296,16 +288,12 @@ class Master:
         if request is None or self._test(rank, request):  # the usual case: a small message goes at once
             return True
         t0 = time.monotonic()
-        poller = Poller()
-        while not self._test(rank, request):
-            if self.inbox is not None:
-                self.inbox.take_ready()  # this worker's own answer may be waiting for a receive (mailbox.py)
-            if time.monotonic() - t0 >= timeout_s:
-                self._stuck.append((rank, request, message))
-                self._stalled_s += time.monotonic() - t0
-                return False
-            poller.pause()
-        return True
+        meanwhile = None if self.inbox is None else self.inbox.take_ready  # this worker's answer may wait (mailbox.py)
+        if wait_for(lambda: self._test(rank, request), t0 + timeout_s, meanwhile):
+            return True
+        self._stuck.append((rank, request, message))
+        self._stalled_s += time.monotonic() - t0
+        return False
 
     def _isend(self, rank: int, message: np.ndarray):
         """The request of a posted send, or None if MPI failed it at once (the rank is then lost)."""
@@ -724,18 +712,10 @@ def joined(comm, mpi, wait_s: float) -> bool:
     """Whether every rank came to the start within wait_s (wall): the start's collectives (gather, bcast), which
     have no deadline, then complete at once. Without this, a rank that hung before them (a companion stopped while
     starting) held every other rank, and the job, for ever."""
-    deadline, poller = time.monotonic() + wait_s, None
     try:
-        request = comm.Ibarrier()
-        while not request.Test():
-            if poller is None:
-                poller = Poller()
-            elif time.monotonic() >= deadline:
-                return False
-            poller.pause()
+        return bool(wait_for(comm.Ibarrier().Test, time.monotonic() + wait_s))
     except mpi.Exception:  # a rank that died before the start
         return False
-    return True
 
 
 def end_without_finalize(code: int) -> None:
