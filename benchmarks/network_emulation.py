@@ -223,8 +223,8 @@ def delay_line(speedup: float, samples: int, iperf_s: int, folder: Path) -> dict
     """The frame-level air (`[network] air = "medium"`) between two stations at 30 Mbit/s PHY: a 100-byte UDP echo's
     round trip (simulated seconds) against the medium model's for an echo answered at once (expected_echo_s) and
     against this host's floor (the same echo over a bare veth pair, times the speed-up), the lead the delay line
-    took off each delivery, and its CPU while iperf3 sends through it, per 1,000 packets a second it carries
-    (offload runs counted as the packets they stand for)."""
+    took off each delivery and how late (wall) it wrote the echo's frames all the same, and its CPU while iperf3
+    sends through it, per 1,000 packets a second it carries (offload runs counted as the packets they stand for)."""
     phy_bps = 30e6
     clock_path = folder / f"clock-{speedup:g}.json"
     publish_clock(str(clock_path), speedup, 0.0)
@@ -234,7 +234,7 @@ def delay_line(speedup: float, samples: int, iperf_s: int, folder: Path) -> dict
         rates = np.array([[0.0, phy_bps], [phy_bps, 0.0]])
         air.apply(types.SimpleNamespace(frames={"phy_bps": rates, "per": np.zeros((2, 2))}), speedup)
         rtts = _echo(a.netns, b.netns, b.address, samples, speedup)
-        lead_s = air.lead_s
+        lead_s, echo_late_s = air.lead_s, _next_counters(air, air.counters).get("late_p50_s")
         iperf = subprocess.Popen([*air.exec_prefix(1), "iperf3", "-s", "-1", "-B", b.address],
                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         time.sleep(0.3)
@@ -257,10 +257,19 @@ def delay_line(speedup: float, samples: int, iperf_s: int, folder: Path) -> dict
             "rtt_p90_ms": round(measured[int(0.9 * (len(measured) - 1))] * 1e3, 3),
             "model_ms": round(model_s * 1e3, 3), "rtt_ratio": round(median / model_s, 3),
             "lead_ms": round(lead_s * 1e3, 3),
+            "echo_late_p50_us_wall": None if echo_late_s is None else round(echo_late_s / speedup * 1e6, 1),
             "plain_veth_ms": round(floor * 1e3, 3), "plain_veth_simulated_ms": round(floor * speedup * 1e3, 3),
             "iperf3_mbps_simulated": mbps and round(mbps, 2),
             "packets_per_s": round(rate), "cpu_pct": round(cpu_pct, 1),
             "cpu_pct_per_1000_pps": round(cpu_pct / (rate / 1000), 2) if rate else None}
+
+
+def _next_counters(air: MediumAir, seen: dict | None, timeout_s: float = 3.0) -> dict:
+    """The delay line's next counters line after `seen` (one a wall second: its medians are the last second's)."""
+    deadline = time.monotonic() + timeout_s
+    while air.counters is seen and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return air.counters or {}
 
 
 def _echo(client_ns: str, server_ns: str, server_address: str, samples: int, speedup: float = 1.0) -> list[float]:

@@ -342,6 +342,9 @@ def summarize(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, probes: pd.
         summary["air"] = {key: air.get(key) for key in ("delivered", "late", "queue_drops", "retry_drops",
                                                          "collisions", "exchanges")}
         summary["air_late_share"] = air["late"] / air["delivered"] if air.get("delivered") else 0.0
+        late_s = [r["late_p50_s"] for r in run.air_medium if r.get("late_p50_s") is not None]
+        if late_s:
+            summary["air_late_median_ms"] = round(float(np.median(late_s)) * 1e3, 4)
     network = (run.experiment or {}).get("network")
     if network:
         summary["network"] = network.get("mode")

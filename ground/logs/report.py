@@ -39,6 +39,8 @@ SUMMARY_LABELS = {
     "air": "frame-level air: packets delivered, late (written over 1 ms after their time: the host fell behind), "
            "queue drops, retry drops, collisions, exchanges",
     "air_late_share": "share of deliveries late (their timing is this host's, not the model's)",
+    "air_late_median_ms": "a delivery's typical lateness, the median of each second's median (simulated ms): the "
+                          "host's own work on a frame, beyond what the frame's hold left it",
     "energy_wh": "energy, every vehicle's two packs (Wh)", "companion_energy_wh": "energy, companion packs (Wh)",
     "companion_packs_empty": "companion packs that ran out",
     "energy_per_iteration_j": "energy per complete iteration, both packs (J)",

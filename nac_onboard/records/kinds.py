@@ -367,6 +367,8 @@ AIR_MEDIUM = Kind("air_medium", NETWORK_LOG, "the frame-level air's counters (de
     opt("air_p50_s", "number", "s", "median time on the air, tries included, since the last record"),
     req("late", "integer", "", "deliveries written over 1 ms (simulated) after their time: the host fell behind"),
     req("max_late_s", "number", "s", "the latest of them"),
+    opt("late_p50_s", "number", "s", "median time a delivery was written after its time since the last record "
+        "(simulated): the host's own work on a frame beyond what its hold leaves"),
     opt("lead_s", "number", "s", "wall: how early each delivery is written, the host's own pass (measured at start)"),
 ))
 

@@ -139,6 +139,7 @@ class DelayLine:
         self.queue_s: list[float] = []  # since the last counters line
         self.queue_by_station_s: list[list[float]] = [[] for _ in namespaces]  # the same, by the sending station
         self.air_s: list[float] = []
+        self.late_s: list[float] = []  # how long after its time each delivery was written (simulated), the same
         self._stop = False
 
     def run(self, control) -> None:
@@ -223,6 +224,7 @@ class DelayLine:
         lead_s = (self.lead_s or 0.0) * speedup  # simulated
         for delivery in self.medium.run_until(now + lead_s, EARLY_S * speedup):
             late = now + lead_s - delivery.delivered_s
+            self.late_s.append(late)
             if late > LATE_S:
                 self.counters["late"] += 1
                 self.counters["max_late_s"] = max(self.counters["max_late_s"], late)
@@ -276,10 +278,11 @@ class DelayLine:
                 "collisions": s.collisions, "busy_s": round(s.busy_s, 6),
                 "backlog": [self.medium.backlog(k) for k in range(len(self.fds))],
                 "queue_p50_s": _median(self.queue_s), "air_p50_s": _median(self.air_s),
+                "late_p50_s": _median(self.late_s),
                 "queue_p50_by_station_s": [_median(q) for q in self.queue_by_station_s]}
         if self.lead_s is not None:
             line["lead_s"] = self.lead_s
-        self.queue_s, self.air_s = [], []
+        self.queue_s, self.air_s, self.late_s = [], [], []
         self.queue_by_station_s = [[] for _ in self.fds]
         print(json.dumps(line), file=self.out, flush=True)
 
