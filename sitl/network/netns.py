@@ -146,21 +146,25 @@ def socket_in_netns(name: str, family: int, kind: int) -> socket.socket:
 
 
 def udp_echo_round_trips(client_ns: str, server_ns: str, server_address: str, count: int, gap_s: float,
-                         timeout_s: float) -> list[float]:
+                         timeout_s: float, server_thread: bool = False) -> list[float]:
     """Round trips (wall seconds) of a 100-byte UDP echo from namespace client_ns to server_address in server_ns,
-    both ends in this thread, gap_s apart; OSError (a TimeoutError) when one is not back within timeout_s."""
+    gap_s apart, both ends in this thread or (server_thread) the server in a thread of its own; OSError (a
+    TimeoutError) when one is not back within timeout_s."""
     server = socket_in_netns(server_ns, socket.AF_INET, socket.SOCK_DGRAM)
     client = socket_in_netns(client_ns, socket.AF_INET, socket.SOCK_DGRAM)
     try:
         server.bind((server_address, 0))
         for end in (server, client):
             end.settimeout(timeout_s)
+        serving = threading.Thread(target=_echo_back, args=(server, count), daemon=True) if server_thread else None
+        if serving is not None:
+            serving.start()
         round_trips = []
         for _ in range(count):
             start = time.perf_counter()
             client.sendto(b"x" * 100, server.getsockname())
-            message, sender = server.recvfrom(2048)
-            server.sendto(message, sender)
+            if serving is None:
+                _echo_back(server, 1)
             client.recvfrom(2048)
             round_trips.append(time.perf_counter() - start)
             time.sleep(gap_s)
@@ -168,6 +172,15 @@ def udp_echo_round_trips(client_ns: str, server_ns: str, server_address: str, co
     finally:
         server.close()
         client.close()
+
+
+def _echo_back(server: socket.socket, count: int) -> None:
+    for _ in range(count):
+        try:
+            message, sender = server.recvfrom(2048)
+            server.sendto(message, sender)
+        except OSError:  # the client gave up and closed both ends
+            return
 
 
 def in_netns(name: str, make):
