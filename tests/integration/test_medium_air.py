@@ -175,7 +175,7 @@ def test_a_small_messages_round_trip_is_the_mediums(tmp_path):
 
     Why not at 4x, where a round trip is 0.1 ms of wall time: there the delay line's own work on a frame (reading
     it, the medium's decision, the write: some 20 us of a cold Python process) is as long as what the hold leaves
-    it after the lead, so a frame with a short backoff is written late; and the host's pass, some 25 us, moves by
+    it after the lead, so a frame with a short backoff is written late; and the host's pass, 25-35 us, moves by
     several microseconds with the host's state. The 4x echo was 0.96-1.04 times the model in 15 runs, then
     1.17-1.24 in a clean clone's CI and 1.21-1.34 in 8 runs here, its writes 17-22 us late (medians; 2026-11-29),
     so it is measured by benchmarks/network_emulation.py (docs/benchmarks.md), not judged here."""
