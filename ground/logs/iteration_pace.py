@@ -14,6 +14,7 @@ BLOCK_ITERATIONS = 10
 MIN_BLOCKS_PER_BIN = 3  # a bin's median from fewer blocks is shown but not judged (the report says so)
 MIN_BLOCKS_FOR_RHO = 8  # Spearman's rho from fewer blocks says little
 Z_95 = 1.959964  # the normal distribution's two-sided 95 % quantile
+Z_90 = 1.644854  # its two-sided 90 % quantile: each bound alone a one-sided 95 % bound
 LATE_ANSWER = "timeout"  # an absence that is no link loss: the worker answered late and is waited for again
 
 BLOCK_COLUMNS = ["worker", "first_iteration", "t_rel_s", "distance_m", "time_per_10_s"]
@@ -112,14 +113,15 @@ def spearman_of(x, y) -> float | None:
     return float(np.corrcoef(ranks["x"], ranks["y"])[0, 1])
 
 
-def spearman_interval(rho: float, blocks: int) -> tuple[float, float]:
-    """A 95 % interval of Spearman's rho from its number of pairs: Fisher's z with Bonett and Wright's standard
-    error for Spearman, sqrt((1 + rho^2 / 2) / (n - 3)) (Psychometrika 65(1), 2000), good from about 10 pairs."""
+def spearman_interval(rho: float, blocks: int, z: float = Z_95) -> tuple[float, float]:
+    """A 95 % interval of Spearman's rho from its number of pairs (z: the normal quantile for another level):
+    Fisher's z with Bonett and Wright's standard error for Spearman, sqrt((1 + rho^2 / 2) / (n - 3))
+    (Psychometrika 65(1), 2000), good from about 10 pairs."""
     if blocks <= 3:
         return (-1.0, 1.0)
-    half = Z_95 * np.sqrt((1.0 + rho * rho / 2.0) / (blocks - 3))
-    z = np.arctanh(np.clip(rho, -0.999999, 0.999999))
-    return (float(np.tanh(z - half)), float(np.tanh(z + half)))
+    half = z * np.sqrt((1.0 + rho * rho / 2.0) / (blocks - 3))
+    centre = np.arctanh(np.clip(rho, -0.999999, 0.999999))
+    return (float(np.tanh(centre - half)), float(np.tanh(centre + half)))
 
 
 def spearman(table: pd.DataFrame) -> dict[str, float]:

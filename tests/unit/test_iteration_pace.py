@@ -92,6 +92,8 @@ def test_spearman_interval_holds_rho_and_narrows_with_blocks():
     assert low < low4 < 0.34 < high4 < high and (high4 - low4) < 0.55 * (high - low)
     assert iteration_pace.spearman_interval(1.0, 10)[1] == pytest.approx(1.0) and \
         iteration_pace.spearman_interval(0.5, 3) == (-1.0, 1.0)
+    one_sided = iteration_pace.spearman_interval(0.34, 24, iteration_pace.Z_90)  # 1.645 times the same error
+    assert one_sided[0] == pytest.approx(-0.015, abs=0.005) and low < one_sided[0] < 0.34 < one_sided[1] < high
 
 
 def test_a_blocks_queue_wait_is_the_median_of_the_records_that_cover_it():
