@@ -324,9 +324,12 @@ def _may_hold_cpu_latency() -> bool:
 def test_an_experiment_on_the_frame_level_air_trains_probes_and_records_its_queues(tmp_path):
     """write_scenario's short run with `[network] air = "medium"` at 4x: the job trains, the master's probes
     measure the links through the same queues, network.jsonl holds the medium's counters beside the rates, with
-    each station's queue wait named by its vehicle (the master's, which sends the probes' bulk, the longest: the
-    workers' queues hold acknowledgements and the job's answers), the report names the air, and the namespaces go
-    at the end. Nothing here is timed."""
+    each station's queue wait named by its vehicle (the master's, which sends the probes' bulk, the longest over the
+    run: the mean of its records' medians, which the probes' seconds weigh; the workers' queues hold
+    acknowledgements and the job's answers), the report names the air, and the namespaces go at the end. Nothing
+    here is timed. (The median of the records was not enough: in a clean clone's CI three of seven records came
+    before the probes, and w2's 0.52 ms in the middle one topped the master's 0.51, where during the probes the
+    master's were 12-22 ms and w2's 4-5.)"""
     from nac_onboard.flight_log import read_jsonl
     from sitl.experiment.runner import Experiment, Outcome
     from sitl.experiment.scenario import load_scenario
@@ -348,8 +351,8 @@ def test_an_experiment_on_the_frame_level_air_trains_probes_and_records_its_queu
     assert stations == [s.vehicle_id for s in experiment.air.stations] and "master" in stations, stations
     waits = {v: [r["queue_p50_by_station_s"][k] for r in medium if r["queue_p50_by_station_s"][k] is not None]
              for k, v in enumerate(stations)}
-    medians = {v: statistics.median(w) for v, w in waits.items() if w}
-    assert medians["master"] == max(medians.values()) and len(medians) == len(stations), medians
+    means = {v: statistics.fmean(w) for v, w in waits.items() if w}
+    assert means["master"] == max(means.values()) and len(means) == len(stations), means
     assert result.summary["iterations"] > 10 and result.summary["final_cost"] < result.summary["first_cost"]
     assert result.summary["probes"] > 5 and result.summary["mean_throughput_mbps"] > 1.0
     report = (result.run_dir / "report.md").read_text()
