@@ -337,14 +337,7 @@ def summarize(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, probes: pd.
         summary["measured_to_applied_by_bin"] = {
             f"{b.distance_from_m:g}-{b.distance_to_m:g} m": round(float(b.measured_to_applied_median), 3)
             for b in bins.itertuples() if pd.notna(b.measured_to_applied_median)}
-    if run.air_medium:  # the delay line's counters are cumulative: its last record is the run's
-        air = run.air_medium[-1]
-        summary["air"] = {key: air.get(key) for key in ("delivered", "late", "queue_drops", "retry_drops",
-                                                         "collisions", "exchanges")}
-        summary["air_late_share"] = air["late"] / air["delivered"] if air.get("delivered") else 0.0
-        late_s = [r["late_p50_s"] for r in run.air_medium if r.get("late_p50_s") is not None]
-        if late_s:
-            summary["air_late_median_ms"] = round(float(np.median(late_s)) * 1e3, 4)
+    summary.update(air_summary(run.air_medium))
     network = (run.experiment or {}).get("network")
     if network:
         summary["network"] = network.get("mode")
@@ -353,6 +346,26 @@ def summarize(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, probes: pd.
         summary["radio"] = str(radio["describe"])
     if not dist.empty:
         summary["max_distance_m"] = {w: float(d["distance_m"].max()) for w, d in dist.groupby("worker")}
+    return summary
+
+
+AIR_COUNTS = ("delivered", "late", "queue_drops", "retry_drops", "collisions", "exchanges")
+AIR_NOT_CARRIED = ("write_failed", "unknown_destination", "not_ipv4")  # the host's, not the medium's: shown when any
+
+
+def air_summary(records: list[dict]) -> dict:
+    """The frame-level air's counts from its `air_medium` records (cumulative: the last is the run's), the share
+    of deliveries written late and their typical lateness; what the delay line could not carry is named wherever a
+    run had any, so no packet is lost unseen."""
+    if not records:
+        return {}
+    air = records[-1]
+    counts = {key: air.get(key) for key in AIR_COUNTS}
+    counts.update({key: air[key] for key in AIR_NOT_CARRIED if air.get(key)})
+    summary = {"air": counts, "air_late_share": air["late"] / air["delivered"] if air.get("delivered") else 0.0}
+    late_s = [r["late_p50_s"] for r in records if r.get("late_p50_s") is not None]
+    if late_s:
+        summary["air_late_median_ms"] = round(float(np.median(late_s)) * 1e3, 4)
     return summary
 
 

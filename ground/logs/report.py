@@ -37,7 +37,8 @@ SUMMARY_LABELS = {
     "radio": "radio model", "threshold_mbps": "throughput threshold (Mbit/s)",
     "max_distance_m": "largest master-worker distance (m)",
     "air": "frame-level air: packets delivered, late (written over 1 ms after their time: the host fell behind), "
-           "queue drops, retry drops, collisions, exchanges",
+           "queue drops, retry drops, collisions, exchanges; where any: packets lost on this host (the receiver's air0 "
+           "refused them), to no station, not IPv4",
     "air_late_share": "share of deliveries late (their timing is this host's, not the model's)",
     "air_late_median_ms": "a delivery's typical lateness, the median of each second's median (simulated ms): the "
                           "host's own work on a frame, beyond what the frame's hold left it",

@@ -370,6 +370,14 @@ AIR_MEDIUM = Kind("air_medium", NETWORK_LOG, "the frame-level air's counters (de
     opt("late_p50_s", "number", "s", "median time a delivery was written after its time since the last record "
         "(simulated): the host's own work on a frame beyond what its hold leaves"),
     opt("lead_s", "number", "s", "wall: how early each delivery is written, the host's own pass (measured at start)"),
+    opt("packets_in", "integer", "", "packets read from the stations' air0 so far (an offload run counted once)"),
+    opt("passed", "integer", "", "of them, passed straight through while the lead was timed (before the medium)"),
+    opt("not_ipv4", "integer", "", "of them, not IPv4: not carried (IPv6 is off on air0)"),
+    opt("unknown_destination", "integer", "", "of them, to an address no station has: not carried"),
+    opt("write_failed", "integer", "", "packets delivered that the receiver's air0 refused (down, or its queue "
+        "full): lost on this host, not by the medium"),
+    opt("updates", "integer", "", "link updates taken"), opt("bad_updates", "integer", "", "link updates refused"),
+    opt("cpus_held_awake", "boolean", "", "whether the delay line holds the CPUs' wake-up latency at 0"),
 ))
 
 # ---- the experiment: experiment.json ---------------------------------------------------------------------------

@@ -6,7 +6,8 @@ be held for a time. Everything a station sends (MPI, probes, peer state) goes th
 
 Time is the run's (nac_onboard.clock: simulated seconds, the simulator's pace): a frame of T simulated seconds is
 written T / speed-up wall seconds after it was sent. What arrives late (the process could not keep up) is written
-at once and counted, never dropped.
+at once and counted, never dropped. What it cannot carry (not IPv4, to an address no station has, refused by the
+receiver's air0) is counted too, each in its own counter, which the run's records and report carry.
 
     python -m sitl.network.delay_line NS:ADDRESS [NS:ADDRESS ...] [--queue-packets N] [--retry-limit N] [--seed N]
 
@@ -134,7 +135,7 @@ class DelayLine:
         self.fds = [open_tun(ns) for ns in namespaces]
         self.out = sys.stdout if out is None else out  # the stdout of now, not of import time
         self.counters = {"packets_in": 0, "not_ipv4": 0, "unknown_destination": 0, "late": 0, "max_late_s": 0.0,
-                         "updates": 0, "bad_updates": 0, "runs_cut": 0, "passed": 0}
+                         "updates": 0, "bad_updates": 0, "runs_cut": 0, "passed": 0, "write_failed": 0}
         self.lead_s: float | None = None  # wall; None: not given yet, packets pass straight through
         self.queue_s: list[float] = []  # since the last counters line
         self.queue_by_station_s: list[list[float]] = [[] for _ in namespaces]  # the same, by the sending station
@@ -243,7 +244,7 @@ class DelayLine:
         try:
             os.write(self.fds[dst], packet)
         except OSError:  # the receiver's air0 is down or its queue full: the packet is lost there
-            self.counters["write_failed"] = self.counters.get("write_failed", 0) + 1
+            self.counters["write_failed"] += 1
 
     def _update(self, line: bytes) -> None:
         n = len(self.fds)

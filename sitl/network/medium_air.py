@@ -19,6 +19,7 @@ import statistics
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 from nac_onboard.child_process import die_with_parent_preexec
@@ -39,6 +40,8 @@ LEAD_GAP_S = 0.001  # between them. A pass costs more the longer the host was id
 # the CPUs held awake: 0.036, 0.058 and 0.108 ms at 1, 5 and 20 ms apart): timed on a busy air, the lead is the
 # least a pass costs, so no delivery is written before its receiver could have had it from the medium
 LEAD_ECHO_TIMEOUT_S = 1.0
+LATE_WARN_SHARE = 0.05  # a second with this share of its deliveries written late is logged: the host fell behind
+WARN_EVERY_S = 30.0  # wall: the least time between two such log lines (the records count every packet)
 
 
 class MediumAir(AirNetwork):
@@ -54,6 +57,7 @@ class MediumAir(AirNetwork):
         self._records: JsonlLog | None = None
         self._reader: threading.Thread | None = None
         self.lead_s = 0.0  # wall: the host's own cost of a pass, taken off each delivery's hold
+        self._quiet_until = 0.0  # monotonic: no warning before it (WARN_EVERY_S)
 
     @property
     def namespaces(self) -> list[str]:
@@ -127,10 +131,31 @@ class MediumAir(AirNetwork):
                 self.errors.append(counters["error"])
                 log.warning("delay line: %s", counters["error"])
                 continue
+            self._warn_of(counters)
             self.counters = counters
             if self._records is not None:
                 self._records.write(kinds.AIR_MEDIUM, stations=[s.vehicle_id for s in self.stations],
                                     **{k: v for k, v in counters.items() if k in fields})
+
+    def _warn_of(self, counters: dict) -> None:
+        """A log line when, since the delay line's last counters, the host lost packets the medium had delivered
+        (their receiver's air0 refused them) or fell behind (over LATE_WARN_SHARE of the deliveries late); at most
+        one every WARN_EVERY_S, as the records and the report count every packet."""
+        if time.monotonic() < self._quiet_until:
+            return
+        before = self.counters or {}
+        lost = counters.get("write_failed", 0) - before.get("write_failed", 0)
+        delivered = counters.get("delivered", 0) - before.get("delivered", 0)
+        late = counters.get("late", 0) - before.get("late", 0)
+        if lost > 0:
+            log.warning("the air: %d packets the medium delivered were refused by their receivers' air0 (lost on this "
+                        "host, not by the medium), %d in all", lost, counters["write_failed"])
+        behind = delivered > 0 and late > LATE_WARN_SHARE * delivered
+        if behind:
+            log.warning("the air fell behind: %d of %d deliveries were written over 1 ms late (the latest so far "
+                        "%.1f ms); the report counts them", late, delivered, counters.get("max_late_s", 0.0) * 1e3)
+        if lost > 0 or behind:
+            self._quiet_until = time.monotonic() + WARN_EVERY_S
 
     @staticmethod
     def _running(station: Station) -> bool:

@@ -257,6 +257,47 @@ def test_the_delay_line_and_its_devices_go_with_the_network_and_a_bad_update_is_
     assert not [n for n in netns.namespaces() if n.startswith(air.prefix)], "the namespaces were removed"
 
 
+@needs_kernel
+def test_what_the_delay_line_cannot_carry_is_counted_in_the_records_and_logged_never_dropped_unseen(tmp_path,
+                                                                                                        caplog):
+    """Packets the air cannot carry are each counted where the run's report reads them: datagrams the medium
+    delivered to a station whose air0 is down (the host refuses the write: lost on this host, not by the medium, and
+    logged as it happens), one to an address no station has, and one that is not IPv4 (a packet socket on air0)."""
+    from ground.logs.analysis import air_summary
+    from nac_onboard.flight_log import JsonlLog, read_jsonl
+
+    air = MediumAir(["a", "b", "c"], ap=0, sharing=True).create()
+    records = JsonlLog(tmp_path / "network.jsonl")
+    air.record_to(records)
+    a, b, _ = air.stations
+    sender = netns.socket_in_netns(a.netns, socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        links(air, PHY_BPS)
+        subprocess.run(["ip", "-n", b.netns, "link", "set", "air0", "down"], check=True, timeout=10)
+        with caplog.at_level("WARNING", logger="sitl.network.medium_air"):
+            for _ in range(5):
+                sender.sendto(b"x" * 100, (b.address, 9000))
+            sender.sendto(b"y", (b.address.rsplit(".", 1)[0] + ".200", 9000))
+
+            def not_ipv4() -> None:
+                with socket.socket(socket.AF_PACKET, socket.SOCK_DGRAM) as raw:
+                    raw.sendto(bytes([0x60]) + bytes(39), ("air0", 0x86DD))  # an IPv6 header's first byte
+
+            netns.in_netns(a.netns, not_ipv4)
+            counters = counters_when(air, "write_failed", 5)
+            assert counters["write_failed"] == 5 and counters["delivered"] >= 5, counters
+            assert counters["unknown_destination"] == 1 and counters["not_ipv4"] == 1, counters
+        assert any("refused by their receivers' air0" in r.getMessage() for r in caplog.records), caplog.text
+    finally:
+        sender.close()
+        air.close()
+        records.close()
+    last = read_jsonl(tmp_path / "network.jsonl").of_kind("air_medium")[-1]
+    assert (last["write_failed"], last["unknown_destination"], last["not_ipv4"]) == (5, 1, 1), last
+    shown = air_summary([last])["air"]
+    assert (shown["write_failed"], shown["unknown_destination"], shown["not_ipv4"]) == (5, 1, 1), shown
+
+
 TCP_INFO_UNACKED_AT = 24  # struct tcp_info (linux/tcp.h): eight u8 fields, then rto, ato, snd_mss, rcv_mss, unacked
 
 

@@ -483,3 +483,19 @@ def test_a_stations_queue_waits_come_from_records_that_name_their_stations():
     assert list(waits["t_s"]) == [1.0, 2.0, 3.0] and waits["wait_s"].iloc[0] == 0.5
     assert waits["wait_s"].iloc[1:].isna().all()
     assert station_queue_waits(records, "w9").empty and station_queue_waits(records, None).empty
+
+
+def test_the_airs_summary_names_what_it_could_not_carry_only_where_a_run_had_any():
+    """The frame-level air's counts come from its last (cumulative) record; packets the host lost or the air could
+    not carry are shown wherever any were, so a run without any keeps the summary it had."""
+    from ground.logs.analysis import air_summary
+
+    clean = {"delivered": 200, "late": 2, "queue_drops": 0, "retry_drops": 1, "collisions": 0, "exchanges": 150,
+             "write_failed": 0, "unknown_destination": 0, "not_ipv4": 0, "late_p50_s": 1e-5}
+    summary = air_summary([{**clean, "delivered": 100, "late": 0, "late_p50_s": 3e-5}, clean])
+    assert summary["air"] == {k: clean[k] for k in ("delivered", "late", "queue_drops", "retry_drops", "collisions",
+                                                    "exchanges")}
+    assert summary["air_late_share"] == 0.01 and summary["air_late_median_ms"] == 0.02
+    lossy = air_summary([{**clean, "write_failed": 3, "not_ipv4": 1}])["air"]
+    assert (lossy["write_failed"], lossy["not_ipv4"]) == (3, 1) and "unknown_destination" not in lossy
+    assert air_summary([]) == {}
