@@ -24,6 +24,7 @@ import numpy as np
 
 from nac_onboard.errors import BadInput
 from nac_onboard.radio import air_link
+from nac_onboard.radio.medium import DEFAULT_RETRY_LIMIT, MAX_RETRY_LIMIT
 
 PATH_LOSS_MODELS = ("free-space", "log-distance", "dual-slope", "two-ray", "hata-urban", "hata-large-city",
                     "hata-suburban", "hata-rural")
@@ -66,7 +67,7 @@ class ChannelModel:
     mcs_offset_db: float = 0.0  # shifts every MCS threshold (negative: a better receiver than the standard's)
     per_slope_db: float = 1.0  # width of the frame-error waterfall at each threshold
     rate_adaptation_s: float = 0.0  # how far the rate choice lags the channel (0 = it follows at once)
-    retry_limit: int = 7  # MAC retransmissions before a packet is lost to IP
+    retry_limit: int = DEFAULT_RETRY_LIMIT  # MAC retransmissions before a packet is lost to IP (802.11's default)
     mac_efficiency: float = 1.0  # goodput / PHY rate (headers, contention, acknowledgements, TCP)
     # "efficiency": a transfer's rate is the PHY rate x mac_efficiency; "802.11": the frame-level medium's own costs
     # (nac_onboard.radio.medium: access, preamble, acknowledgement per aggregate), what a run on the frame-level air
@@ -113,8 +114,10 @@ class ChannelModel:
             fail(f"mac_efficiency must be in (0, 1], got {self.mac_efficiency}")
         if not 0 <= self.background_airtime < 1:
             fail(f"background_airtime must be in [0, 1), got {self.background_airtime}")
-        if self.retry_limit < 0:
-            fail(f"retry_limit must be >= 0, got {self.retry_limit}")
+        if isinstance(self.retry_limit, bool) or not isinstance(self.retry_limit, int) \
+                or not 0 <= self.retry_limit <= MAX_RETRY_LIMIT:
+            fail(f"retry_limit must be an integer in 0..{MAX_RETRY_LIMIT} (802.11's retry limit), got "
+                 f"{self.retry_limit!r}")
 
     @property
     def fading(self) -> bool:

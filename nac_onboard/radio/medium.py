@@ -68,6 +68,10 @@ class MacTiming:
 
 # Linux's default transmit queue: DEFAULT_TX_QUEUE_LEN, the pfifo_fast a companion's wlan0 gets, in packets.
 DEFAULT_QUEUE_PACKETS = 1000
+# Retransmissions before a frame is lost to IP: 802.11's dot11ShortRetryLimit, 7 by default, an integer of 1..255
+# in its MIB (IEEE 802.11-2016, Annex C), of which 0 here means a single try.
+DEFAULT_RETRY_LIMIT = 7
+MAX_RETRY_LIMIT = 255
 
 
 @dataclass(slots=True)
@@ -127,9 +131,11 @@ class Medium:
     """One collision domain: every station hears every other (the vehicles fly within tens of metres)."""
 
     def __init__(self, stations: int, timing: MacTiming = MacTiming(), queue_packets: int = DEFAULT_QUEUE_PACKETS,
-                 retry_limit: int = 7, seed: int = 0):
+                 retry_limit: int = DEFAULT_RETRY_LIMIT, seed: int = 0):
         if queue_packets < 1:
             raise ValueError(f"queue_packets must be >= 1, got {queue_packets}")
+        if not 0 <= retry_limit <= MAX_RETRY_LIMIT:
+            raise ValueError(f"retry_limit must be in 0..{MAX_RETRY_LIMIT}, got {retry_limit}")
         self.n, self.timing, self.queue_packets, self.retry_limit = stations, timing, queue_packets, retry_limit
         self.rng = np.random.default_rng(seed)
         self.queues: list[deque[Frame]] = [deque() for _ in range(stations)]

@@ -328,7 +328,8 @@ class Experiment:
             if s.network.air == "medium":
                 air = MediumAir(ids, ids.index(s.master.id), s.network.sharing, probe_ports, self.speedup,
                                 s.network.queue_packets, self.clock_path,
-                                congestion_control=s.network.congestion_control)
+                                congestion_control=s.network.congestion_control,
+                                retry_limit=self.radio.retry_limit)
             else:
                 air = AirNetwork(ids, ids.index(s.master.id), s.network.sharing, probe_ports, self.speedup,
                                  s.network.congestion_control)

@@ -42,7 +42,7 @@ import time
 import numpy as np
 
 from nac_onboard.clock import from_env
-from nac_onboard.radio.medium import BROADCAST, DEFAULT_QUEUE_PACKETS, MacTiming, Medium
+from nac_onboard.radio.medium import BROADCAST, DEFAULT_QUEUE_PACKETS, DEFAULT_RETRY_LIMIT, MacTiming, Medium
 from sitl.network.netns import NetworkError, in_netns
 
 TUNSETIFF, TUNSETOFFLOAD, IFF_TUN, IFF_NO_PI, IFF_VNET_HDR = 0x400454CA, 0x400454D0, 0x0001, 0x1000, 0x4000
@@ -342,7 +342,7 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("stations", nargs="+", help="NAMESPACE:ADDRESS of each station, in index order")
     parser.add_argument("--queue-packets", type=int, default=DEFAULT_QUEUE_PACKETS)
-    parser.add_argument("--retry-limit", type=int, default=7)
+    parser.add_argument("--retry-limit", type=int, default=DEFAULT_RETRY_LIMIT)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     pairs = [s.rpartition(":") for s in args.stations]

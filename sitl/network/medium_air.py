@@ -25,7 +25,7 @@ from pathlib import Path
 from nac_onboard.child_process import die_with_parent_preexec
 from nac_onboard.clock import ENV as CLOCK_ENV
 from nac_onboard.flight_log import JsonlLog
-from nac_onboard.radio.medium import DEFAULT_QUEUE_PACKETS
+from nac_onboard.radio.medium import DEFAULT_QUEUE_PACKETS, DEFAULT_RETRY_LIMIT
 from nac_onboard.records import kinds
 from sitl.network import netns
 from sitl.network.air import AIR_PREFIX_LENGTH, AirNetwork, Station, end_fed_process, quick_acks
@@ -48,9 +48,10 @@ class MediumAir(AirNetwork):
     def __init__(self, vehicle_ids: list[str], ap: int | None, sharing: bool,
                  probe_ports: list[int | None] | None = None, speedup: float = 1.0,
                  queue_packets: int = DEFAULT_QUEUE_PACKETS, clock_path: Path | None = None, seed: int = 0,
-                 congestion_control: str = "host"):
+                 congestion_control: str = "host", retry_limit: int = DEFAULT_RETRY_LIMIT):
         super().__init__(vehicle_ids, ap, sharing, probe_ports, speedup, congestion_control)
         self.queue_packets, self.clock_path, self.seed = queue_packets, clock_path, seed
+        self.retry_limit = retry_limit  # the radio's: the sleep and htb networks' loss counts the same tries
         self.line: subprocess.Popen | None = None
         self.counters: dict | None = None  # the delay line's last counters
         self.errors: list[str] = []
@@ -76,7 +77,8 @@ class MediumAir(AirNetwork):
         env = {**os.environ, CLOCK_ENV: str(self.clock_path)} if self.clock_path is not None else None
         self.line = subprocess.Popen(
             [sys.executable, "-m", "sitl.network.delay_line", *(f"{s.netns}:{s.address}" for s in self.stations),
-             "--queue-packets", str(self.queue_packets), "--seed", str(self.seed)],
+             "--queue-packets", str(self.queue_packets), "--retry-limit", str(self.retry_limit), "--seed",
+             str(self.seed)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1, env=env,
             preexec_fn=die_with_parent_preexec())
         self._wait_ready()

@@ -298,6 +298,25 @@ def test_what_the_delay_line_cannot_carry_is_counted_in_the_records_and_logged_n
     assert (shown["write_failed"], shown["unknown_destination"], shown["not_ipv4"]) == (5, 1, 1), shown
 
 
+@needs_kernel
+def test_the_delay_line_tries_a_frame_as_often_as_the_radios_retry_limit_allows():
+    """A run's radio sets the MAC's retry limit (802.11's dot11ShortRetryLimit, 7 unless its channel says): the
+    frame-level air tries each frame that often again before IP loses it, as the sleep and htb networks' loss counts.
+    On a link where every frame fails, one datagram costs retry_limit + 1 channel accesses, then a retry drop."""
+    air = MediumAir(["a", "b"], ap=0, sharing=True, retry_limit=2).create()
+    a, b = air.stations
+    sender = netns.socket_in_netns(a.netns, socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        links(air, PHY_BPS, per=1.0)
+        before = counters_when(air, "updates", 1)["exchanges"]
+        sender.sendto(b"x" * 100, (b.address, 9000))
+        counters = counters_when(air, "retry_drops", 1)
+        assert counters["retry_drops"] == 1 and counters["exchanges"] - before == 3, counters
+    finally:
+        sender.close()
+        air.close()
+
+
 TCP_INFO_UNACKED_AT = 24  # struct tcp_info (linux/tcp.h): eight u8 fields, then rto, ato, snd_mss, rcv_mss, unacked
 
 
@@ -400,6 +419,7 @@ def test_an_experiment_on_the_frame_level_air_trains_probes_and_records_its_queu
     assert "802.11 medium" in report and "share of deliveries late" in report, "the report names the air and counts"
     assert "alongside the job, in the same stations' queues" in report, "the probes shared the job's queues"
     assert result.summary["air"]["delivered"] == medium[-1]["delivered"] and 0 <= result.summary["air_late_share"] <= 1
+    assert experiment.air.retry_limit == experiment.radio.retry_limit, "the air tries frames as the radio says"
     assert not [n for n in netns.namespaces() if n.startswith(experiment.air.prefix)]
 
 

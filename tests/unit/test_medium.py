@@ -247,3 +247,11 @@ def test_a_channel_on_the_802_11_mac_charges_the_mediums_costs_on_both_networks(
     assert PairLinks(PRESETS["wifi-flight"]).transfer_s(272 * 8, 25e6, 0.0, phy_bps=30e6) == 272 * 8 / 25e6
     with pytest.raises(ChannelError, match="mac must be one of efficiency, 802.11"):
         dataclasses.replace(radio, mac="ethernet")
+
+
+@pytest.mark.parametrize("queue_packets, retry_limit, message", [
+    (0, 7, "queue_packets must be >= 1, got 0"), (10, -1, "retry_limit must be in 0..255, got -1"),
+    (10, 256, "retry_limit must be in 0..255, got 256")])
+def test_a_queue_or_retry_limit_out_of_its_range_is_refused_with_the_range(queue_packets, retry_limit, message):
+    with pytest.raises(ValueError, match=message):
+        Medium(2, MacTiming(), queue_packets, retry_limit)
