@@ -228,6 +228,11 @@ def load_scenario(name_or_path: str) -> Scenario:
         energy=_energy(_table(data, "energy", where), f"{where}: [energy]"))
     if scenario.energy.frame:
         scenario = dataclasses.replace(scenario, frame=load_frame(path.parent / scenario.energy.frame))
+    if scenario.network.air == "medium" and scenario.channel.background_airtime > 0:
+        raise ScenarioError(f"{where}: [channel] background_airtime = {scenario.channel.background_airtime:g}: the "
+                            "frame-level air ([network] air = \"medium\") holds only the run's own stations, so "
+                            "other networks' airtime is not modelled there; set it to 0, or use air = \"htb\", which "
+                            "takes it off every link's rate")
     for k, fault in enumerate(scenario.faults):
         if fault.kind is FaultKind.KILL_WORKER and (scenario.compute is None or fault.vehicle not in
                                             [w.id for w in scenario.workers]):

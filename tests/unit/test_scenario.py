@@ -63,6 +63,9 @@ def test_the_shipped_scenarios_load_with_the_research_geometry():
      "role = 'worker'\nhome = [47, 8, 500]\n[channel]\npreset = 'wifi-flight'\nretry_limit = 300\n",
      "retry_limit must be an integer in 0..255 (802.11's retry limit), got 300"),
     ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
+     "role = 'worker'\nhome = [47, 8, 500]\n[channel]\npreset = 'wifi-flight'\nbackground_airtime = 0.2\n"
+     "[network]\nair = 'medium'\n", "background_airtime = 0.2: the frame-level air"),
+    ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
      "role = 'worker'\nhome = [47, 8, 500]\n[channel]\npreset = 'wifi-flight'\nexponnent = 3\n",
      "unknown key exponnent"),
     ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
