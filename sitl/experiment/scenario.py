@@ -437,6 +437,13 @@ def _network(table: dict, where: str) -> NetworkPlan:
                             f"{plan.congestion_control!r}")
     if not 0.01 <= plan.period_s <= 10.0:
         raise ScenarioError(f"{where}: period_s must be within 0.01..10 simulated seconds, got {plan.period_s}")
+    # a key one air has no use for is refused, not ignored: the run would not be what its file says
+    if plan.air == "medium" and not plan.sharing:
+        raise ScenarioError(f"{where}: sharing = false: on the frame-level air (air = \"medium\") every station "
+                            "shares one medium, frame by frame; sharing is the htb air's choice")
+    if plan.air == "htb" and "queue_packets" in table:
+        raise ScenarioError(f"{where}: queue_packets: a station's transmit queue is the frame-level air's (air = "
+                            "\"medium\"); the htb air has none of its own")
     return plan
 
 

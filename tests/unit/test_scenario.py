@@ -65,6 +65,8 @@ def test_the_shipped_scenarios_load_with_the_research_geometry():
     ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
      "role = 'worker'\nhome = [47, 8, 500]\n[channel]\npreset = 'wifi-flight'\nbackground_airtime = 0.2\n"
      "[network]\nair = 'medium'\n", "background_airtime = 0.2: the frame-level air"),
+    (TWO + "[network]\nair = 'medium'\nsharing = false\n", "[network]: sharing = false: on the frame-level air"),
+    (TWO + "[network]\nqueue_packets = 50\n", "[network]: queue_packets: a station's transmit queue is the"),
     ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
      "role = 'worker'\nhome = [47, 8, 500]\n[channel]\npreset = 'wifi-flight'\nexponnent = 3\n",
      "unknown key exponnent"),
