@@ -185,6 +185,16 @@ class Medium:
             self.counting_from_s[src] = max(t_s, self.idle_from_s)
         return True
 
+    def flush(self, station: int) -> int:
+        """The station's queue emptied (its radio lost its power): the packets it held, gone with it. What it had on
+        the air already is delivered as the air decided."""
+        dropped = self.queued[station]
+        self.queues[station].clear()
+        self.queued[station] = 0
+        self.backoff[station], self.cw[station] = None, self.timing.cw_min
+        self._start = False
+        return dropped
+
     def backlog(self, station: int) -> int:
         """Packets queued at the station (a segmentation offload's run counts each of its segments)."""
         return self.queued[station]

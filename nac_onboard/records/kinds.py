@@ -378,6 +378,10 @@ AIR_MEDIUM = Kind("air_medium", NETWORK_LOG, "the frame-level air's counters (de
         "full): lost on this host, not by the medium"),
     opt("updates", "integer", "", "link updates taken"), opt("bad_updates", "integer", "", "link updates refused"),
     opt("cpus_held_awake", "boolean", "", "whether the delay line holds the CPUs' wake-up latency at 0"),
+    opt("flushed", "integer", "", "packets queued at a station when its radio went off (a lost companion): gone "
+        "with it"),
+    opt("stations_off", "list", "", "the stations whose radio is off now, by index in backlog's order: nothing "
+        "reaches them, frames to them are tried to the retry limit and lost"),
 ))
 
 # ---- the experiment: experiment.json ---------------------------------------------------------------------------

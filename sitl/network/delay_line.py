@@ -13,7 +13,8 @@ receiver's air0) is counted too, each in its own counter, which the run's record
 
 It prints `delay line ready` once every `air0` exists, then reads control lines on stdin, one JSON object a line:
 first {"lead_s": L}, then link updates ({"phy_bps": [[...]], "per": [[...]], "fallback_bps": ..., "fallback_per":
-...}, N x N each). It prints its counters as one JSON object a line every STATS_PERIOD_S wall seconds and at its
+...}, N x N each), and {"off": [k, ...]}: the stations whose radio is off now (a lost companion: its queue goes,
+nothing reaches it). It prints its counters as one JSON object a line every STATS_PERIOD_S wall seconds and at its
 end (stdin closed, or SIGTERM).
 
 The lead: a packet's pass through the emulator costs wall time of its own (the sender's TUN write waking this
@@ -135,8 +136,11 @@ class DelayLine:
         self.fds = [open_tun(ns) for ns in namespaces]
         self.out = sys.stdout if out is None else out  # the stdout of now, not of import time
         self.counters = {"packets_in": 0, "not_ipv4": 0, "unknown_destination": 0, "late": 0, "max_late_s": 0.0,
-                         "updates": 0, "bad_updates": 0, "runs_cut": 0, "passed": 0, "write_failed": 0}
+                         "updates": 0, "bad_updates": 0, "runs_cut": 0, "passed": 0, "write_failed": 0,
+                         "flushed": 0}
         self.lead_s: float | None = None  # wall; None: not given yet, packets pass straight through
+        self.links: dict[str, np.ndarray | None] | None = None  # as the last update gave them
+        self.off: set[int] = set()  # stations whose radio is off (a lost companion): nothing reaches or leaves them
         self.queue_s: list[float] = []  # since the last counters line
         self.queue_by_station_s: list[list[float]] = [[] for _ in namespaces]  # the same, by the sending station
         self.air_s: list[float] = []
@@ -253,6 +257,9 @@ class DelayLine:
             if isinstance(update, dict) and "lead_s" in update:
                 self._set_lead(update["lead_s"])
                 return
+            if isinstance(update, dict) and "off" in update:
+                self._set_off(update["off"])
+                return
             matrices = {key: np.asarray(update[key], float) for key in ("phy_bps", "per")}
             for key in ("fallback_bps", "fallback_per"):
                 matrices[key] = np.asarray(update[key], float) if key in update else None
@@ -262,9 +269,35 @@ class DelayLine:
             self.counters["bad_updates"] += 1
             print(json.dumps({"error": f"link update refused: {err}"}), file=self.out, flush=True)
             return
-        self.medium.set_links(matrices["phy_bps"], matrices["per"], matrices["fallback_bps"],
-                              matrices["fallback_per"])
+        self.links = matrices
+        self._give_links()
         self.counters["updates"] += 1
+
+    def _give_links(self) -> None:
+        """The last update's links to the medium, with every station that is off out of everyone's range: a frame
+        to it is tried to the retry limit and lost, as no acknowledgement comes from a radio without power."""
+        if self.links is None:
+            return
+        rates = {key: self.links[key] for key in ("phy_bps", "fallback_bps")}
+        if self.off:
+            off = sorted(self.off)
+            for key, m in rates.items():
+                if m is not None:
+                    m = m.copy()
+                    m[off, :] = 0.0
+                    m[:, off] = 0.0
+                    rates[key] = m
+        self.medium.set_links(rates["phy_bps"], self.links["per"], rates["fallback_bps"], self.links["fallback_per"])
+
+    def _set_off(self, off) -> None:
+        n = len(self.fds)
+        if not isinstance(off, list) or not all(isinstance(k, int) and not isinstance(k, bool) and 0 <= k < n
+                                                for k in off):
+            raise ValueError(f"off: expected a list of station indices in 0..{n - 1}, got {off!r}")
+        for k in set(off) - self.off:  # its queue goes with its power
+            self.counters["flushed"] += self.medium.flush(k)
+        self.off = set(off)
+        self._give_links()
 
     def _set_lead(self, lead_s) -> None:
         if isinstance(lead_s, bool) or not isinstance(lead_s, int | float) or not 0 <= lead_s <= MAX_LEAD_S:
@@ -283,6 +316,8 @@ class DelayLine:
                 "queue_p50_by_station_s": [_median(q) for q in self.queue_by_station_s]}
         if self.lead_s is not None:
             line["lead_s"] = self.lead_s
+        if self.off:
+            line["stations_off"] = sorted(self.off)
         self.queue_s, self.air_s, self.late_s = [], [], []
         self.queue_by_station_s = [[] for _ in self.fds]
         print(json.dumps(line), file=self.out, flush=True)

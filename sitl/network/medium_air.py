@@ -59,6 +59,7 @@ class MediumAir(AirNetwork):
         self._reader: threading.Thread | None = None
         self.lead_s = 0.0  # wall: the host's own cost of a pass, taken off each delivery's hold
         self._quiet_until = 0.0  # monotonic: no warning before it (WARN_EVERY_S)
+        self._off: set[int] = set()  # stations silenced (a lost companion)
 
     @property
     def namespaces(self) -> list[str]:
@@ -158,6 +159,17 @@ class MediumAir(AirNetwork):
                         "%.1f ms); the report counts them", late, delivered, counters.get("max_late_s", 0.0) * 1e3)
         if lost > 0 or behind:
             self._quiet_until = time.monotonic() + WARN_EVERY_S
+
+    def silence(self, index: int, silent: bool = True) -> None:
+        """As the htb air's, and the medium told: a station without power neither sends (its queue goes) nor
+        acknowledges, so what is sent to it is tried to the retry limit and lost, as on the air."""
+        if silent:
+            self._off.add(index)
+            self._send({"off": sorted(self._off)})
+        super().silence(index, silent)
+        if not silent:
+            self._off.discard(index)
+            self._send({"off": sorted(self._off)})
 
     @staticmethod
     def _running(station: Station) -> bool:

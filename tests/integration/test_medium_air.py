@@ -317,6 +317,31 @@ def test_the_delay_line_tries_a_frame_as_often_as_the_radios_retry_limit_allows(
         air.close()
 
 
+@needs_kernel
+def test_a_silenced_station_is_out_of_everyones_range_on_the_air_until_it_is_back():
+    """A lost companion's station (its radio without power) on the frame-level air: what is sent to it is tried to
+    the retry limit and lost, as no acknowledgement comes (retry drops, air time spent; not a write the host
+    refused), the medium records it as off; back, it answers again."""
+    air = MediumAir(["a", "b"], ap=0, sharing=True).create()
+    echo = Echo(air)
+    try:
+        links(air, PHY_BPS)
+        assert len(echo.round_trips(3, gap_s=0.001)) == 3
+        before = counters_when(air, "delivered", 6)["exchanges"]
+        air.silence(1)
+        for _ in range(3):
+            echo.client.sendto(b"x" * 100, echo.to)
+        counters = counters_when(air, "retry_drops", 3)
+        assert counters["retry_drops"] == 3 and counters["write_failed"] == 0, counters
+        # every try fails: retry_limit + 1 channel accesses at least (the three may go as one aggregate)
+        assert counters["stations_off"] == [1] and counters["exchanges"] - before >= 7 + 1, counters
+        air.silence(1, False)
+        assert len(echo.round_trips(3, gap_s=0.001)) == 3, "back in range"  # a lost datagram: a timeout here
+    finally:
+        echo.close()
+        air.close()
+
+
 TCP_INFO_UNACKED_AT = 24  # struct tcp_info (linux/tcp.h): eight u8 fields, then rto, ato, snd_mss, rcv_mss, unacked
 
 

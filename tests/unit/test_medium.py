@@ -255,3 +255,17 @@ def test_a_channel_on_the_802_11_mac_charges_the_mediums_costs_on_both_networks(
 def test_a_queue_or_retry_limit_out_of_its_range_is_refused_with_the_range(queue_packets, retry_limit, message):
     with pytest.raises(ValueError, match=message):
         Medium(2, MacTiming(), queue_packets, retry_limit)
+
+
+def test_a_flushed_station_loses_its_queue_and_the_medium_goes_on_from_idle():
+    """A station whose radio loses its power: what it had queued is gone (counted by the caller), it contends for
+    nothing, and what it is offered after is sent as from a fresh queue."""
+    air = Medium(2, MacTiming(), queue_packets=100, seed=3)
+    air.set_links(np.array([[0.0, 30e6], [30e6, 0.0]]), np.zeros((2, 2)))
+    for _ in range(5):
+        air.offer(0.0, 0, 1, 1500)
+    assert air.flush(0) == 5 and air.backlog(0) == 0 and air.next_event_s() is None
+    assert air.run_until(1.0) == [] and air.stats.delivered == 0
+    air.offer(1.0, 0, 1, 1500)
+    delivered = air.run_until(1.01)
+    assert len(delivered) == 1 and delivered[0].dst == 1 and air.cw[0] == MacTiming().cw_min
