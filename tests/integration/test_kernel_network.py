@@ -27,6 +27,7 @@ from sitl.network.medium_air import MediumAir
 from sitl.network.shaper import Shaper
 from tests.conftest import SHARED_DATA, allocate_base_port
 from tests.integration.console import Console, as_at_a_terminal
+from tests.integration.test_experiment import children_of
 from tests.stats import MIN_SAMPLES, agrees_within, median_interval
 
 ENV = dict(os.environ, NAC_DATA_DIR=str(SHARED_DATA))
@@ -62,7 +63,7 @@ def run_namespaces(runner_pid: int) -> list[str]:
 
 
 def shortened(name: str, folder: Path, duration_s: float, channel: str = "", max_speedup: float = 1.0,
-              probe_period_s: float | None = None) -> Path:
+              probe_period_s: float | None = None, air: str = "htb") -> Path:
     """A shipped scenario with a shorter duration, its missions read from where they are shipped; `channel`:
     lines added to its [channel] table; max_speedup: for tests of mechanics, not of results; probe_period_s: its
     probes' period instead of the scenario's (more probes in a short run). On the htb air, with its probes apart
@@ -86,6 +87,8 @@ def shortened(name: str, folder: Path, duration_s: float, channel: str = "", max
     text = re.sub(r"^default_speedup = .*\n", "", text, count=1, flags=re.M)  # 1x unless a test asks
     text = re.sub(r"^(preset = .*)$", lambda m: m.group(1) + "\n" + channel, text, count=1, flags=re.M)
     text = text.replace('mission = "', f'mission = "{SCENARIOS}/')
+    if air != "htb":  # the frame-level air, with this host's TCP like the rest
+        text += f'\n[network]\nair = "{air}"\n'
     path = folder / f"{name}-short.toml"
     path.write_text(text)
     return path
@@ -326,12 +329,14 @@ def test_ctrl_c_on_a_kernel_network_leaves_nothing_behind(tmp_path):
 
 @needs_kernel
 @pytest.mark.exclusive  # a bound of 10 s on the clean-up, the host's namespaces looked at
-def test_sigkill_on_a_kernel_network_leaves_nothing_within_10_s(tmp_path):
+@pytest.mark.parametrize("air", ["htb", "medium"])
+def test_sigkill_on_a_kernel_network_leaves_nothing_within_10_s(tmp_path, air):
     """SIGKILL runs no clean-up, so the children die with the runner (their parent-death signal) and its watchdog
     kills the rest of the run and removes its namespaces. (SIGTERM is Ctrl-C, the run's own clean-up: the test above
     and test_experiment.py.) Within 10 s on a loaded 2-core machine: the watchdog needs one pass over /proc and one
-    `ip netns del` per namespace (milliseconds each)."""
-    scenario = shortened("paper-flight-static", tmp_path, 600.0, max_speedup=4.0)
+    `ip netns del` per namespace (milliseconds each). On the frame-level air the delay line (in the host's namespace,
+    holding every station's TUN device) goes too, and its devices with it."""
+    scenario = shortened("paper-flight-static", tmp_path, 600.0, max_speedup=4.0, air=air)
     proc, console = start_kernel_run(scenario, tmp_path / "run")
 
     def ours() -> list[str]:
@@ -339,9 +344,13 @@ def test_sigkill_on_a_kernel_network_leaves_nothing_within_10_s(tmp_path):
 
     try:
         assert console.seen.wait(90.0), console.text()
-        assert len(ours()) == 4, "a namespace per vehicle and the air's"
+        assert len(ours()) == (4 if air == "htb" else 3), "a namespace per vehicle (and the htb air's)"
         pids = [pid for name in ours() for pid in netns.pids_in(name)]
         assert len(pids) >= 6, "agents and MPI ranks run inside the namespaces"
+        if air == "medium":
+            line = [pid for pid in children_of(proc.pid) if b"sitl.network.delay_line" in _cmdline(pid)]
+            assert len(line) == 1, "the delay line runs beside the namespaces"
+            pids += line
         proc.send_signal(signal.SIGKILL)
         deadline = time.monotonic() + 10.0
         while (ours() or [p for p in pids if _running(p)]) and time.monotonic() < deadline:
@@ -355,6 +364,13 @@ def test_sigkill_on_a_kernel_network_leaves_nothing_within_10_s(tmp_path):
             proc.kill()
             proc.wait()
     console.join()
+
+
+def _cmdline(pid: int) -> bytes:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return b""
 
 
 def _running(pid: int) -> bool:
