@@ -208,10 +208,14 @@ class ChannelModel:
         if self.rate_model == "802.11n":
             guard = "short" if self.short_guard_interval else "long"
             parts.append(f"802.11n MCS 0-7 ({self.channel_width_mhz} MHz, {guard} "
-                         f"GI, offset {self.mcs_offset_db:g} dB, adaptation {self.rate_adaptation_s:g} s), "
-                         f"MAC efficiency {self.mac_efficiency:g}")
+                         f"GI, offset {self.mcs_offset_db:g} dB, adaptation {self.rate_adaptation_s:g} s)")
         else:
             parts.append(f"Shannon over {self.bandwidth_hz / 1e6:g} MHz")
+        if self.mac == "802.11":  # the medium's own costs: the efficiency is not used
+            parts.append(f"the 802.11 MAC frame by frame (channel access, preamble and block ack per aggregate, "
+                         f"retry limit {self.retry_limit})")
+        elif self.rate_model == "802.11n":
+            parts[-1] += f", MAC efficiency {self.mac_efficiency:g}"
         if self.background_airtime:
             parts.append(f"{self.background_airtime:.0%} background airtime")
         if self.overhead_bits:

@@ -236,3 +236,13 @@ def test_shadowing_after_a_path_does_not_depend_on_how_often_it_was_stepped():
     assert fine.shadow_db == pytest.approx(coarse.shadow_db, abs=1e-9)
     assert fine.shadow_db[1] == air_link.Radio(wifi, 2, seed=9).shadow_db[1]
     assert abs(fine.shadow_db[0] - fine.shadow_db[1]) > 1e-3, "the climbing pair's offset moved"
+
+
+def test_the_radios_line_names_the_mac_it_charges():
+    """A report's radio line says what a frame costs: the preset's MAC efficiency on the htb air and the sleep network,
+    the 802.11 medium's own costs (and its retry limit) on the frame-level air, where the efficiency is not used."""
+    wifi = PRESETS["wifi-flight"]
+    assert wifi.describe().endswith(f"MAC efficiency {wifi.mac_efficiency:g}")
+    frame_level = dataclasses.replace(wifi, mac="802.11", retry_limit=4).describe()
+    assert "MAC efficiency" not in frame_level and frame_level.endswith(
+        "the 802.11 MAC frame by frame (channel access, preamble and block ack per aggregate, retry limit 4)")
