@@ -228,11 +228,8 @@ def load_scenario(name_or_path: str) -> Scenario:
         energy=_energy(_table(data, "energy", where), f"{where}: [energy]"))
     if scenario.energy.frame:
         scenario = dataclasses.replace(scenario, frame=load_frame(path.parent / scenario.energy.frame))
-    if scenario.network.air == "medium" and scenario.channel.background_airtime > 0:
-        raise ScenarioError(f"{where}: [channel] background_airtime = {scenario.channel.background_airtime:g}: the "
-                            "frame-level air ([network] air = \"medium\") holds only the run's own stations, so "
-                            "other networks' airtime is not modelled there; set it to 0, or use air = \"htb\", which "
-                            "takes it off every link's rate")
+    if scenario.network.air == "medium":
+        _fits_the_frame_level_air(scenario.channel, _table(data, "channel", where), f"{where}: [channel]")
     for k, fault in enumerate(scenario.faults):
         if fault.kind is FaultKind.KILL_WORKER and (scenario.compute is None or fault.vehicle not in
                                             [w.id for w in scenario.workers]):
@@ -426,6 +423,21 @@ def _probes(table: dict, where: str) -> ProbePlan:
     if plan.tool not in ("nac", "iperf3"):
         raise ScenarioError(f"{where}: tool must be \"nac\" or \"iperf3\", got {plan.tool!r}")
     return plan
+
+
+def _fits_the_frame_level_air(channel, table: dict, where: str) -> None:
+    """The channel fields the frame-level air has no use for, refused: it holds only the run's stations (no other
+    networks' airtime) and charges the 802.11 MAC's own costs (no efficiency)."""
+    if channel.background_airtime > 0:
+        raise ScenarioError(f"{where} background_airtime = {channel.background_airtime:g}: the frame-level air "
+                            "([network] air = \"medium\") holds only the run's own stations, so other networks' "
+                            "airtime is not modelled there; set it to 0, or use air = \"htb\", which takes it off "
+                            "every link's rate")
+    if "mac_efficiency" in table or table.get("mac", "802.11") != "802.11":
+        key = "mac_efficiency" if "mac_efficiency" in table else "mac"
+        raise ScenarioError(f"{where} {key}: the frame-level air ([network] air = \"medium\") charges each frame "
+                            "what the 802.11 MAC costs (mac = \"802.11\"), not an efficiency; remove it, or use air "
+                            "= \"htb\"")
 
 
 def _network(table: dict, where: str) -> NetworkPlan:

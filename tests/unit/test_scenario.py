@@ -64,7 +64,11 @@ def test_the_shipped_scenarios_load_with_the_research_geometry():
      "retry_limit must be an integer in 0..255 (802.11's retry limit), got 300"),
     ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
      "role = 'worker'\nhome = [47, 8, 500]\n[channel]\npreset = 'wifi-flight'\nbackground_airtime = 0.2\n"
-     "[network]\nair = 'medium'\n", "background_airtime = 0.2: the frame-level air"),
+     "[network]\nair = 'medium'\n", "[channel] background_airtime = 0.2: the frame-level air"),
+    (TWO + "[channel]\npreset = 'wifi-flight'\nmac_efficiency = 0.5\n[network]\nair = 'medium'\n",
+     "[channel] mac_efficiency: the frame-level air"),
+    (TWO + "[channel]\npreset = 'wifi-flight'\nmac = 'efficiency'\n[network]\nair = 'medium'\n",
+     "[channel] mac: the frame-level air"),
     (TWO + "[network]\nair = 'medium'\nsharing = false\n", "[network]: sharing = false: on the frame-level air"),
     (TWO + "[network]\nqueue_packets = 50\n", "[network]: queue_packets: a station's transmit queue is the"),
     ("duration_s = 10\n[[vehicle]]\nid = 'a'\nrole = 'master'\nhome = [47, 8, 500]\n[[vehicle]]\nid = 'b'\n"
