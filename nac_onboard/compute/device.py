@@ -62,7 +62,10 @@ def load_device_profile(path: str | Path, measure_host: bool = False) -> DeviceP
     """A [device] table: name, source (required: a figure without one is not used), and either slowdown (in
     SLOWDOWN_RANGE) or cpu_score_mips (the slowdown is then this host's score over it, measured once per machine if
     measure_host, at least 1). A shipped profile's name is taken for a path that does not exist."""
-    path = device_path(path)
+    named, path = path, device_path(path)
+    if not path.exists():  # a mistyped shipped name reads as a missing file: say which names there are
+        raise BadInput(f"cannot read device profile {path}: no such file, and {Path(named).name!r} is not a shipped "
+                       f"profile's name ({', '.join(shipped_devices())})")
     check_regular_file(path, "device profile", MAX_CONFIG_BYTES)
     try:
         table = tomllib.loads(path.read_text(encoding="utf-8"))

@@ -225,7 +225,7 @@ def load_scenario(name_or_path: str) -> Scenario:
         max_speedup=max_speedup, default_speedup=default_speedup,
         notes=get_value(data, "notes", "tuple[str, ...]", where, ScenarioError, ()),
         params=_params(_table(data, "params", where), f"{where}: [params]"),
-        energy=_energy(_table(data, "energy", where), f"{where}: [energy]"))
+        energy=_energy(_table(data, "energy", where), f"{where}: [energy]", data.get("compute")))
     if scenario.energy.frame:
         scenario = dataclasses.replace(scenario, frame=load_frame(path.parent / scenario.energy.frame))
     if scenario.network.air == "medium":
@@ -459,7 +459,14 @@ def _network(table: dict, where: str) -> NetworkPlan:
     return plan
 
 
-def _energy(table: dict, where: str) -> EnergyPlan:
+def _energy(table: dict, where: str, compute_table) -> EnergyPlan:
+    """[energy], its companion by the device profiles' names (a short alias taken); unset, the companion is [compute]'s
+    device where that is a shipped Jetson profile: one companion, one name, in both models."""
+    table = dict(table)
+    if isinstance(table.get("companion"), str):  # any other type is refused by to_dataclass, by name
+        table["companion"] = energy.COMPANION_ALIASES.get(table["companion"], table["companion"])
+    elif isinstance(compute_table, dict) and compute_table.get("device") in energy.COMPANIONS:
+        table["companion"] = compute_table["device"]
     plan = to_dataclass(EnergyPlan, table, where, ScenarioError, table="energy")
     for key, known in (("companion", energy.COMPANIONS), ("radio", energy.RADIOS)):
         if getattr(plan, key) not in known:

@@ -256,11 +256,13 @@ class RadioPower:
 
 _BUDGET_NOTE = "busy: the module's power-mode budget (NVIDIA data sheet); idle: a third of it (assumed, not measured)"
 COMPANIONS: dict[str, CompanionPower] = {
+    # named as the device profiles are (nac_onboard/compute/devices/): one name per companion
     "jetson-tx2": CompanionPower("jetson-tx2", 5.0, 15.0, "Jetson TX2 Max-P 15 W; " + _BUDGET_NOTE),
-    "xavier-nx": CompanionPower("xavier-nx", 6.7, 20.0, "Jetson Xavier NX 20 W mode; " + _BUDGET_NOTE),
-    "orin-nano": CompanionPower("orin-nano", 5.0, 15.0, "Jetson Orin Nano 15 W mode; " + _BUDGET_NOTE),
-    "orin-nx": CompanionPower("orin-nx", 8.3, 25.0, "Jetson Orin NX 25 W mode; " + _BUDGET_NOTE),
+    "jetson-xavier-nx": CompanionPower("jetson-xavier-nx", 6.7, 20.0, "Jetson Xavier NX 20 W mode; " + _BUDGET_NOTE),
+    "jetson-orin-nano": CompanionPower("jetson-orin-nano", 5.0, 15.0, "Jetson Orin Nano 15 W mode; " + _BUDGET_NOTE),
+    "jetson-orin-nx": CompanionPower("jetson-orin-nx", 8.3, 25.0, "Jetson Orin NX 25 W mode; " + _BUDGET_NOTE),
 }
+COMPANION_ALIASES = {"xavier-nx": "jetson-xavier-nx", "orin-nano": "jetson-orin-nano", "orin-nx": "jetson-orin-nx"}
 RADIOS: dict[str, RadioPower] = {
     # A small 802.11n travel router: 2 W idle (assumed); transmit and receive add what Halperin et al. measured
     # for an 802.11n NIC over idle (HotPower 2010: about 1.3-2 W sending, 0.1-0.3 W receiving), at 65 Mbit/s

@@ -114,7 +114,10 @@ def test_the_shipped_scenarios_load_with_the_research_geometry():
                                                                "[1, 100000], got 0"),
     (TWO + "[compute]\ntask = 'linreg'\ndevice = 'no-such-device.toml'\n",
      "[compute]: device: cannot read device profile"),
-    (TWO + "[energy]\ncompanion = 'raspberry'\n", "[energy]: companion must be one of jetson-tx2, xavier-nx"),
+    (TWO + "[compute]\ntask = 'linreg'\ndevice = 'jetson-tx3'\n",
+     "'jetson-tx3' is not a shipped profile's name (jetson-orin-nano, jetson-orin-nx, jetson-tx2, jetson-xavier-nx)"),
+    (TWO + "[energy]\ncompanion = 'raspberry'\n", "[energy]: companion must be one of jetson-tx2, jetson-xavier-nx"),
+    (TWO + "[energy]\ncompanion = ['jetson-tx2']\n", "energy.companion"),
     (TWO + "[energy]\ncompanion_mah = -1300\n", "energy.companion_mah: expected a finite number within (0, 100000] "
                                                   "mAh, got -1300"),
     (TWO + "[energy]\ndc_dc_efficiency = 1.2\n", "energy.dc_dc_efficiency: expected a finite number within (0, 1]"),
@@ -399,6 +402,18 @@ def test_energy_allocation_hands_the_job_each_workers_companion_pack_as_rated(tm
     save_channel(scenario.channel, run_channel_path(tmp_path / "run"))  # what the runner writes for the ranks
     options = options_from_argv(compute_args(scenario, tmp_path / "run", Ports(14550), 10.0))
     assert options.allocation == "energy" and options.energy_wh == (4 * 3.7 * 0.5, 4 * 3.7 * 2.0)
+
+
+def test_the_energy_companion_takes_the_device_profiles_names_and_follows_the_compute_device(tmp_path):
+    """One companion, one name: [energy] takes the device profiles' names (the short ones as aliases), and left
+    unset it is [compute]'s device where that is a shipped Jetson, so the two models do not describe two computers."""
+    path = tmp_path / "e.toml"
+    for energy, device, expected in ((None, "jetson-orin-nano", "jetson-orin-nano"), ("xavier-nx", None,
+                                     "jetson-xavier-nx"), ("jetson-tx2", "jetson-orin-nx", "jetson-tx2"),
+                                     (None, "host", "jetson-tx2"), (None, None, "jetson-tx2")):
+        text = TWO + "[compute]\ntask = 'linreg'\n" + (f"device = '{device}'\n" if device else "")
+        path.write_text(text + (f"[energy]\ncompanion = '{energy}'\n" if energy else ""))
+        assert load_scenario(str(path)).energy.companion == expected, (energy, device)
 
 
 GOOD_FRAME = {"name": "my-quad", "mass_kg": 1.6, "rotors": 4, "rotor_radius_m": 0.127, "blade_solidity": 0.1,
