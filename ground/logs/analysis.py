@@ -366,6 +366,9 @@ def air_summary(records: list[dict]) -> dict:
     late_s = [r["late_p50_s"] for r in records if r.get("late_p50_s") is not None]
     if late_s:
         summary["air_late_median_ms"] = round(float(np.median(late_s)) * 1e3, 4)
+    if air.get("wall_s") and air.get("cpu_s") is not None:  # what the delay line cost this host (issue 28's target)
+        summary["air_line_cpu_pct"] = round(100.0 * air["cpu_s"] / air["wall_s"], 1)
+        summary["air_line_packets_per_s"] = round(air.get("packets_in", 0) / air["wall_s"])
     return summary
 
 

@@ -42,6 +42,8 @@ SUMMARY_LABELS = {
     "air_late_share": "share of deliveries late (their timing is this host's, not the model's)",
     "air_late_median_ms": "a delivery's typical lateness, the median of each second's median (simulated ms): the "
                           "host's own work on a frame, beyond what the frame's hold left it",
+    "air_line_cpu_pct": "the delay line's CPU (% of one of this host's cores, over its wall time)",
+    "air_line_packets_per_s": "packets the delay line read per wall second",
     "energy_wh": "energy, every vehicle's two packs (Wh)", "companion_energy_wh": "energy, companion packs (Wh)",
     "companion_packs_empty": "companion packs that ran out",
     "energy_per_iteration_j": "energy per complete iteration, both packs (J)",

@@ -378,6 +378,8 @@ AIR_MEDIUM = Kind("air_medium", NETWORK_LOG, "the frame-level air's counters (de
         "full): lost on this host, not by the medium"),
     opt("updates", "integer", "", "link updates taken"), opt("bad_updates", "integer", "", "link updates refused"),
     opt("cpus_held_awake", "boolean", "", "whether the delay line holds the CPUs' wake-up latency at 0"),
+    opt("cpu_s", "number", "s", "the delay line's own CPU time so far (this host's)"),
+    opt("wall_s", "number", "s", "wall time since the delay line started: with cpu_s, its share of a core"),
     opt("flushed", "integer", "", "packets queued at a station when its radio went off (a lost companion): gone "
         "with it"),
     opt("stations_off", "list", "", "the stations whose radio is off now, by index in backlog's order: nothing "

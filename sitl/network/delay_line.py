@@ -146,6 +146,7 @@ class DelayLine:
         self.air_s: list[float] = []
         self.late_s: list[float] = []  # how long after its time each delivery was written (simulated), the same
         self._stop = False
+        self._cpu0_s, self._wall0_s = time.process_time(), time.monotonic()  # its own cost, in its counters
 
     def run(self, control) -> None:
         # select(2) sleeps to the microsecond; epoll and poll round a timeout up to whole milliseconds, which
@@ -313,7 +314,9 @@ class DelayLine:
                 "backlog": [self.medium.backlog(k) for k in range(len(self.fds))],
                 "queue_p50_s": _median(self.queue_s), "air_p50_s": _median(self.air_s),
                 "late_p50_s": _median(self.late_s),
-                "queue_p50_by_station_s": [_median(q) for q in self.queue_by_station_s]}
+                "queue_p50_by_station_s": [_median(q) for q in self.queue_by_station_s],
+                "cpu_s": round(time.process_time() - self._cpu0_s, 3),
+                "wall_s": round(time.monotonic() - self._wall0_s, 3)}
         if self.lead_s is not None:
             line["lead_s"] = self.lead_s
         if self.off:

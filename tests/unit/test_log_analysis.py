@@ -499,3 +499,6 @@ def test_the_airs_summary_names_what_it_could_not_carry_only_where_a_run_had_any
     lossy = air_summary([{**clean, "write_failed": 3, "not_ipv4": 1}])["air"]
     assert (lossy["write_failed"], lossy["not_ipv4"]) == (3, 1) and "unknown_destination" not in lossy
     assert air_summary([]) == {}
+    assert "air_line_cpu_pct" not in summary  # records from before the line counted its own cost
+    costed = air_summary([{**clean, "packets_in": 9000, "cpu_s": 3.0, "wall_s": 60.0}])
+    assert (costed["air_line_cpu_pct"], costed["air_line_packets_per_s"]) == (5.0, 150)
