@@ -126,8 +126,9 @@ def _network_line(network: dict | None) -> str:
     if not network:
         return "sleep (transfers slept bits / capacity; written before the network was recorded)"
     kernel = network.get("mode") == "kernel"
-    if kernel and network.get("air") == "medium":
-        air = ("; the air frame by frame (802.11 medium: one FIFO queue per station, channel access, retries; "
+    if kernel and network.get("air") == "medium":  # the runner's why names the medium already: said once
+        air = ("; probes share the queues" if "802.11 medium" in network.get("why", "") else
+               "; the air frame by frame (802.11 medium: one FIFO queue per station, channel access, retries; "
                "probes share the queues)")
     else:
         air = "; the master's airtime shared" if kernel and network.get("sharing") else ""

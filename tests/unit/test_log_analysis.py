@@ -502,3 +502,15 @@ def test_the_airs_summary_names_what_it_could_not_carry_only_where_a_run_had_any
     assert "air_line_cpu_pct" not in summary  # records from before the line counted its own cost
     costed = air_summary([{**clean, "packets_in": 9000, "cpu_s": 3.0, "wall_s": 60.0}])
     assert (costed["air_line_cpu_pct"], costed["air_line_packets_per_s"]) == (5.0, 150)
+
+
+def test_the_reports_network_line_says_the_frame_level_air_once():
+    """The runner's own words for the frame-level air are not said again beside them; a run that recorded none
+    (older runs) still gets them from the report."""
+    from ground.logs.report import _network_line
+
+    why = ("namespaces on a bridge, every frame through the 802.11 medium (a FIFO queue per station, channel "
+           "access, retries) at the live positions' rates")
+    line = _network_line({"mode": "kernel", "air": "medium", "why": why, "congestion_control": "reno"})
+    assert line.count("802.11 medium") == 1 and "probes share the queues" in line and line.endswith("TCP: reno)")
+    assert "802.11 medium" in _network_line({"mode": "kernel", "air": "medium"})
