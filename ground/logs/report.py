@@ -29,6 +29,7 @@ SUMMARY_LABELS = {
     "compute_span_s": "compute time (s)", "first_cost": "first training cost", "final_cost": "final training cost",
     "absent_iterations": "absent iterations per worker", "absence_reasons": "absence reasons",
     "device": "companions' CPU (device profile)", "late_cpu_segments": "work segments slower here than on it",
+    "late_cpu_share": "what they added on the rank with most, of the job's time",
     "probes": "throughput probes", "failed_probes": "failed probes", "mean_throughput_mbps": "mean throughput (Mbit/s)",
     "std_throughput_mbps": "throughput std, all probes (Mbit/s)",
     "std_throughput_per_link_mbps": "throughput std per link (Mbit/s)",
@@ -90,7 +91,7 @@ def _notes(tables: list[RunTables], experiment: dict | None) -> list[str]:
     lines = []
     if experiment:
         lines += ["## Experiment", "", f"- scenario: `{experiment.get('scenario')}`",
-                  f"- speed-up: {experiment.get('speedup', 1)}x ({experiment.get('speedup_note', '')})",
+                  f"- speed-up: {float(experiment.get('speedup') or 1):g}x ({experiment.get('speedup_note', '')})",
                   f"- network: {_network_line(experiment.get('network'))}",
                   f"- probes: {_probes_line(experiment.get('probes'), experiment.get('network'))}",
                   f"- ended: {experiment.get('outcome', '?')}"

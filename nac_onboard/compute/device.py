@@ -111,6 +111,7 @@ class CpuStretch:
     def __init__(self, slowdown: float, clock):
         self.slowdown, self.clock = slowdown, clock
         self.late = 0  # segments whose host time on the run's clock was already longer than the device's
+        self.late_s = 0.0  # simulated: by how much, in all (a preempted rank's few ms, or a host too slow for it)
         self._cpu0 = self._wall0 = 0.0
 
     @property
@@ -128,6 +129,7 @@ class CpuStretch:
             time.sleep(remaining_wall_s)
         else:
             self.late += 1
+            self.late_s += self.clock.sim_s(-remaining_wall_s)
         return device_s
 
 

@@ -25,14 +25,15 @@ def work_header(kind: float, iteration: float = 0.0, rate_bps: float = 0.0, extr
                 loss: float = 0.0, phy_bps: float = 0.0) -> tuple[float, ...]:
     return (kind, iteration, rate_bps, extra_rows, loss, phy_bps)
 
-# worker -> master: [iteration, compute_s, up_s, rows, sse, late, batch, more | result...] (rows, sse, result: the
-# task's Answer; late: the worker's work segments so far that its host did more slowly than its device profile, on the
-# run's clock; batch: the answer's place among the iteration's batches, more: whether more batches follow)
+# worker -> master: [iteration, compute_s, up_s, rows, sse, late, batch, more, late_s | result...] (rows, sse,
+# result: the task's Answer; late: the worker's work segments so far that its host did more slowly than its device
+# profile, on the run's clock, and late_s by how much in all, simulated; batch: the answer's place among the
+# iteration's batches, more: whether more batches follow)
 RESULT_ITERATION, RESULT_COMPUTE_S, RESULT_UP_S, RESULT_ROWS, RESULT_SSE, RESULT_LATE = 0, 1, 2, 3, 4, 5
-RESULT_BATCH, RESULT_MORE = 6, 7
-RESULT_HEADER = 8
-WARMUP_ANSWER = (-1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-STOPPED_ANSWER = (-2.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # a worker's last message, after a STOP that finalizes
+RESULT_BATCH, RESULT_MORE, RESULT_LATE_S = 6, 7, 8
+RESULT_HEADER = 9
+WARMUP_ANSWER = (-1.0,) + (0.0,) * (RESULT_HEADER - 1)
+STOPPED_ANSWER = (-2.0,) + (0.0,) * (RESULT_HEADER - 1)  # a worker's last message, after a STOP that finalizes
 
 
 def pad_floats(pad_bits: float) -> int:

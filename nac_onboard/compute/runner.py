@@ -51,6 +51,7 @@ from nac_onboard.compute.messages import (
     RESULT_HEADER,
     RESULT_ITERATION,
     RESULT_LATE,
+    RESULT_LATE_S,
     RESULT_MORE,
     RESULT_ROWS,
     RESULT_SSE,
@@ -136,7 +137,8 @@ def run_worker(comm, mpi, options: ComputeOptions, log: JsonlLog) -> bool:
             buf = answers.get(result.size)
             if buf is None:
                 buf = answers[result.size] = message_buffer((), RESULT_HEADER + result.size, pad)
-            buf[:RESULT_HEADER] = (iteration, compute_s, up_s, rows, sse, stretch.late, batch, batch < batches - 1)
+            buf[:RESULT_HEADER] = (iteration, compute_s, up_s, rows, sse, stretch.late, batch, batch < batches - 1,
+                                   stretch.late_s)
             buf[RESULT_HEADER:RESULT_HEADER + result.size] = result
             answer(buf)
 
@@ -199,7 +201,8 @@ class Master:
         self.task: Task = options.task_class(options)
         self.planner = Planner(options, self.workers, self.task, self.source)
         self.stretch = CpuStretch(options.device_for(0).slowdown, self.clock)
-        self.late_by_worker: dict[int, int] = {}  # rank -> its late work segments so far (its last answer's count)
+        self.late_by_worker: dict[int, tuple[int, float]] = {}  # rank -> its late work segments so far and by how
+        # much in all (simulated seconds), as its last answer said
         self.bounds: list[tuple[int, int]] = []
         self.stale_results = 0
         self.inbox: Inbox | None = None  # posted once the shards are known
@@ -445,7 +448,7 @@ class Master:
             k = rank - 1
             links.compute_s[k] = (links.compute_s[k] or 0.0) + float(buf[RESULT_COMPUTE_S])
             links.up_s[k] += float(buf[RESULT_UP_S])
-            self.late_by_worker[rank] = int(buf[RESULT_LATE])
+            self.late_by_worker[rank] = int(buf[RESULT_LATE]), float(buf[RESULT_LATE_S])
             links.bytes_up[k] += buf.nbytes
             answer = answer_of(buf)
             if rank in results:  # a batched task's next batch (a worker's batches come in order)
@@ -543,7 +546,10 @@ class Master:
                        absent_iterations={str(r): n for r, n in t.absences.items()},
                        stale_results=self.stale_results, lost_workers=sorted(self.unresponsive | self.agents_lost),
                        failed_workers=sorted(self.lost),
-                       late_cpu_segments=self.stretch.late + sum(self.late_by_worker.values()), **self.task.final())
+                       late_cpu_segments=self.stretch.late + sum(n for n, _ in self.late_by_worker.values()),
+                       late_cpu_s_worst_rank=round(max([self.stretch.late_s, *(s for _, s in
+                                                                               self.late_by_worker.values())]), 6),
+                       **self.task.final())
 
     @property
     def finalizes(self) -> bool:

@@ -273,6 +273,8 @@ RUN_SUMMARY = Kind("run_summary", COMPUTE_LOG, "the job's end", (
     req("failed_workers", "list", "", "ranks whose MPI calls failed"),
     opt("late_cpu_segments", "integer", "", "work segments (all ranks) this host did more slowly than the device "
                                             "profile on the run's clock: their timings depend on the speed-up"),
+    opt("late_cpu_s_worst_rank", "number", "s", "simulated: by how much, in all, the late work segments of the rank "
+        "with the most overran the device's time"),
     opt("final_cost", "number", "", "linreg: the last cost"),
 ), open="a task's own fields (Task.final(); final_cost is linreg's)")
 BLOCKS_PLANNED = Kind("blocks_planned", COMPUTE_LOG, "the master re-planned the workers' blocks (--replan-every)", (

@@ -31,6 +31,7 @@ radio model (Scenario.channel), which the runner writes to the run directory for
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -275,12 +276,18 @@ def device_speedup_limit(scenario: Scenario, host_cores: int | None = None) -> t
             continue
         profile = load_device_profile(device)
         at_once = workers if vehicle.role == "worker" else 1
-        limit = profile.slowdown * min(1.0, cores / at_once)
+        limit = _down_to_two_digits(profile.slowdown * min(1.0, cores / at_once))
         shared = f" and {at_once} workers share this host's {cores} cores" if at_once > cores else ""
         limits.append((limit, f"{vehicle.id}'s companion ({profile.name}) computes {profile.slowdown:.3g} times "
                               f"slower than this host{shared}, so above {limit:.3g}x its work would take longer "
                               f"than the device's"))
     return min(limits, key=lambda limit: limit[0]) if limits else None
+
+
+def _down_to_two_digits(speedup: float) -> float:
+    """A speed-up limit as a user would write it (0.9598 -> 0.95, 2.219 -> 2.2), never above the limit itself."""
+    step = 10.0 ** (math.floor(math.log10(speedup)) - 1)
+    return round(math.floor(speedup / step + 1e-9) * step, 12)
 
 
 def within_the_devices(scenario: Scenario) -> Scenario:

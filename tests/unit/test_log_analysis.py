@@ -514,3 +514,37 @@ def test_the_reports_network_line_says_the_frame_level_air_once():
     line = _network_line({"mode": "kernel", "air": "medium", "why": why, "congestion_control": "reno"})
     assert line.count("802.11 medium") == 1 and "probes share the queues" in line and line.endswith("TCP: reno)")
     assert "802.11 medium" in _network_line({"mode": "kernel", "air": "medium"})
+
+
+def test_a_device_profiles_runs_are_warned_of_what_makes_them_depend_on_the_speed_up():
+    """A device profile stretches the work, not the MPI job's own costs (this host's wall time, speed-up times that
+    of simulated time at any speed-up): below 1x as above, iterations short enough on the wall clock for those to be
+    over 10 % are a problem naming a speed-up low enough. Late work segments are a problem only where they add more
+    than 2 % to the job's time on the rank with the most (a few, a preempted rank's, are counted, not warned of);
+    a run from before the overrun was recorded is warned of by its count, as then."""
+    import types
+
+    from ground.logs.analysis import speedup_warning
+
+    def run(speedup, late, late_s=None):
+        end = {"late_cpu_segments": late, "elapsed_sim_s": 40.0}
+        if late_s is not None:
+            end["late_cpu_s_worst_rank"] = late_s
+        return types.SimpleNamespace(compute_runs=[{"speedup": speedup, "cpu_slowdown": 1.92, "device": "jetson-tx2"}],
+                                     compute_ends=[end])
+
+    def its(mean_s):
+        return pd.DataFrame({"duration_s": [mean_s] * 4})
+
+    workers = pd.DataFrame({"iteration": [0, 1], "compute_s": [0.001, 0.001]})
+    summary = {}
+    warning = speedup_warning(run(0.96, 3796, 0.05), its(0.01266), workers, summary)
+    assert "at 0.96x an iteration lasted 13.2 ms" in warning and "not stretched to the device's" in warning
+    assert warning.endswith("run at 0.48x or lower"), warning  # (12.66 - 2.4 x 0.96) / (9 x 2.4) ms
+    assert "below the simulator's slowest (0.1x)" in speedup_warning(run(0.2, 0), its(0.0025), workers, {})
+    assert summary["late_cpu_segments"] == 3796 and summary["late_cpu_share"] == 0.0013
+    assert speedup_warning(run(0.25, 3796, 0.05), its(0.025), workers, {}) is None  # 100 ms a wall iteration
+    late = speedup_warning(run(0.25, 900, 2.0), its(0.025), workers, {})
+    assert late.startswith("900 work segments took longer on this host at 0.25x") and "(5.0 % of the job's time)" \
+        in late
+    assert "took longer" in speedup_warning(run(0.25, 900), its(0.025), workers, {})

@@ -348,6 +348,11 @@ def test_a_device_profile_sets_how_fast_the_scenario_may_run_below_1x_with_too_f
     scenario = load_scenario(str(path))
     assert scenario.max_speedup == pytest.approx(0.4) and scenario.default_speedup == pytest.approx(0.4)
     assert "and 15 workers share this host's 2 cores" in scenario.device_limit
+    (tmp_path / "slow.toml").write_text('[device]\nname = "slow"\nslowdown = 1.91958\nsource = "s"\n')
+    path.write_text(fleet(4))  # 1.91958 x 2 / 4 = 0.9598: written as a user would, and never above it
+    scenario = load_scenario(str(path))
+    assert (scenario.max_speedup, scenario.default_speedup) == (0.95, 0.95), scenario.device_limit
+    assert "so above 0.95x its work" in scenario.device_limit
     (tmp_path / "slow.toml").write_text('[device]\nname = "slow"\nslowdown = 1.2\nsource = "s"\n')
     path.write_text(fleet(40))
     with pytest.raises(ScenarioError, match=r"this host cannot run it: .* 40 workers share this host's 2 cores, so "
