@@ -181,14 +181,18 @@ def kernel_mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, end_at_s
 def choose_network(requested: str | None, air: str = "htb") -> tuple[str, str]:
     """(network, why): kernel where it can run, else sleep with the reason; a kernel network asked for and
     impossible raises NetworkUnavailable (exit 2) before anything starts. `air`: the scenario's [network] air."""
+    # the sleep network has no queues: a scenario on the frame-level air is told, at the start and in its records
+    no_queues = ("; no queues here: the job's messages never wait behind the probes as on the scenario's frame-level "
+                 "air (kernel network only), so its iterations are not the testbed's") if air == "medium" else ""
     if requested == "sleep":
-        return "sleep", "asked for (--network sleep): transfers sleep bits / capacity, the research's method"
+        return "sleep", ("asked for (--network sleep): transfers sleep bits / capacity, the research's method"
+                         + no_queues)
     try:
         check_kernel_network()
     except NetworkUnavailable as err:
         if requested == "kernel":
             raise
-        return "sleep", f"the kernel network cannot run here: {err}"
+        return "sleep", f"the kernel network cannot run here: {err}{no_queues}"
     if air == "medium":
         return "kernel", ("namespaces on a bridge, every frame through the 802.11 medium (a FIFO queue per station, "
                           "channel access, retries) at the live positions' rates")

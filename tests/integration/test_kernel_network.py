@@ -260,12 +260,13 @@ def test_the_moving_flight_on_a_kernel_network(tmp_path):
 
 
 def test_without_the_privileges_kernel_exits_2_quickly_and_sleep_still_runs(tmp_path):
-    """Root without CAP_NET_ADMIN and CAP_SYS_ADMIN (as in a container that refuses namespaces)."""
+    """Root without CAP_NET_ADMIN and CAP_SYS_ADMIN (as in a container that refuses namespaces). A scenario on the
+    frame-level air falls back to the sleep network, saying at the start and in its report that it lacks the queues."""
     if os.geteuid() != 0 or shutil.which("setpriv") is None:
         pytest.skip("needs root to drop capabilities (setpriv)")
     if _kernel_network_missing():  # without tc or nft the refusal names the missing tool instead
         pytest.skip(_kernel_network_missing())
-    scenario = shortened("paper-flight-static", tmp_path, 6.0, max_speedup=4.0)
+    scenario = shortened("paper-flight-static", tmp_path, 6.0, max_speedup=4.0, air="medium")
     unprivileged = ["setpriv", "--bounding-set=-net_admin,-sys_admin", "--inh-caps=-net_admin,-sys_admin"]
     t0 = time.monotonic()
     command = [*unprivileged, sys.executable, "-m", "sitl.cli", "experiment", str(scenario), "--network", "kernel",
@@ -288,7 +289,10 @@ def test_without_the_privileges_kernel_exits_2_quickly_and_sleep_still_runs(tmp_
                          capture_output=True, text=True, env=ENV, timeout=120)
     assert ran.returncode == 0, ran.stdout[-2000:] + ran.stderr[-2000:]
     assert "network: sleep (the kernel network cannot run here" in ran.stdout, "the default says why"
-    assert "- network: sleep (" in (tmp_path / "slept" / "report.md").read_text()
+    assert "no queues here: the job's messages never wait behind the probes" in ran.stdout, "the air it lacks, too"
+    report = (tmp_path / "slept" / "report.md").read_text()
+    lacks = report[report.index("## What this run lacks"):report.index("## Summary")]
+    assert "- network: sleep (" in report and "only the kernel network has (as root)" in lacks
 
 
 def start_kernel_run(scenario: Path, run: Path) -> tuple[subprocess.Popen, Console]:
