@@ -214,7 +214,9 @@ def experiment(args: argparse.Namespace, out=None) -> int:
         raise BadInput(f"--base-port {args.base_port}: {len(scenario.vehicles)} vehicles need {PORTS_PER_VEHICLE} "
                        f"ports each, up to {top}, beyond 65535")
     if not 0 < speedup <= scenario.max_speedup:
-        why = scenario.device_limit or " ".join(scenario.notes) or "fidelity"
+        # the notes say why at length (paragraphs of measurements): named, not quoted
+        why = scenario.device_limit or (f"its max_speedup, why in its notes ({scenario.path})" if scenario.notes
+                                        else "its max_speedup")
         raise BadInput(f"{scenario.name}: --speedup {speedup:g} is outside what this scenario allows "
                        f"(up to {scenario.max_speedup:.3g}x: {why})")
     # SIGTERM is Ctrl-C (run_cli): the run stops, its partial report is written, and it exits 143

@@ -203,6 +203,9 @@ def test_the_cli_refuses_bad_scenarios_and_speedups_with_exit_2(tmp_path, capsys
             "paper-flight-moving") in capsys.readouterr().err
     assert cli.main(["experiment", "range-sweep", "--speedup", "5"]) == 2
     assert "--speedup 5 is outside what this scenario allows (up to 1x" in capsys.readouterr().err
+    assert cli.main(["experiment", "paper-flight-moving", "--speedup", "9"]) == 2
+    err = capsys.readouterr().err  # the notes' paragraphs of measurements named, not quoted whole
+    assert "(up to 8x: its max_speedup, why in its notes (" in err and len(err) < 300, err
     (tmp_path / "old").mkdir()
     (tmp_path / "old" / "experiment.json").write_text("{}\n")  # a run there already: appended to, logs would mix
     assert cli.main(["experiment", "range-sweep", "--network", "sleep", "--out", str(tmp_path / "old")]) == 2
