@@ -344,6 +344,11 @@ def test_the_runs_beside_the_research_with_ratios():
     assert "| range: throughput above 1.0 Mbit/s up to (m) | about 25 | 10 | 0.4 |" in table
     assert table[-1].startswith("The static pace is 0.5 times the testbed's, with every parameter from a source"), \
         "the gap said as a factor, and where the mechanisms are measured"
+    from ground.logs.analysis import SLEEP_ON_THE_MEDIUM
+    slept = copy.deepcopy(run)
+    slept.problems.append(SLEEP_ON_THE_MEDIUM)  # a flight of the frame-level air on the sleep network: no gap to
+    table = beside_the_research(slept, copy.deepcopy(run))  # explain by mechanisms, the air itself is missing
+    assert table[-1].startswith("These runs are on the sleep network, which has none of the frame-level air's queues")
 
 
 def test_time_per_10_beside_the_research_compares_the_nearer_and_the_farther_half_of_the_blocks():
