@@ -433,8 +433,6 @@ MACHINE_ITERATION_COST_S = 0.0024  # a linreg iteration with 2 workers at 1x, ke
 SHORT_ITERATION_WALL_S = 10 * MACHINE_ITERATION_COST_S
 CPU_SHARE_LIMIT = 0.10
 SLOWEST_SPEEDUP = 0.1  # the simulator's (sitl.experiment.scenario.MIN_SPEEDUP)
-
-
 LATE_WORK_SHARE_LIMIT = 0.02  # of the job's simulated time: what the late segments may add on the rank with most
 
 
@@ -461,6 +459,16 @@ def _late_work_warning(run: RunLog, started: dict, speedup: float, summary: dict
             f"({started.get('device')}){by}: their timings depend on the speed-up; run at a lower one")
 
 
+def _low_enough(mean_s: float, speedup: float) -> str:
+    """The speed-up at which this host's unstretched costs are 10 % of an iteration: an iteration is its modelled
+    time d plus c x speed-up of this host's (c: MACHINE_ITERATION_COST_S), and c s / (d + c s) is 10 % at s = d / 9c."""
+    lower = max(mean_s - MACHINE_ITERATION_COST_S * speedup, 0.0) / (9 * MACHINE_ITERATION_COST_S)
+    if lower >= SLOWEST_SPEEDUP:
+        return f"run at {lower:.2g}x or lower"
+    return (f"under 10 % would need {lower:.2g}x, below the simulator's slowest ({SLOWEST_SPEEDUP:g}x): fewer ranks "
+            "a core")
+
+
 def speedup_warning(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, summary: dict) -> str | None:
     """Sped up, CPU time is X times longer in simulated seconds while transfers are not: when the workers'
     computing is more than CPU_SHARE_LIMIT of an iteration, results in simulated time depend on the speed-up. With
@@ -478,17 +486,12 @@ def speedup_warning(run: RunLog, its: pd.DataFrame, workers: pd.DataFrame, summa
     # speed-up x that of simulated time, at any speed-up (measured: 5 vehicles, TX2 companions, iterations of
     # ~12 ms: 4,733, 5,197 and 5,525 a simulated minute at 0.96x, 0.75x and 0.5x)
     if (sped_up or (stretched and speedup < 1.0)) and 0 < mean_s / speedup < SHORT_ITERATION_WALL_S:
-        # an iteration is its modelled time d plus c x speed-up of this host's (c: MACHINE_ITERATION_COST_S):
-        # c s / (d + c s) is 10 % at s = d / 9c
-        lower = max(mean_s - MACHINE_ITERATION_COST_S * speedup, 0.0) / (9 * MACHINE_ITERATION_COST_S)
         return (f"at {speedup:.3g}x an iteration lasted {1e3 * mean_s / speedup:.1f} ms of wall-clock time on "
                 "average: the "
                 f"MPI job's own costs on this machine (about {1e3 * MACHINE_ITERATION_COST_S:.1f} ms per "
                 "iteration, measured at 1x" + (", and not stretched to the device's" if stretched else "")
                 + ") are more than 10 % of it, so iterations per simulated minute depend on the speed-up; "
-                + ("run at 1x" if not stretched else f"run at {lower:.2g}x or lower" if lower >= SLOWEST_SPEEDUP
-                   else f"under 10 % would need {lower:.2g}x, below the simulator's slowest "
-                        f"({SLOWEST_SPEEDUP:g}x): fewer ranks a core"))
+                + (_low_enough(mean_s, speedup) if stretched else "run at 1x"))
     if late_warning:
         return late_warning
     if stretched:  # compute_s is already simulated time
