@@ -103,6 +103,17 @@ def queue_wait_by_block(table: pd.DataFrame, its: pd.DataFrame, waits: pd.DataFr
     return out
 
 
+def modelled_wait_by_block(table: pd.DataFrame, waits: pd.Series) -> np.ndarray:
+    """Per block, the mean of its iterations' modelled queue waits (`waits`: by iteration; the sleep network's
+    master_queue_s). NaN where any of its iterations has none."""
+    out = np.full(len(table), np.nan)
+    for row, first in enumerate(table["first_iteration"].astype(int)):
+        block = waits.reindex(range(first, first + BLOCK_ITERATIONS))
+        if block.notna().all():
+            out[row] = float(block.mean())
+    return out
+
+
 def spearman_of(x, y) -> float | None:
     """Spearman's rank correlation of two columns over the rows where both are known (None below
     MIN_BLOCKS_FOR_RHO rows or with either constant)."""

@@ -25,7 +25,8 @@ SUMMARY_LABELS = {
     "time_per_10_spearman": "time per 10 iterations vs the worker's distance: Spearman rho",
     "time_per_10_spearman_before_loss": "the same, before the worker's first link loss: Spearman rho",
     "time_per_10_blocks_before_loss": "blocks of 10 iterations before the worker's first link loss",
-    "time_per_10_queue_spearman": "the same blocks' time vs the master's queue wait (frame-level air): Spearman rho",
+    "time_per_10_queue_spearman": "the same blocks' time vs the master's queue wait (frame-level air, or the sleep "
+                                  "network's model of it): Spearman rho",
     "compute_span_s": "compute time (s)", "first_cost": "first training cost", "final_cost": "final training cost",
     "absent_iterations": "absent iterations per worker", "absence_reasons": "absence reasons",
     "device": "companions' CPU (device profile)", "late_cpu_segments": "work segments slower here than on it",

@@ -70,6 +70,7 @@ class ComputeOptions:
     checkpoint_s: float = 10.0  # results.npz rewritten (atomically) this often while the job runs; 0 = at the end
     resume: bool = False  # a restarted master: continue from the checkpoint in --out
     pad_bits: float = 0.0  # zeros appended to every message: the channel's overhead as real bytes (kernel network)
+    probe_backlog_packets: float = 0.0  # sleep: what the probes alongside keep in the master's transmit queue
     device: DeviceProfile = HOST  # the companion's CPU: each rank's work takes its time on the run's clock
     device_of: tuple[tuple[str, DeviceProfile], ...] = ()  # (vehicle, profile): a companion other than the rest
     clock: Clock = field(default_factory=Clock)  # $NAC_SIM_CLOCK in SITL: times below are simulated seconds
@@ -175,6 +176,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "from the checkpoint in --out; --iterations is then the total")
     p.add_argument("--pad-bits", type=number_arg(0, 1e9, unit="bits"), default=0.0,
                    help="append this many bits of zeros to every message (a transfer's overhead, as real bytes)")
+    p.add_argument("--probe-backlog-packets", type=number_arg(0, 100_000, unit="packets"), default=0.0,
+                   help="sleep: the packets the probes alongside the job keep in the master's transmit queue (a "
+                        "frame-level air's scenario on the sleep network): each round of inputs waits for them to "
+                        "leave at the links' rates")
     p.add_argument("--device", default="host",
                    help="the companion's CPU: 'host' (this machine's speed), a shipped profile (jetson-tx2, "
                         "jetson-xavier-nx, jetson-orin-nano, jetson-orin-nx) or a device profile TOML ([device] name, "
@@ -227,6 +232,7 @@ def options_from_argv(argv: list[str] | None) -> ComputeOptions:
         batch_units=args.batch_units, replan_every=args.replan_every, link_rates=args.link_rates,
         device_of=device_of(args.device_of),
         save_results=args.save_results, checkpoint_s=args.checkpoint_s, resume=args.resume, pad_bits=args.pad_bits,
+        probe_backlog_packets=args.probe_backlog_packets,
         device=HOST if args.device == "host" else load_device_profile(args.device), clock=from_env())
     for option, path, what, limit in [("--a", options.a_path, "matrix A (.npy)", MAX_AUTOPILOT_LOG_BYTES),
                                       ("--data", options.data, "data set (CSV)", MAX_AUTOPILOT_LOG_BYTES),
@@ -236,6 +242,9 @@ def options_from_argv(argv: list[str] | None) -> ComputeOptions:
             check_regular_file(path, f"{option} {what}", limit)
     if options.link_rates == "probes" and options.positions != "feed":
         raise BadInput("--link-rates probes reads the agent's probes through its state feed: --positions feed")
+    if options.probe_backlog_packets and options.emulate != "sleep":
+        raise BadInput("--probe-backlog-packets models a queue for --emulate sleep; on a real network the queue is "
+                       "the network's own")
     if options.emulate == "sleep" and options.positions == "none":
         raise BadInput("--emulate sleep needs positions: --positions fixed|script|feed")
     task.check(options)

@@ -72,6 +72,7 @@ from nac_onboard.compute.task import Answer, Extra, Task
 from nac_onboard.errors import NacError
 from nac_onboard.flight_log import JsonlLog
 from nac_onboard.link.emulation import SleepEmulation
+from nac_onboard.radio.transfers import LinkNow, backlog_drain_s
 from nac_onboard.records import kinds
 
 IDLE_FIRST_S, IDLE_MAX_S = 0.05, 1.0  # simulated seconds: the back-off while no worker is in range
@@ -380,6 +381,17 @@ class Master:
         self._missed[rank] = 0
         self.log.write(kinds.WORKER_BACK, rank=rank, vehicle=self.options.vehicle_of(rank))
 
+    def probes_queue_s(self, links: IterationLinks) -> float | None:
+        """--probe-backlog-packets: how long this round's inputs wait in the master's transmit queue behind the
+        packets the probes alongside keep there, shared among the links in range (simulated seconds; None: no such
+        queue is modelled). The round's inputs go into the queue together, so they wait for it once."""
+        if not self.options.probe_backlog_packets or self.emulation is None:
+            return None
+        probed = [LinkNow(links.distance_m[k] or 0.0, links.rate_bps[k] or 0.0, True, links.loss[k] or 0.0,
+                          links.phy_bps[k]) for k in range(len(self.workers))
+                  if links.rate_bps[k] and links.absent[k] != "out_of_range"]
+        return backlog_drain_s(self.emulation.channel, self.options.probe_backlog_packets, probed)
+
     def send_all(self, ranks: list[int], iteration: int, payload: np.ndarray, links: IterationLinks) -> None:
         message = message_buffer((), WORK_HEADER + payload.size, self.pad)
         message[WORK_HEADER:WORK_HEADER + payload.size] = payload
@@ -398,10 +410,13 @@ class Master:
         stretch.begin()
         payload = task.next_input(iteration)
         master_s = stretch.hold() if stretch.active else 0.0
+        queue_s = self.probes_queue_s(links)
+        if queue_s:
+            self.emulation.wait(queue_s)
         self.send_all(present, iteration, payload, links)
         self.write_pending()
         answers = self.collect(iteration, set(present), links, self.deadline(t_start))
-        record = {}
+        record = {} if queue_s is None else {"master_queue_s": queue_s}
         missing = [r for r in self.workers if r not in answers and self.bounds[r - 1][0] < self.bounds[r - 1][1]]
         plan = task.plan_missing(iteration, payload, missing, [r for r in self.workers if r in answers]) \
             if missing else []

@@ -45,6 +45,10 @@ class SleepEmulation:
     def delay(self, payload_bits: float, rate_bps: float, loss: float = 0.0, phy_bps: float = 0.0) -> float:
         """Sleep for the transfer's time, before it happens; returns its simulated seconds."""
         seconds = self.transfer_s(payload_bits, rate_bps, loss, phy_bps)
+        self.wait(seconds)
+        return seconds
+
+    def wait(self, seconds: float) -> None:
+        """Sleep for `seconds` of simulated time (a transfer's, or a queue's ahead of it)."""
         if seconds:
             time.sleep(self.clock.wall_s(seconds))
-        return seconds

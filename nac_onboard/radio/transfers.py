@@ -26,6 +26,12 @@ SEGMENT_BITS = 1448 * 8  # a TCP segment's payload on a 1500-byte path
 TCP_IP_HEADER_BYTES = 52  # IPv4 20 + TCP 20 + the timestamps option 12, per segment
 TIMING = MacTiming()
 RTO_S = 0.2  # Linux's minimum retransmission timeout: what one lost segment costs a small transfer
+MTU_BYTES = 1500
+# A loss-based TCP flow (Reno, CUBIC) through a drop-tail FIFO far deeper than its bandwidth-delay product keeps the
+# FIFO between about half full (its window halved at a loss) and full: a sawtooth whose time average is 3/4 of the
+# buffer (Appenzeller, Keslassy, McKeown, "Sizing Router Buffers", SIGCOMM 2004, section 2: a single flow's queue).
+# The frame-level air's records agree: a median 764 of 1,000 packets at paper-flight-static's master (docs/radio.md).
+LOSS_BASED_BACKLOG_SHARE = 0.75
 
 
 @dataclass(frozen=True)
@@ -99,3 +105,36 @@ class PairLinks:
             if self.rng.random() < 1.0 - (1.0 - min(loss, 1.0)) ** segments:
                 seconds += RTO_S
         return seconds
+
+
+def probe_backlog_packets(queue_packets: int, probe_duration_s: float, probe_period_s: float,
+                          congestion_control: str) -> float:
+    """The mean of what the probes alongside the job keep in the probing station's transmit queue, in packets: a
+    loss-based flow's standing backlog (LOSS_BASED_BACKLOG_SHARE of the queue) for the share of the time the probes
+    run. 0 for BBR and the host's default, whose flows keep a queue of about their bandwidth-delay product (a few
+    packets here). Not modelled: a probe's slow start, which fills the queue at the link's rate (a slow link's
+    2 s probe puts fewer packets in it than this)."""
+    if congestion_control not in ("reno", "cubic"):
+        return 0.0
+    duty = min(probe_duration_s / probe_period_s, 1.0) if probe_period_s > 0 else 0.0
+    return LOSS_BASED_BACKLOG_SHARE * queue_packets * duty
+
+
+def backlog_drain_s(channel: ChannelModel, backlog_packets: float, links: list[LinkNow]) -> float:
+    """How long a message entering a transmit queue waits for the backlog ahead of it (simulated seconds): packets
+    of the MTU, shared equally among the links in range (flows through one FIFO see one queue's delay, so
+    equal round trips and, for Reno, equal windows; probed in turn, the same on average), each share sent as
+    transfer_s sends a message over its link (the medium's aggregated exchanges for an 802.11 channel, else
+    bits / capacity). A flow to a link out of range keeps almost nothing queued (its TCP backs off)."""
+    through = [link for link in links if link.in_range and link.capacity_bps > 0]
+    if backlog_packets <= 0 or not through:
+        return 0.0
+    share_bytes = backlog_packets * MTU_BYTES / len(through)
+    airtime = 1.0 - channel.background_airtime  # what other networks leave of the medium
+    total = 0.0
+    for link in through:
+        if channel.mac == "802.11" and link.phy_bps > 0:
+            total += expected_message_s(TIMING, math.ceil(share_bytes), link.phy_bps) / airtime
+        else:
+            total += share_bytes * 8 / link.capacity_bps
+    return total

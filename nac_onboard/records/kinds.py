@@ -252,6 +252,8 @@ ITERATION = Kind("iteration", COMPUTE_LOG, "one iteration; `workers` holds one l
     req("complete", "boolean", "", "every worker's block arrived"),
     opt("master_compute_s", "number", "s", "with a device profile: the master's own work (input and combine) on the "
                                            "device's clock"),
+    opt("master_queue_s", "number", "s", "sleep emulation with --probe-backlog-packets: how long the inputs waited "
+                                         "behind the probes' packets in the master's transmit queue (simulated)"),
     opt("cost", "number", "", "linreg: training cost (mean squared error / 2) before the update"),
     opt("rows_used", "integer", "", "linreg: data rows whose gradients arrived"),
     opt("reassigned", "object", "", "a task's plan for missing blocks (matmul --on-missing reassign): who computed "

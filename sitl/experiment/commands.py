@@ -13,6 +13,7 @@ from pathlib import Path
 
 from nac_onboard import clock
 from nac_onboard.compute import launch
+from nac_onboard.radio.transfers import probe_backlog_packets
 from nac_onboard.records import kinds
 from nac_onboard.tomlfile import dumps_toml
 from sitl.experiment.scenario import Scenario
@@ -109,7 +110,7 @@ def compute_args(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: 
     if kernel:
         link = ["--emulate", "none", "--pad-bits", f"{scenario.channel.overhead_bits:g}"]
     else:
-        link = ["--emulate", "sleep"]
+        link = ["--emulate", "sleep", *probe_backlog_args(scenario)]
     return ["--task", c.task, *stop, "--start-file", str(kinds.START_FILE.at(run_dir)), "--out",
             str(kinds.COMPUTE_LOG.at(run_dir).parent), *link,
             "--channel", str(run_channel_path(run_dir)), "--positions", "feed", "--feed", f"127.0.0.1:{ports.feed()}",
@@ -120,6 +121,17 @@ def compute_args(scenario: Scenario, run_dir: Path, ports: Ports, end_at_sim_s: 
             f"{c.code_redundancy:g}", "--batch-units",
             str(c.batch_units), "--replan-every", str(c.replan_every), "--link-rates", c.link_rates,
             *(f"--device-of={w.id}={w.device}" for w in scenario.vehicles if w.device), *c.args]
+
+
+def probe_backlog_args(scenario: Scenario) -> list[str]:
+    """A frame-level air's scenario on the sleep network: the queue its probes keep at the master (they send), as
+    the job's messages would find it there (nac_onboard.radio.transfers.probe_backlog_packets)."""
+    probes, network = scenario.throughput, scenario.network
+    if network.air != "medium" or probes is None:
+        return []
+    backlog = probe_backlog_packets(network.queue_packets, probes.duration_s, probes.period_s,
+                                    network.congestion_control)
+    return ["--probe-backlog-packets", f"{backlog:g}"] if backlog else []
 
 
 def energy_args(scenario: Scenario, workers: list[str]) -> list[str]:
@@ -178,12 +190,20 @@ def kernel_mpi_command(scenario: Scenario, run_dir: Path, ports: Ports, end_at_s
             *compute_args(scenario, run_dir, ports, end_at_sim_s, kernel=True, workers=workers, resume=resume)]
 
 
-def choose_network(requested: str | None, air: str = "htb") -> tuple[str, str]:
+def choose_network(requested: str | None, air: str = "htb", modelled_queue: bool = False) -> tuple[str, str]:
     """(network, why): kernel where it can run, else sleep with the reason; a kernel network asked for and
-    impossible raises NetworkUnavailable (exit 2) before anything starts. `air`: the scenario's [network] air."""
-    # the sleep network has no queues: a scenario on the frame-level air is told, at the start and in its records
-    no_queues = ("; no queues here: the job's messages never wait behind the probes as on the scenario's frame-level "
-                 "air (kernel network only), so its iterations are not the testbed's") if air == "medium" else ""
+    impossible raises NetworkUnavailable (exit 2) before anything starts. `air`: the scenario's [network] air;
+    `modelled_queue`: the sleep network models the queue its probes keep at the master (probe_backlog_args)."""
+    # the sleep network runs no queues: a scenario on the frame-level air is told, at the start and in its records
+    no_queues = ""
+    if air == "medium" and modelled_queue:
+        no_queues = ("; the frame-level air's queue modelled, not run: each round of the job's inputs waits for the "
+                     "packets the probes keep in the master's queue (3/4 of it, a loss-based TCP's mean) at the links' "
+                     "rates, the probes run apart on loopback, and nothing else queues (the kernel network runs the "
+                     "air itself)")
+    elif air == "medium":
+        no_queues = ("; no queues here: the job's messages never wait behind the probes as on the scenario's "
+                     "frame-level air (kernel network only), so its iterations are not the testbed's")
     if requested == "sleep":
         return "sleep", ("asked for (--network sleep): transfers sleep bits / capacity, the research's method"
                          + no_queues)

@@ -59,6 +59,7 @@ from sitl.experiment.commands import (
     down_dir,
     kernel_mpi_command,
     mpi_command,
+    probe_backlog_args,
     run_channel_path,
 )
 from sitl.experiment.energy_meter import EnergyMeter, namespace_bytes, process_cpu_s
@@ -788,7 +789,7 @@ def run_scenario(scenario: Scenario, run_dir: Path | None, speedup: float, base_
     (its screenshot at the end goes into the run directory as view.png)."""
     out = out or sys.stdout
     replay = parse_links(links)
-    chosen = choose_network(network, scenario.network.air)
+    chosen = choose_network(network, scenario.network.air, bool(probe_backlog_args(scenario)))
     if chosen[0] != network:
         print(f"network: {chosen[0]} ({chosen[1]})", file=out, flush=True)
     run_dir = Path(run_dir) if run_dir else default_run_dir(scenario)

@@ -267,6 +267,7 @@ def test_without_the_privileges_kernel_exits_2_quickly_and_sleep_still_runs(tmp_
     if _kernel_network_missing():  # without tc or nft the refusal names the missing tool instead
         pytest.skip(_kernel_network_missing())
     scenario = shortened("paper-flight-static", tmp_path, 6.0, max_speedup=4.0, air="medium")
+    scenario.write_text(scenario.read_text() + 'congestion_control = "reno"\n')  # a loss-based TCP fills a queue
     unprivileged = ["setpriv", "--bounding-set=-net_admin,-sys_admin", "--inh-caps=-net_admin,-sys_admin"]
     t0 = time.monotonic()
     command = [*unprivileged, sys.executable, "-m", "sitl.cli", "experiment", str(scenario), "--network", "kernel",
@@ -289,10 +290,16 @@ def test_without_the_privileges_kernel_exits_2_quickly_and_sleep_still_runs(tmp_
                          capture_output=True, text=True, env=ENV, timeout=120)
     assert ran.returncode == 0, ran.stdout[-2000:] + ran.stderr[-2000:]
     assert "network: sleep (the kernel network cannot run here" in ran.stdout, "the default says why"
-    assert "no queues here: the job's messages never wait behind the probes" in ran.stdout, "the air it lacks, too"
+    assert "the frame-level air's queue modelled, not run" in ran.stdout, "the air it models, and what it lacks"
     report = (tmp_path / "slept" / "report.md").read_text()
     lacks = report[report.index("## What this run lacks"):report.index("## Summary")]
-    assert "- network: sleep (" in report and "only the kernel network has (as root)" in lacks
+    assert "- network: sleep (" in report and "only the kernel network runs (as root)" in lacks
+    # each round of inputs waited for the probes' packets in the master's queue (0.5 s probes every 2 s: 3/4 of
+    # 1,000 packets a quarter of the time), in the iteration's own time
+    iterations = read_jsonl(tmp_path / "slept" / "compute" / "compute.jsonl").of_kind("iteration")
+    waited = [r for r in iterations if r["master_queue_s"] > 0]  # none with both workers' links down at once
+    assert iterations and 2 * len(waited) > len(iterations), iterations[:2]
+    assert all(r["duration_sim_s"] >= r["master_queue_s"] for r in iterations), iterations[:2]
 
 
 def start_kernel_run(scenario: Path, run: Path) -> tuple[subprocess.Popen, Console]:

@@ -349,6 +349,11 @@ def test_the_runs_beside_the_research_with_ratios():
     slept.problems.append(SLEEP_ON_THE_MEDIUM)  # a flight of the frame-level air on the sleep network: no gap to
     table = beside_the_research(slept, copy.deepcopy(run))  # explain by mechanisms, the air itself is missing
     assert table[-1].startswith("These runs are on the sleep network, which has none of the frame-level air's queues")
+    from ground.logs.analysis import SLEEP_MODELS_THE_QUEUE
+    modelled = copy.deepcopy(run)
+    modelled.problems.append(SLEEP_MODELS_THE_QUEUE)  # the same with the probes' queue modelled at the master
+    table = beside_the_research(modelled, copy.deepcopy(run))
+    assert table[-1].startswith("These runs are on the sleep network, which models the queue the probes keep")
 
 
 def test_time_per_10_beside_the_research_compares_the_nearer_and_the_farther_half_of_the_blocks():
