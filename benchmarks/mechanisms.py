@@ -16,6 +16,8 @@ Variants, each a whole run (simulator, agents, MPI job, probes):
                   host's single-thread 7-Zip score over the TX2's published one; `nac-onboard cpu-score`)
   medium-probes-device  the same, with every rank's work 100 times this host's CPU time (an illustration of a
                   much slower companion, not a device)
+  medium-probes-sleep  medium-probes on the sleep network (as without root): no queues run, each round of the
+                  master's inputs charged the mean of the queue the probes keep there (docs/radio.md)
 Printed per variant: iterations, iterations per simulated minute, the median iteration and the iterations a
 200 s static flight would hold at that pace, with the ratio to the research's 640. Needs root (namespaces).
 """
@@ -43,8 +45,9 @@ from sitl.launcher import allocate_base_port
 import _common  # noqa: E402 (benchmarks/_common.py, beside this script)
 
 VARIANTS = ("htb", "medium", "medium-probes-host-tcp", "medium-probes", "medium-probes-in-turn", "medium-probes-cubic",
-            "medium-probes-tx2", "medium-probes-device")  # up to medium-probes each adds one mechanism to the one
-# before; the rest each change medium-probes in one way: the probes in turn, a Jetson's TCP, or a companion's CPU
+            "medium-probes-tx2", "medium-probes-device", "medium-probes-sleep")  # up to medium-probes each adds one
+# mechanism to the one before; the rest each change medium-probes in one way: the probes in turn, a Jetson's TCP, a
+# companion's CPU, or the sleep network's model of the air instead of the air
 SMOKE = {"duration_s": 4.0, "speedup": 4.0, "variants": ["medium-probes"]}
 ILLUSTRATIVE_SLOWDOWN = 100.0
 ISOLATED_PROBE_S = 0.5  # the probes apart: 0.5 s every 2 s, one worker at a time, the schedule before issue 28
@@ -78,15 +81,16 @@ def variant(name: str, folder: Path, duration_s: float):
 
 
 def measure(name: str, duration_s: float, speedup: float, folder: Path) -> dict:
+    network = "sleep" if name.endswith("-sleep") else "kernel"
     result = run_scenario(variant(name, folder, duration_s), folder / name, speedup, allocate_base_port(3, slots=5),
-                          out=io.StringIO(), network="kernel")
+                          out=io.StringIO(), network=network)
     if result.outcome is not Outcome.COMPLETED:
         return {"variant": name, "outcome": result.outcome.name.lower(), "detail": result.detail, "ok": False}
     iterations = read_jsonl(kinds.COMPUTE_LOG.at(result.run_dir)).of_kind(kinds.ITERATION)
     durations = [r.get("duration_sim_s", r["duration_s"]) for r in iterations]
     per_min = result.summary.get("iterations_per_min")
     in_200_s = per_min * PAPER_STATIC_S / 60 if per_min else None
-    return {"variant": name, "outcome": result.outcome.name.lower(), "iterations": len(iterations),
+    return {"variant": name, "network": network, "outcome": result.outcome.name.lower(), "iterations": len(iterations),
             "iterations_per_sim_min": round(per_min, 1) if per_min else None,
             "median_iteration_s": round(float(np.median(durations)), 4) if durations else None,
             "iterations_in_200_s": round(in_200_s) if in_200_s else None,

@@ -437,9 +437,11 @@ SLEEP_MODELS_THE_QUEUE = (
     "the scenario's air is the 802.11 medium frame by frame, which only the kernel network runs (as root): on the "
     "sleep network each round of the job's inputs waited for a model of the queue the probes keep at the master (its "
     "mean, 3/4 of it for a loss-based TCP, at the links' rates), not for the queue itself; the probes ran apart on "
-    "loopback (each link's throughput alone, not the two links sharing the master's air), and neither channel "
-    "contention nor a probe's slow start is modelled (paper-flight-static at 4x, 2026-11-29: 0.29 s an iteration "
-    "against 0.39 s on the kernel network, 9 ms without the model)")
+    "loopback (each link's throughput alone, not the two links sharing the master's air), neither channel "
+    "contention nor a probe's slow start is modelled, and every round waits the queue's mean where the air's queue "
+    "empties and overflows (paper-flight-static at 4x, 2026-11-29: 207 iterations a minute against 148-161 on the "
+    "kernel network, 6,491 without the model; iterations of 0.26-0.33 s against 0.01-0.90 s, 10th to 90th "
+    "percentile)")
 MACHINE_ITERATION_COST_S = 0.0024  # a linreg iteration with 2 workers at 1x, kernel network (docs/benchmarks.md)
 SHORT_ITERATION_WALL_S = 10 * MACHINE_ITERATION_COST_S
 CPU_SHARE_LIMIT = 0.10
