@@ -45,7 +45,7 @@ def variance_larger_moving(moving: RunTables, static: RunTables) -> str:
 def faster_before_link_loss(moving: RunTables, static: RunTables) -> str:
     """The research's moving flight computed faster up to its link loss than its static flight over 200 s (310
     iterations in 75 s against 640 in 200 s); here the same comparison: the moving run up to its first link loss
-    (a worker's first absence other than a late answer; the whole run if none), the static run whole, per minute of
+    (iteration_pace.first_link_losses; the whole run if none), the static run whole, per minute of
     computing. Judged on the paces of their windows of PACE_WINDOW_S (Welch's 95 % interval of the difference): a
     difference within the windows' spread is reported as not told apart, not as a verdict that would flip from run
     to run."""
@@ -53,8 +53,8 @@ def faster_before_link_loss(moving: RunTables, static: RunTables) -> str:
     if its.empty or per_min_static is None:
         return "Iterations per minute: a run has no compute iterations."
     since = _since_start_s(moving).to_numpy()
-    lost = its["absent"].map(lambda cell: any(iteration_pace.is_link_loss(a.split(":", 1)[-1])
-                                              for a in str(cell).split())).to_numpy()
+    first_loss = _first_link_loss(its)
+    lost = (its["iteration"] >= first_loss).to_numpy() if first_loss is not None else np.zeros(len(its), bool)
     upto_s = float(since[lost.argmax()]) if lost.any() else float(since[-1] + its["duration_s"].iloc[-1])
     if upto_s <= 0:
         return f"Iterations per minute: {moving.name} lost a worker at its first iteration."
@@ -76,6 +76,18 @@ def faster_before_link_loss(moving: RunTables, static: RunTables) -> str:
     return (f"Moving computes faster than static until its link loss (research: {paper_moving:.0f} vs "
             f"{paper_static:.0f} per minute): {verdict}; {per_min_moving:.1f} ({moving.name}, its first "
             f"{upto_s:.0f} s {clock}) vs {per_min_static:.1f} ({static.name}), per minute of computing{spread}.")
+
+
+def _first_link_loss(its: pd.DataFrame) -> float | None:
+    """The iteration any worker's first link loss began at (iteration_pace.first_link_losses), from the iterations'
+    `absent` cells (VEHICLE:REASON ...)."""
+    cells = [dict(a.split(":", 1) for a in str(cell).split() if ":" in a) for cell in its["absent"]]
+    vehicles = sorted({v for cell in cells for v in cell})
+    rows = [{"vehicle": v, "iteration": it, "t_rel_s": t, "present": v not in cell, "absent": cell.get(v)}
+            for it, t, cell in zip(its["iteration"], its["t_rel_s"], cells, strict=True) for v in vehicles]
+    losses = iteration_pace.first_link_losses(pd.DataFrame(rows, columns=["vehicle", "iteration", "t_rel_s",
+                                                                          "present", "absent"]))
+    return float(losses.min()) if not losses.empty else None
 
 
 def trains_through_link_loss(moving: RunTables) -> str:
@@ -142,7 +154,8 @@ def time_rises_with_distance(moving: RunTables) -> str:
     rho, blocks, _ = _judged_rho(moving, worker)
     rises = iteration_pace.spearman_interval(rho, blocks)[0] > 0
     queue = (moving.summary.get("time_per_10_queue_spearman") or {}).get(worker)
-    cause = (f"; with the master's queue wait in the air's records over the same blocks, rho {queue:.2f}"
+    where = "as the sleep network models it," if SLEEP_MODELS_THE_QUEUE in moving.problems else "in the air's records"
+    cause = (f"; with the master's queue wait {where} over the same blocks, rho {queue:.2f}"
              if queue is not None else "")
     return (f"Time per 10 iterations rises with {worker}'s distance until its link loss (research: its Fig. 14(b)) "
             f"({moving.name}): {_verdict(rises)}; {_rho_said(moving, worker)}{cause}.")

@@ -16,6 +16,15 @@ MIN_BLOCKS_FOR_RHO = 8  # Spearman's rho from fewer blocks says little
 Z_95 = 1.959964  # the normal distribution's two-sided 95 % quantile
 Z_90 = 1.644854  # its two-sided 90 % quantile: each bound alone a one-sided 95 % bound
 LATE_ANSWER = "timeout"  # an absence that is no link loss: the worker answered late and is waited for again
+# The sleep network's absences that are one sample of the link model (nac_onboard.compute.runner: out of range at
+# an iteration's start, or no position then); the kernel network has none, its job only misses deadlines.
+SAMPLED_OUTAGES = ("out_of_range", "no_position")
+# A spell of those is a link loss from this long: what the job on a real network takes to count a worker lost, 3
+# missed deadlines (nac_onboard.compute.runner.UNRESPONSIVE_AFTER) of the flight scenarios' 3 s timeout. Shorter
+# ones are fades a real link's TCP rides through (its retransmissions), which on the kernel network are a slow
+# iteration, not an absence: counted as losses, a 0.2 s fade at 6.7 m ended paper-flight-moving's span at 9 s on
+# the sleep network (2026-11-29), where its link lasted to 30 m.
+SUSTAINED_OUTAGE_S = 9.0
 
 BLOCK_COLUMNS = ["worker", "first_iteration", "t_rel_s", "distance_m", "time_per_10_s"]
 BIN_COLUMNS = ["worker", "distance_from_m", "distance_to_m", "median_s", "p25_s", "p75_s", "blocks"]
@@ -69,16 +78,42 @@ def by_distance(table: pd.DataFrame, bin_m: float) -> pd.DataFrame:
     return out[BIN_COLUMNS]
 
 
+def first_link_losses(workers: pd.DataFrame) -> pd.Series:
+    """Each worker's first link loss (vehicle -> the iteration it began at): a spell of consecutive absences that
+    are link losses (is_link_loss) which lasts SUSTAINED_OUTAGE_S or more (from its first iteration's start to the
+    start of the next one the worker took part in; a spell the run ends in counts), or holds a reason other than a
+    link model's sample (unresponsive, agent_lost: the job's own rules for a lost worker)."""
+    if workers.empty or "present" not in workers:
+        return pd.Series(dtype=float)
+    lost = {}
+    for vehicle, own in workers.sort_values("iteration").groupby("vehicle"):
+        reasons = own["absent"] if "absent" in own else pd.Series(None, index=own.index)
+        away = (~own["present"].astype(bool) & reasons.map(is_link_loss).astype(bool)).to_numpy()
+        timed = "t_rel_s" in own  # without the iterations' times every spell counts
+        t_s = own["t_rel_s"].to_numpy(float) if timed else np.zeros(len(own))
+        iteration, reason = own["iteration"].to_numpy(), reasons.to_numpy()
+        k = 0
+        while k < len(away):
+            if not away[k]:
+                k += 1
+                continue
+            end = k
+            while end < len(away) and away[end]:
+                end += 1
+            span_s = t_s[end] - t_s[k] if end < len(away) and timed else np.inf
+            if span_s >= SUSTAINED_OUTAGE_S or any(str(r).strip() not in SAMPLED_OUTAGES for r in reason[k:end]):
+                lost[vehicle] = iteration[k]
+                break
+            k = end
+    return pd.Series(lost, dtype=float)
+
+
 def until_link_loss(table: pd.DataFrame, workers: pd.DataFrame) -> pd.DataFrame:
-    """Each worker's blocks before its first link loss (is_link_loss): the span the research's moving flight has,
-    as its training ended at its first link loss."""
+    """Each worker's blocks before its first link loss (first_link_losses): the span the research's moving flight
+    has, as its training ended at its first link loss."""
     if table.empty or workers.empty or "present" not in workers:
         return table
-    absent = workers[~workers["present"].astype(bool)]
-    if "absent" in absent:
-        absent = absent.loc[absent["absent"].map(is_link_loss).astype(bool)]
-    lost_at = absent.groupby("vehicle")["iteration"].min()
-    first_lost = table["worker"].map(lost_at)
+    first_lost = table["worker"].map(first_link_losses(workers))
     keep = first_lost.isna() | (table["first_iteration"] + BLOCK_ITERATIONS <= first_lost)
     return table[keep]
 

@@ -111,3 +111,23 @@ def test_a_blocks_queue_wait_is_the_median_of_the_records_that_cover_it():
     assert iteration_pace.spearman_of(got, w1["time_per_10_s"]) is None, "5 known blocks: too few"
     assert iteration_pace.spearman_of(range(9), range(9)) == pytest.approx(1.0)
     assert np.isnan(iteration_pace.queue_wait_by_block(w1, its, waits.iloc[:1])).all(), "one record: no period"
+
+
+def test_a_fade_is_no_link_loss_but_a_spell_of_the_jobs_own_rule_length_is():
+    """The sleep network samples each link at an iteration's start: a spell out of range shorter than
+    SUSTAINED_OUTAGE_S (to the start of the next iteration the worker took part in) is a fade, which on a real network
+    is a slow iteration; a longer one, one the run ends in, or one of the job's own rules for a lost worker is a
+    link loss, from its first iteration."""
+    def track(absent: dict[int, str], t_s: list[float]) -> pd.DataFrame:
+        return pd.DataFrame({"vehicle": "w1", "iteration": range(len(t_s)), "t_rel_s": t_s,
+                             "present": [k not in absent for k in range(len(t_s))],
+                             "absent": [absent.get(k) for k in range(len(t_s))]})
+
+    t_s = [0.3 * k for k in range(20)] + [6.0 + 10.0 + 0.3 * k for k in range(10)]  # a 10 s gap after iteration 19
+    assert iteration_pace.first_link_losses(track({3: "out_of_range", 4: "out_of_range"}, t_s)).empty, "0.6 s"
+    fades_then_lost = track({3: "out_of_range", 19: "out_of_range"}, t_s)
+    assert iteration_pace.first_link_losses(fades_then_lost).to_dict() == {"w1": 19}, "10.3 s out of range"
+    assert iteration_pace.first_link_losses(track({5: "unresponsive"}, t_s)).to_dict() == {"w1": 5}
+    assert iteration_pace.first_link_losses(track({28: "out_of_range", 29: "out_of_range"}, t_s)).to_dict() == \
+        {"w1": 28}, "the run ended in it"
+    assert iteration_pace.first_link_losses(track({3: "timeout"}, t_s)).empty, "a late answer is no absence"

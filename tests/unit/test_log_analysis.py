@@ -277,11 +277,16 @@ def test_findings_state_whether_they_hold_with_their_numbers():
     lines = research_findings(moving, static)
     assert lines[0].startswith("Throughput falls with distance (golden-run): **holds**; correlation -0.8")
     assert "**holds**; per-link standard deviation 21.60 Mbit/s (golden-run) vs 0.50 Mbit/s (static)" in lines[1]
+    # w2 out of range at iteration 2's start and back at 3's: a fade, not a link loss (shorter than
+    # iteration_pace.SUSTAINED_OUTAGE_S), so the whole run counts
     assert lines[2].startswith("Moving computes faster than static until its link loss (research: 248 vs 192 per "
-                               "minute): **does not hold**; 120.0 (golden-run, its first 1 s wall-clock) vs 120.0 "
+                               "minute): **does not hold**; 96.0 (golden-run, its first 2 s wall-clock) vs 120.0 "
                                "(static), per minute of computing"), lines[2]
     assert "**holds**; 1 iterations (2-2, from t=2 s wall-clock) ran without w2, cost 7.0000; all workers back " \
            "from iteration 3" in lines[3]
+    moving.iterations.loc[2, "absent"] = "w2:unresponsive"  # the job's own rule for a lost worker: a link loss
+    assert "**does not hold**; 120.0 (golden-run, its first 1 s wall-clock) vs 120.0" in \
+        research_findings(moving, static)[2]
     static.summary["iterations_per_min"] = 119.0
     assert "**holds**; 120.0 (golden-run" in research_findings(moving, static)[2]
     moving.iterations.loc[2, "absent"] = "w2:timeout"  # a late answer, not a link loss: the whole run counts
@@ -313,8 +318,10 @@ def test_moving_faster_than_static_is_judged_on_the_windows_spread(moving_per_s,
     for run in (moving, static):  # a flight on the wall clock (no simulated times): its windows are wall seconds
         run.iterations["start_sim_s"] = np.nan
     assert research_findings(moving, static)[2] == line, "the same windows, from the records' wall-clock times"
-    moving.iterations.loc[25, "absent"] = "w1:out_of_range"  # lost before its fifth window: too few for a spread
-    assert "too few 5 s windows for an interval" in research_findings(moving, static)[2]
+    moving.iterations.loc[25, "absent"] = "w1:out_of_range"  # a fade of one iteration: not a link loss
+    assert research_findings(moving, static)[2] == line
+    moving.iterations.loc[25:, "absent"] = "w1:out_of_range"  # out of range to the end: lost before its fifth
+    assert "too few 5 s windows for an interval" in research_findings(moving, static)[2]  # window: too few
 
 
 def test_training_through_a_link_loss_is_judged_on_the_cost_over_the_same_rows():
@@ -390,6 +397,11 @@ def test_time_per_10_is_judged_before_the_first_link_loss_as_the_research_flight
     run.summary["time_per_10_queue_spearman"] = {"w2": 0.8}  # the air's records say where the time went
     assert research_findings(run, copy.deepcopy(run))[4].endswith(
         "(14 blocks); with the master's queue wait in the air's records over the same blocks, rho 0.80."), "the cause"
+    from ground.logs.analysis import SLEEP_MODELS_THE_QUEUE
+    slept = copy.deepcopy(run)
+    slept.problems.append(SLEEP_MODELS_THE_QUEUE)  # the sleep network's records hold its model of that queue
+    assert research_findings(slept, copy.deepcopy(run))[4].endswith(
+        "with the master's queue wait as the sleep network models it, over the same blocks, rho 0.80.")
     del run.summary["time_per_10_spearman_before_loss"]
     line = research_findings(run, copy.deepcopy(run))[4]
     assert "**does not hold**; Spearman rho 0.20 over the whole run (95 % interval -0.37 to 0.66; 14 blocks)" in line
