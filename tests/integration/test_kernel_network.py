@@ -295,11 +295,12 @@ def test_without_the_privileges_kernel_exits_2_quickly_and_sleep_still_runs(tmp_
     lacks = report[report.index("## What this run lacks"):report.index("## Summary")]
     assert "- network: sleep (" in report and "only the kernel network runs (as root)" in lacks
     # each round of inputs waited for the probes' packets in the master's queue (0.5 s probes every 2 s: 3/4 of
-    # 1,000 packets a quarter of the time), in the iteration's own time
+    # 1,000 packets a quarter of the time), within the iteration: slept on the wall clock at the speed-up (the
+    # simulated clock, the simulator's, may lag it on a loaded host)
     iterations = read_jsonl(tmp_path / "slept" / "compute" / "compute.jsonl").of_kind("iteration")
     waited = [r for r in iterations if r["master_queue_s"] > 0]  # none with both workers' links down at once
     assert iterations and 2 * len(waited) > len(iterations), iterations[:2]
-    assert all(r["duration_sim_s"] >= r["master_queue_s"] for r in iterations), iterations[:2]
+    assert all(r["duration_s"] >= r["master_queue_s"] / 4.0 for r in iterations), iterations[:2]
 
 
 def start_kernel_run(scenario: Path, run: Path) -> tuple[subprocess.Popen, Console]:
