@@ -16,14 +16,17 @@ MIN_BLOCKS_FOR_RHO = 8  # Spearman's rho from fewer blocks says little
 Z_95 = 1.959964  # the normal distribution's two-sided 95 % quantile
 Z_90 = 1.644854  # its two-sided 90 % quantile: each bound alone a one-sided 95 % bound
 LATE_ANSWER = "timeout"  # an absence that is no link loss: the worker answered late and is waited for again
-# The sleep network's absences that are one sample of the link model (nac_onboard.compute.runner: out of range at
-# an iteration's start, or no position then); the kernel network has none, its job only misses deadlines.
-SAMPLED_OUTAGES = ("out_of_range", "no_position")
+# Absences that say nothing of how long the link is gone (nac_onboard.compute.runner): the sleep network's one sample
+# of the link model at an iteration's start (out of range, or no position then), and the worker's agent unheard by
+# the master's for the peer timeout (agent_lost: its peer state, not the job's traffic, went missing; it ends when
+# heard again). The job's own rule for a lost worker, unresponsive after missed deadlines, does say.
+BRIEF_OUTAGE_REASONS = ("out_of_range", "no_position", "agent_lost")
 # A spell of those is a link loss from this long: what the job on a real network takes to count a worker lost, 3
 # missed deadlines (nac_onboard.compute.runner.UNRESPONSIVE_AFTER) of the flight scenarios' 3 s timeout. Shorter
 # ones are fades a real link's TCP rides through (its retransmissions), which on the kernel network are a slow
-# iteration, not an absence: counted as losses, a 0.2 s fade at 6.7 m ended paper-flight-moving's span at 9 s on
-# the sleep network (2026-11-29), where its link lasted to 30 m.
+# iteration, not an absence. Counted as losses (2026-11-29), a 0.2 s fade at 6.7 m ended paper-flight-moving's span
+# at 9 s on the sleep network, where its link lasted to 30 m; and on the kernel network an agent_lost of one
+# iteration at 17.5 m (w1 answering the job before and after) ended it at 36 s, where w1 was lost at 62 s.
 SUSTAINED_OUTAGE_S = 9.0
 
 BLOCK_COLUMNS = ["worker", "first_iteration", "t_rel_s", "distance_m", "time_per_10_s"]
@@ -81,8 +84,8 @@ def by_distance(table: pd.DataFrame, bin_m: float) -> pd.DataFrame:
 def first_link_losses(workers: pd.DataFrame) -> pd.Series:
     """Each worker's first link loss (vehicle -> the iteration it began at): a spell of consecutive absences that
     are link losses (is_link_loss) which lasts SUSTAINED_OUTAGE_S or more (from its first iteration's start to the
-    start of the next one the worker took part in; a spell the run ends in counts), or holds a reason other than a
-    link model's sample (unresponsive, agent_lost: the job's own rules for a lost worker)."""
+    start of the next one the worker took part in; a spell the run ends in counts), or holds a reason other than
+    BRIEF_OUTAGE_REASONS (unresponsive: the job's own rule for a lost worker)."""
     if workers.empty or "present" not in workers:
         return pd.Series(dtype=float)
     lost = {}
@@ -101,7 +104,7 @@ def first_link_losses(workers: pd.DataFrame) -> pd.Series:
             while end < len(away) and away[end]:
                 end += 1
             span_s = t_s[end] - t_s[k] if end < len(away) and timed else np.inf
-            if span_s >= SUSTAINED_OUTAGE_S or any(str(r).strip() not in SAMPLED_OUTAGES for r in reason[k:end]):
+            if span_s >= SUSTAINED_OUTAGE_S or any(str(r).strip() not in BRIEF_OUTAGE_REASONS for r in reason[k:end]):
                 lost[vehicle] = iteration[k]
                 break
             k = end

@@ -114,10 +114,10 @@ def test_a_blocks_queue_wait_is_the_median_of_the_records_that_cover_it():
 
 
 def test_a_fade_is_no_link_loss_but_a_spell_of_the_jobs_own_rule_length_is():
-    """The sleep network samples each link at an iteration's start: a spell out of range shorter than
-    SUSTAINED_OUTAGE_S (to the start of the next iteration the worker took part in) is a fade, which on a real network
-    is a slow iteration; a longer one, one the run ends in, or one of the job's own rules for a lost worker is a
-    link loss, from its first iteration."""
+    """The sleep network samples each link at an iteration's start: a spell out of range (or of the worker's agent
+    unheard) shorter than SUSTAINED_OUTAGE_S (to the start of the next iteration the worker took part in) is a fade,
+    which on a real network is a slow iteration; a longer one, one the run ends in, or the job's own rule for a lost
+    worker (unresponsive) is a link loss, from its first iteration."""
     def track(absent: dict[int, str], t_s: list[float]) -> pd.DataFrame:
         return pd.DataFrame({"vehicle": "w1", "iteration": range(len(t_s)), "t_rel_s": t_s,
                              "present": [k not in absent for k in range(len(t_s))],
@@ -128,6 +128,8 @@ def test_a_fade_is_no_link_loss_but_a_spell_of_the_jobs_own_rule_length_is():
     fades_then_lost = track({3: "out_of_range", 19: "out_of_range"}, t_s)
     assert iteration_pace.first_link_losses(fades_then_lost).to_dict() == {"w1": 19}, "10.3 s out of range"
     assert iteration_pace.first_link_losses(track({5: "unresponsive"}, t_s)).to_dict() == {"w1": 5}
+    assert iteration_pace.first_link_losses(track({5: "agent_lost"}, t_s)).empty, "its peer state late, once"
+    assert iteration_pace.first_link_losses(track({19: "agent_lost"}, t_s)).to_dict() == {"w1": 19}
     assert iteration_pace.first_link_losses(track({28: "out_of_range", 29: "out_of_range"}, t_s)).to_dict() == \
         {"w1": 28}, "the run ended in it"
     assert iteration_pace.first_link_losses(track({3: "timeout"}, t_s)).empty, "a late answer is no absence"
