@@ -43,7 +43,7 @@ def one_run(name: str, speedup: float, duration_s: float | None, folder: Path) -
     if duration_s is not None:
         scenario = dataclasses.replace(scenario, duration_s=duration_s)
     result = run_scenario(scenario, folder, speedup, allocate_base_port(3, slots=5), out=io.StringIO(),
-                          network="kernel")
+                          network="kernel", figures=False)
     summary = result.summary or {}
     return {"scenario": name, "speedup": speedup, "outcome": result.outcome.name.lower(),
             "ok": result.outcome is Outcome.COMPLETED, "run_dir": str(folder),

@@ -83,7 +83,7 @@ def variant(name: str, folder: Path, duration_s: float):
 def measure(name: str, duration_s: float, speedup: float, folder: Path) -> dict:
     network = "sleep" if name.endswith("-sleep") else "kernel"
     result = run_scenario(variant(name, folder, duration_s), folder / name, speedup, allocate_base_port(3, slots=5),
-                          out=io.StringIO(), network=network)
+                          out=io.StringIO(), network=network, figures=False)
     if result.outcome is not Outcome.COMPLETED:
         return {"variant": name, "outcome": result.outcome.name.lower(), "detail": result.detail, "ok": False}
     iterations = read_jsonl(kinds.COMPUTE_LOG.at(result.run_dir)).of_kind(kinds.ITERATION)

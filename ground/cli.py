@@ -111,6 +111,7 @@ def _add_logs_parser(sub) -> None:
     analyze.add_argument("run_dir", type=Path)
     analyze.add_argument("--out", type=Path, help="where to write tables, figures and report.md (default: tables "
                                                   "and figures in RUN_DIR/analysis, the report as RUN_DIR/report.md)")
+    analyze.add_argument("--no-figures", action="store_true", help="the tables and report.md only (faster)")
     compare = lsub.add_parser("compare", help="two runs side by side (e.g. static vs moving)")
     compare.add_argument("run_a", type=Path)
     compare.add_argument("run_b", type=Path)
@@ -141,7 +142,7 @@ def run_logs(args: argparse.Namespace, out=None) -> int:
         # re-analysis replaces it instead of leaving a second one in analysis/
         report_path = args.out / kinds.REPORT.name if args.out else args.run_dir / kinds.REPORT.name
         tables = report.analyze_run(args.run_dir, args.out, args.master, args.bin_m, args.threshold_mbps,
-                                    report_path=report_path)
+                                    report_path=report_path, draw_figures=not args.no_figures)
         print(f"{report_path}: {_brief(tables.summary)}", file=out)
         for line in tables.missing:
             print(f"  missing: {line}", file=out)

@@ -123,7 +123,8 @@ class ExperimentResult:
 class Experiment:
     def __init__(self, scenario: Scenario, run_dir: Path, speedup: float, base_port: int, out=None,
                  stop: threading.Event | None = None, analyze: bool = True,
-                 network: tuple[str, str] = ("sleep", ""), replay: ReplayLinks | None = None):
+                 network: tuple[str, str] = ("sleep", ""), replay: ReplayLinks | None = None,
+                 figures: bool = True):
         self.scenario, self.run_dir, self.speedup, self.out = scenario, run_dir, speedup, out or sys.stdout
         self.replay = replay
         self.network, self.network_why = network
@@ -138,7 +139,7 @@ class Experiment:
         self.iperf3_servers: list = []
         self.ports = Ports(base_port)
         self.stop_event = stop or threading.Event()
-        self.analyze = analyze
+        self.analyze, self.figures = analyze, figures  # figures: the analysis draws them (else tables and report)
         self.sim: Sitl | None = None
         self.agents: list[AgentProcess] = []
         self.clients: list[VehicleClient] = []
@@ -759,7 +760,7 @@ class Experiment:
 
         try:
             tables = analyze_run(self.run_dir, self.run_dir / kinds.ANALYSIS_DIR,
-                                 report_path=kinds.REPORT.at(self.run_dir))
+                                 report_path=kinds.REPORT.at(self.run_dir), draw_figures=self.figures)
         except RunDirError as err:
             if self.sim is not None:  # a run stopped before its simulator started has nothing to analyse: its
                 print(f"analysis: {err}", file=self.out)  # failure alone says why
@@ -782,11 +783,13 @@ def default_run_dir(scenario: Scenario) -> Path:
 
 def run_scenario(scenario: Scenario, run_dir: Path | None, speedup: float, base_port: int = 14550,
                  out=None, stop: threading.Event | None = None, analyze: bool = True,
-                 network: str | None = None, links: str = "model", view: str | None = None) -> ExperimentResult:
+                 network: str | None = None, links: str = "model", view: str | None = None,
+                 figures: bool = True) -> ExperimentResult:
     """Run one scenario and print its final summary; the result says how it ended and where the report is.
     network: "kernel", "sleep" or None (kernel where it can run). links: "model" (the radio model) or
     "replay:RUN" (a recorded run's measured throughput per pair). view: HOST:PORT to serve the live page on
-    (its screenshot at the end goes into the run directory as view.png)."""
+    (its screenshot at the end goes into the run directory as view.png). figures: False for an analysis of tables
+    and report alone."""
     out = out or sys.stdout
     replay = parse_links(links)
     chosen = choose_network(network, scenario.network.air, bool(probe_backlog_args(scenario)))
@@ -796,7 +799,7 @@ def run_scenario(scenario: Scenario, run_dir: Path | None, speedup: float, base_
     if kinds.EXPERIMENT_LOG.at(run_dir).exists():  # appended to, its logs would hold two runs the analysis mixes
         raise BadInput(f"{run_dir}: holds a run already ({kinds.EXPERIMENT_LOG.name}): give another --out, or "
                        "remove it")
-    experiment = Experiment(scenario, run_dir, speedup, base_port, out, stop, analyze, chosen, replay)
+    experiment = Experiment(scenario, run_dir, speedup, base_port, out, stop, analyze, chosen, replay, figures)
     viewer = None
     if view:
         from ground.view.serve import ViewThread

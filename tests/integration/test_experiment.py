@@ -284,7 +284,8 @@ duration_s = 18.0  # 4.5 s wall-clock at 4x: longer than the agent's 3 s link ti
     path.write_text(path.read_text().replace('id = "w1"\n', 'id = "w1"\ncompanion_mah = 1.8\n'))
     scenario = load_scenario(str(path))
     console = io.StringIO()
-    experiment = Experiment(scenario, tmp_path / "run", 4.0, allocate_base_port(3, slots=5), out=console)
+    experiment = Experiment(scenario, tmp_path / "run", 4.0, allocate_base_port(3, slots=5), out=console,
+                            figures=False)
     result = experiment.run()
     assert result.outcome is Outcome.COMPLETED, console.getvalue()
     text = console.getvalue()
@@ -440,7 +441,7 @@ def test_a_recorded_run_replays_its_links_on_the_kernel_network(short_run, tmp_p
     assert set(replay.series) == {("master", "w1"), ("master", "w2")}
     with open(tmp_path / "console.txt", "w") as console:
         replayed = Experiment(scenario, tmp_path / "replayed", 4.0, allocate_base_port(3, slots=5), out=console,
-                              network=("kernel", "test"), replay=replay).run()
+                              network=("kernel", "test"), replay=replay, figures=False).run()
     assert replayed.outcome is Outcome.COMPLETED, replayed.detail
     run = replayed.run_dir
     updates = read_jsonl(run / "network.jsonl").of_kind("link_rates")

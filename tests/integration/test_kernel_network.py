@@ -242,7 +242,7 @@ def test_the_moving_flight_on_a_kernel_network(tmp_path):
     before = root_state()
     scenario = load_scenario(str(shortened("paper-flight-moving", tmp_path, 170.0, max_speedup=8.0)))
     result = run_scenario(scenario, tmp_path / "run", 8.0,
-                          allocate_base_port(3, slots=5), out=io.StringIO(), network="kernel")
+                          allocate_base_port(3, slots=5), out=io.StringIO(), network="kernel", figures=False)
     assert result.outcome is Outcome.COMPLETED, result.detail
     run = result.run_dir
     assert "- network: kernel (" in (run / "report.md").read_text()

@@ -426,7 +426,7 @@ def test_an_experiment_on_the_frame_level_air_trains_probes_and_records_its_queu
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("NAC_DATA_DIR", str(SHARED_DATA))
         experiment = Experiment(scenario, tmp_path / "run", 4.0, allocate_base_port(3, slots=5), out=io.StringIO(),
-                                network=("kernel", "as root"))
+                                network=("kernel", "as root"), figures=False)
         result = experiment.run()
     assert result.outcome is Outcome.COMPLETED, result.detail
     network = read_jsonl(result.run_dir / "network.jsonl")
@@ -498,7 +498,7 @@ def test_the_flights_on_the_frame_level_air_give_the_same_results_at_1x_and_4x(t
     runs, run_dirs = [], []
     for speedup in (1.0, 4.0):
         result = run_scenario(scenario, tmp_path / f"{speedup:g}x", speedup, allocate_base_port(3, slots=5),
-                              out=io.StringIO(), network="kernel")
+                              out=io.StringIO(), network="kernel", figures=False)  # tables judged, not figures
         assert result.outcome is Outcome.COMPLETED, result.detail
         runs.append(pooled_tables([result.run_dir]))
         run_dirs.append(result.run_dir)

@@ -570,3 +570,16 @@ def test_a_device_profiles_runs_are_warned_of_what_makes_them_depend_on_the_spee
     assert late.startswith("900 work segments took longer on this host at 0.25x") and "(5.0 % of the job's time)" \
         in late
     assert "took longer" in speedup_warning(run(0.25, 900), its(0.025), workers, {})
+
+
+def test_an_analysis_without_figures_writes_the_tables_and_the_report_alone(tmp_path):
+    """`nac-ground logs analyze --no-figures`: the same tables and report, no PNG and no image link in it."""
+    from ground.cli import main
+
+    assert main(["logs", "analyze", str(GOLDEN), "--out", str(tmp_path / "bare"), "--no-figures"]) == 0
+    assert main(["logs", "analyze", str(GOLDEN), "--out", str(tmp_path / "drawn")]) == 0
+    bare, drawn = tmp_path / "bare", tmp_path / "drawn"
+    assert not list(bare.glob("*.png")) and list(drawn.glob("*.png")), "figures only where asked"
+    assert sorted(p.name for p in bare.glob("*.csv")) == sorted(p.name for p in drawn.glob("*.csv"))
+    assert "## Summary" in (bare / "report.md").read_text() and "![" not in (bare / "report.md").read_text()
+    assert "![" in (drawn / "report.md").read_text()
