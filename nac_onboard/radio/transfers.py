@@ -93,13 +93,8 @@ class PairLinks:
         if rate_bps <= 0:
             return 0.0
         bits = payload_bits + self.channel.overhead_bits
-        if self.channel.mac == "802.11" and phy_bps > 0:
-            payload_bytes = math.ceil(bits / 8)
-            ip_bytes = payload_bytes + TCP_IP_HEADER_BYTES * max(math.ceil(bits / SEGMENT_BITS), 1)
-            airtime = 1.0 - self.channel.background_airtime  # what other networks leave of the medium
-            seconds = expected_message_s(TIMING, ip_bytes, phy_bps) / airtime
-        else:
-            seconds = bits / rate_bps
+        ip_bytes = math.ceil(bits / 8) + TCP_IP_HEADER_BYTES * max(math.ceil(bits / SEGMENT_BITS), 1)
+        seconds = _sent_s(self.channel, ip_bytes, bits, rate_bps, phy_bps)
         if loss > 0:
             segments = max(math.ceil(bits / SEGMENT_BITS), 1)
             if self.rng.random() < 1.0 - (1.0 - min(loss, 1.0)) ** segments:
@@ -130,11 +125,14 @@ def backlog_drain_s(channel: ChannelModel, backlog_packets: float, links: list[L
     if backlog_packets <= 0 or not through:
         return 0.0
     share_bytes = backlog_packets * MTU_BYTES / len(through)
-    airtime = 1.0 - channel.background_airtime  # what other networks leave of the medium
-    total = 0.0
-    for link in through:
-        if channel.mac == "802.11" and link.phy_bps > 0:
-            total += expected_message_s(TIMING, math.ceil(share_bytes), link.phy_bps) / airtime
-        else:
-            total += share_bytes * 8 / link.capacity_bps
-    return total
+    return sum(_sent_s(channel, math.ceil(share_bytes), share_bytes * 8, link.capacity_bps, link.phy_bps)
+               for link in through)
+
+
+def _sent_s(channel: ChannelModel, ip_bytes: int, bits: float, rate_bps: float, phy_bps: float) -> float:
+    """How long a message takes over a link: with a channel whose mac is "802.11" and the link's PHY rate, the
+    medium's time for its ip_bytes (expected_message_s) in what other networks leave of the air; else its bits at
+    the link's rate."""
+    if channel.mac == "802.11" and phy_bps > 0:
+        return expected_message_s(TIMING, ip_bytes, phy_bps) / (1.0 - channel.background_airtime)
+    return bits / rate_bps
