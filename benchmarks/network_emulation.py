@@ -44,9 +44,10 @@ import pandas as pd
 from ground.logs.agreement import pace_by_window, ratio_interval
 from missions import save_mission
 from nac_onboard.clock import publish as publish_clock
-from nac_onboard.flight_log import JsonlLog
+from nac_onboard.flight_log import JsonlLog, read_jsonl
 from nac_onboard.radio.channel import PRESETS, ChannelModel
 from nac_onboard.radio.medium import MacTiming, expected_echo_s
+from nac_onboard.records import kinds
 from sitl.experiment.runner import Outcome, run_scenario
 from sitl.experiment.scenario import load_scenario
 from sitl.network.air import AirNetwork
@@ -177,28 +178,33 @@ def fleet_scenario(folder: Path, vehicles: int, duration_s: float, air: str = "h
 def whole_run(vehicles: int, speedup: float, duration_s: float, folder: Path, air: str = "htb", device: str = "host",
               probes: bool = True) -> dict:
     """One run of the fleet; its pace also window by window (iterations per simulated minute in each whole window
-    of WINDOW_S, or of one cycle of the probes in turn), from which a ratio of two runs gets its interval."""
+    of WINDOW_S, or of one cycle of the probes in turn), from which a ratio of two runs gets its interval; and the
+    wall time to the job's go (the MPI job's start-up, the missions' upload, the take-off: all on the run's clock)."""
     scenario = load_scenario(str(fleet_scenario(folder / f"fleet-{vehicles}-{air}", vehicles, duration_s, air,
                                                 device, probes)))
     before_self, before_children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(
         resource.RUSAGE_CHILDREN)
-    t0 = time.monotonic()
+    t0, t0_unix = time.monotonic(), time.time()
     from sitl.launcher import allocate_base_port
 
     run_dir = folder / f"run-{vehicles}-{air}-{speedup:g}x"
     result = run_scenario(scenario, run_dir, speedup, allocate_base_port(vehicles, slots=5), out=io.StringIO(),
-                          network="kernel")
+                          network="kernel", figures=False)
     wall_s = time.monotonic() - t0
     after_self, after_children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(
         resource.RUSAGE_CHILDREN)
     cpu = sum(getattr(after, f) - getattr(before, f) for after, before in
               ((after_self, before_self), (after_children, before_children)) for f in ("ru_utime", "ru_stime"))
     s = result.summary
+    compute_log = kinds.COMPUTE_LOG.at(run_dir)
+    started = read_jsonl(compute_log).of_kind(kinds.STARTED) if compute_log.exists() else []
     window_s = (vehicles - 1) * PROBE_PERIOD_S if probes else WINDOW_S
     iterations = run_dir / "analysis" / "iterations.csv"
     by_window = pace_by_window(pd.read_csv(iterations), window_s) if iterations.exists() else pd.Series(dtype=float)
     return {"vehicles": vehicles, "air": air, "speedup": speedup, "outcome": result.outcome.name.lower(),
-            "wall_s": round(wall_s, 1), "cpu_s": round(cpu, 1), "cpu_cores": round(cpu / wall_s, 2),
+            "wall_s": round(wall_s, 1),
+            "wall_to_go_s": round(started[0]["t_s"] - t0_unix, 1) if started else None,
+            "cpu_s": round(cpu, 1), "cpu_cores": round(cpu / wall_s, 2),
             "iterations": s.get("iterations"), "iterations_per_sim_min": _round(s.get("iterations_per_min")),
             "window_s": window_s, "iterations_per_sim_min_by_window": {f"{t:g}": round(x, 1) for t, x in
                                                                        by_window.items()},
