@@ -91,10 +91,11 @@ def write_tables(tables: RunTables, out: Path) -> None:
 def _notes(tables: list[RunTables], experiment: dict | None) -> list[str]:
     lines = []
     if experiment:
+        probes = _probes_line(experiment.get("probes"), experiment.get("network"), "probes" in experiment)
         lines += ["## Experiment", "", f"- scenario: `{experiment.get('scenario')}`",
                   f"- speed-up: {float(experiment.get('speedup') or 1):g}x ({experiment.get('speedup_note', '')})",
                   f"- network: {_network_line(experiment.get('network'))}",
-                  f"- probes: {_probes_line(experiment.get('probes'), experiment.get('network'))}",
+                  f"- probes: {probes}",
                   f"- ended: {experiment.get('outcome', '?')}"
                   + (f" ({experiment['detail']})" if experiment.get("outcome") not in (None, "completed") else ""),
                   ""]
@@ -105,10 +106,13 @@ def _notes(tables: list[RunTables], experiment: dict | None) -> list[str]:
     return lines
 
 
-def _probes_line(probes: dict | None, network: dict | None) -> str:
-    """Which probes ran and where their traffic went: beside the job in its queues, or apart from it."""
+def _probes_line(probes: dict | None, network: dict | None, recorded: bool = True) -> str:
+    """Which probes ran and where their traffic went: beside the job in its queues, or apart from it. recorded:
+    whether the experiment's record says (runs from before it did have no `probes` at all)."""
+    if not recorded:
+        return "not recorded (a run from before the experiment recorded its probes)"
     if not probes:
-        return "none, or not recorded (a run from before the experiment recorded its probes)"
+        return "none (the scenario has no [throughput] table)"
     period_s, duration_s = probes.get("period_s", 0), probes.get("duration_s", 0)
     schedule = "back to back (continuous, as iperf3's tests)" if duration_s >= period_s else \
         f"{duration_s:g} s every {period_s:g} s ({100 * duration_s / period_s:.0f} % of the time)"

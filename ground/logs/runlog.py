@@ -131,7 +131,7 @@ def read_run(path: str | Path) -> RunLog:
     for vehicle in run.vehicles:
         if not any(p["vehicle"] == vehicle for p in run.positions):
             run.missing.append(f"vehicle {vehicle}: no positions (no telemetry records and no autopilot log)")
-    if not run.probes:
+    if not run.probes and not probes_off(run.experiment):
         run.missing.append(f"throughput: no probe records ({kinds.THROUGHPUT_LOG.name})")
     if not run.iterations:
         run.missing.append(f"compute: no iteration records ({kinds.COMPUTE_LOG.name})")
@@ -260,3 +260,8 @@ def _iperf3_probe(data, where: str, client: str, server: str) -> tuple[dict | No
         record["error"] = str(data.get("error") or "iperf3 reported no received total")
     return record, None
 
+
+def probes_off(experiment: dict | None) -> bool:
+    """Whether the run's experiment ran no probes by its scenario (its record says so): then a run without probe
+    records lacks nothing."""
+    return experiment is not None and "probes" in experiment and not experiment["probes"]

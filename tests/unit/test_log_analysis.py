@@ -490,6 +490,28 @@ def test_the_report_says_which_probes_ran_and_where_their_traffic_went():
     assert "rate class of their own" in line
 
 
+def test_a_run_whose_scenario_had_no_probes_lacks_none_and_says_so(tmp_path):
+    """A scenario without a [throughput] table runs no probes (the fleets of benchmarks/network_emulation.py): its
+    report says none ran, and "what this run lacks" does not list probe records. A run whose experiment record does
+    not say (or with no experiment record) still lists them as missing."""
+    run = tmp_path / "run"
+    shutil.copytree(GOLDEN, run)
+    (run / "master" / "throughput.jsonl").unlink()
+    missing = "throughput: no probe records (throughput.jsonl)"
+    assert missing in analyze_run(run, draw_figures=False).missing, "no experiment record: they are missing"
+    log = JsonlLog(run / "experiment.json", t_s=999.0)
+    log.write(kinds.EXPERIMENT, 999.0, scenario="fleet", path="fleet.toml", speedup=1.0, speedup_note="real time",
+              duration_s=10.0, network={"mode": "sleep"}, radio={"name": "wifi-flight"}, links="model",
+              probes=None, vehicles=[{"id": "master", "role": "master"}, {"id": "w1", "role": "worker"}],
+              missions={})
+    log.close()
+    t = analyze_run(run, draw_figures=False)
+    report = (run / "analysis" / "report.md").read_text()
+    assert missing not in t.missing and missing not in report, t.missing
+    assert "- probes: none (the scenario has no [throughput] table)" in report
+    assert _probes_line(None, None, recorded=False).startswith("not recorded")
+
+
 def test_a_stations_queue_waits_come_from_records_that_name_their_stations():
     """The frame-level air's records name their stations from 2026-11-29 on: the master's waits are its entries,
     a station that sent nothing in a record (null) or a damaged entry is NaN, and records without names give
