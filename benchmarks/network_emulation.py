@@ -139,7 +139,10 @@ def _rate_bps(tc_text: str) -> int | None:
 
 
 PROBE_PERIOD_S = 2.0  # the fleet's probes, one worker after another: a cycle is (vehicles - 1) x this
-WINDOW_S = 10.0  # without probes, a run's pace is taken window by window over this many simulated seconds
+WINDOW_S = 10.0  # without probes, a run's pace is taken window by window over this many simulated seconds, or
+# over WINDOWS_A_RUN of a shorter run's duration: a 15 s run's job computes for some 12 s after the take-off, which
+# 10 s windows leave without a ratio's interval (MIN_WINDOWS whole windows in common)
+WINDOWS_A_RUN = 8
 
 
 def fleet_scenario(folder: Path, vehicles: int, duration_s: float, air: str = "htb", device: str = "host",
@@ -178,8 +181,9 @@ def fleet_scenario(folder: Path, vehicles: int, duration_s: float, air: str = "h
 def whole_run(vehicles: int, speedup: float, duration_s: float, folder: Path, air: str = "htb", device: str = "host",
               probes: bool = True) -> dict:
     """One run of the fleet; its pace also window by window (iterations per simulated minute in each whole window
-    of WINDOW_S, or of one cycle of the probes in turn), from which a ratio of two runs gets its interval; and the
-    wall time to the job's go (the MPI job's start-up, the missions' upload, the take-off: all on the run's clock)."""
+    of WINDOW_S or less, or of one cycle of the probes in turn), from which a ratio of two runs gets its interval;
+    and the wall time to the job's go (the MPI job's start-up, the missions' upload, the take-off: all on the run's
+    clock)."""
     scenario = load_scenario(str(fleet_scenario(folder / f"fleet-{vehicles}-{air}", vehicles, duration_s, air,
                                                 device, probes)))
     before_self, before_children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(
@@ -198,7 +202,7 @@ def whole_run(vehicles: int, speedup: float, duration_s: float, folder: Path, ai
     s = result.summary
     compute_log = kinds.COMPUTE_LOG.at(run_dir)
     started = read_jsonl(compute_log).of_kind(kinds.STARTED) if compute_log.exists() else []
-    window_s = (vehicles - 1) * PROBE_PERIOD_S if probes else WINDOW_S
+    window_s = (vehicles - 1) * PROBE_PERIOD_S if probes else min(WINDOW_S, duration_s / WINDOWS_A_RUN)
     iterations = run_dir / "analysis" / "iterations.csv"
     by_window = pace_by_window(pd.read_csv(iterations), window_s) if iterations.exists() else pd.Series(dtype=float)
     return {"vehicles": vehicles, "air": air, "speedup": speedup, "outcome": result.outcome.name.lower(),
