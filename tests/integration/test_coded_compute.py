@@ -198,10 +198,10 @@ def test_bpcc_counts_a_slow_companions_first_batches_and_gives_it_fewer_units_by
 
 
 def test_impossible_codes_exit_2_on_every_rank_before_any_work(tmp_path):
-    """Each of the 3 ranks says why and ends with 2, and hydra passes the 2 on. Or hydra dies of SIGPIPE in its
-    own teardown after the ranks have ended (docs/benchmarks.md: it writes its closing message to a proxy already
-    gone; 1 run in 8 here, in the parallel part of the suite): then the ranks' sentences it forwarded are the
-    verdict (refused_by_every_rank)."""
+    """Each of the 3 ranks says why and ends with 2, and hydra passes the 2 on. Or hydra ends in its own teardown
+    race after the ranks have ended (docs/benchmarks.md: it writes its closing message to a proxy already gone; 1 run
+    in 8 here, in the parallel part of the suite), by SIGPIPE or with 255 and its line saying so: then the ranks'
+    sentences it forwarded are the verdict (refused_by_every_rank)."""
     for args, said in ((("--task", "matmul_mds", "--code-k", "3"), "a code needs k <= the 2 workers"),
                        (("--task", "linreg_gc", "--code-s", "2"), "tolerates 0 <= s < 2 stragglers")):
         out = tmp_path / args[1]

@@ -61,11 +61,23 @@ def judged_exit(returncode: int, stderr: str, out: Path | None) -> int:
     says it could not write to that proxy and exits 255 (a clean-clone CI run, 2026-11-27: "unable to send SIGUSR1
     downstream"). With the master's run_summary written, that exit is MPICH's teardown, not the job's, and counts as
     0; without it, it stays a failure."""
-    teardown = returncode == -signal.SIGPIPE or (returncode == 255 and "unable to write data to proxy" in stderr)
-    if teardown and out is not None and (out / kinds.COMPUTE_LOG.name).exists() \
+    if hydra_teardown(returncode, stderr) and out is not None and (out / kinds.COMPUTE_LOG.name).exists() \
             and read_jsonl(out / kinds.COMPUTE_LOG.name).of_kind(kinds.RUN_SUMMARY):
         return 0
     return returncode
+
+
+# What hydra's mpiexec says when it exits 255 in its own teardown, after every rank has ended (clean-clone CI runs:
+# 2026-11-27 "unable to write data to proxy" and "unable to send SIGUSR1 downstream"; 2026-11-29 a refused job's
+# "process manager error waiting for completion", its three ranks having said why)
+HYDRA_TEARDOWN = ("unable to write data to proxy", "unable to send SIGUSR1 downstream",
+                  "process manager error waiting for completion")
+
+
+def hydra_teardown(returncode: int, stderr: str) -> bool:
+    """Whether mpiexec's exit is hydra's teardown race (its closing message written to a proxy already gone): SIGPIPE,
+    or 255 with hydra's own line saying so. What the ranks did is then in their output and records, not the exit."""
+    return returncode == -signal.SIGPIPE or (returncode == 255 and any(line in stderr for line in HYDRA_TEARDOWN))
 
 
 def run_mpi(ranks: int, *args: str, timeout_s: float = 120.0, env: dict | None = None) -> subprocess.CompletedProcess:
@@ -78,11 +90,12 @@ def run_mpi(ranks: int, *args: str, timeout_s: float = 120.0, env: dict | None =
 
 
 def refused_by_every_rank(done: subprocess.CompletedProcess, said: str, ranks: int = 3) -> bool:
-    """Each rank said why and ended with 2, which hydra passed on; or hydra died of SIGPIPE in its own teardown
-    (run_mpi), and then what it had not yet forwarded of the ranks' output died with it: in a clean-clone CI run
-    (2026-11-28) two of the three sentences reached its stderr. So under SIGPIPE one sentence at least."""
+    """Each rank said why and ended with 2, which hydra passed on; or hydra ended in its own teardown race
+    (hydra_teardown), and then what it had not yet forwarded of the ranks' output went with it: in a clean-clone CI
+    run (2026-11-28) two of the three sentences reached its stderr. So then one sentence at least."""
     count = done.stderr.count(said)
-    return count == ranks if done.returncode == 2 else done.returncode == -signal.SIGPIPE and 1 <= count <= ranks
+    return count == ranks if done.returncode == 2 else hydra_teardown(done.returncode, done.stderr) and \
+        1 <= count <= ranks
 
 
 def records(out: Path, kind: str) -> list[dict]:
@@ -510,9 +523,12 @@ def test_a_device_profile_gives_the_same_simulated_iterations_at_1x_and_4x(tmp_p
     10 % on the median of 8, at 1x and at 4x alike, and no segment came out late. The bound holds on a loaded
     machine: the stretch counts each rank's own CPU time, which other processes do not change, and what is not
     stretched, MPI's messages (about 2 ms of wall time an iteration, 8 ms simulated at 4x), is under 5 % of it.
-    Two runs are not compared directly: CPU time itself varies from iteration to iteration by some 20 %, and under
-    a loaded CI run one segment took 3.6 ms of CPU instead of 0.3 (3.6 s on the device), so a worker can outlast the
-    5 s timeout: such an iteration's duration is the timeout's, and it is left out of the median."""
+    Two runs are not compared directly: CPU time itself varies from iteration to iteration by some 20 %, and more
+    with the host's caches: a rank that slept comes back to them cold, the longer it slept the colder, so at 1x a
+    segment can cost several times its CPU at 4x (2026-11-29, evening, alone: the master's 1.1-5.3 ms against
+    0.3-1.4 ms, the workers' 0.4-2.0 ms against 0.4-1.1 ms; under a loaded CI run one segment took 3.6 ms). On the
+    device's clock that is up to 5 s, so the job's timeout is 20 s, not the 5 s at which such a worker was absent
+    from 7 of 8 iterations; an iteration a worker still outlasts is the timeout's, and left out of the median."""
     device = tmp_path / "slow.toml"
     device.write_text('[device]\nname = "slow"\nslowdown = 1000\nsource = "a test figure"\n')
     for speedup in (1.0, 4.0):
@@ -520,7 +536,7 @@ def test_a_device_profile_gives_the_same_simulated_iterations_at_1x_and_4x(tmp_p
         clock.publish(str(clock_file), speedup, 0.0)
         out = tmp_path / f"run-{speedup:g}x"
         done = run_mpi(3, "--task", "matmul", "--iterations", "8", "--out", str(out), "--device", str(device),
-                       env={**ENV, clock.ENV: str(clock_file)})
+                       "--timeout-s", "20", env={**ENV, clock.ENV: str(clock_file)})
         assert done.returncode == 0, done.stderr
         started, = records(out, "run_started")
         assert (started["device"], started["cpu_slowdown"], started["speedup"]) == ("slow", 1000.0, speedup)
