@@ -54,19 +54,6 @@ def mpi_command(ranks: int, *args: str) -> list[str]:
             "nac_onboard.compute", *args]
 
 
-def judged_exit(returncode: int, stderr: str, out: Path | None) -> int:
-    """mpiexec's exit judged by the job's answer, as the experiment runner judges it: on a loaded machine hydra's
-    `mpiexec` now and then dies of SIGPIPE after every rank has finished (its closing message written to a proxy
-    already gone, docs/benchmarks.md; 1 of 18 jobs in a clean-clone CI run, and a stopped-worker job in another), or
-    says it could not write to that proxy and exits 255 (a clean-clone CI run, 2026-11-27: "unable to send SIGUSR1
-    downstream"). With the master's run_summary written, that exit is MPICH's teardown, not the job's, and counts as
-    0; without it, it stays a failure."""
-    if hydra_teardown(returncode, stderr) and out is not None and (out / kinds.COMPUTE_LOG.name).exists() \
-            and read_jsonl(out / kinds.COMPUTE_LOG.name).of_kind(kinds.RUN_SUMMARY):
-        return 0
-    return returncode
-
-
 # What hydra's mpiexec says when it exits 255 in its own teardown, after every rank has ended (clean-clone CI runs:
 # 2026-11-27 "unable to write data to proxy" and "unable to send SIGUSR1 downstream"; 2026-11-29 a refused job's
 # "process manager error waiting for completion", its three ranks having said why)
@@ -78,6 +65,17 @@ def hydra_teardown(returncode: int, stderr: str) -> bool:
     """Whether mpiexec's exit is hydra's teardown race (its closing message written to a proxy already gone): SIGPIPE,
     or 255 with hydra's own line saying so. What the ranks did is then in their output and records, not the exit."""
     return returncode == -signal.SIGPIPE or (returncode == 255 and any(line in stderr for line in HYDRA_TEARDOWN))
+
+
+def judged_exit(returncode: int, stderr: str, out: Path | None) -> int:
+    """mpiexec's exit judged by the job's answer, as the experiment runner judges it: on a loaded machine hydra's
+    teardown race (hydra_teardown; docs/benchmarks.md) now and then ends it after every rank has finished (1 of 18
+    jobs in a clean-clone CI run, and a stopped-worker job in another). With the master's run_summary written, that
+    exit is MPICH's teardown, not the job's, and counts as 0; without it, it stays a failure."""
+    if hydra_teardown(returncode, stderr) and out is not None and (out / kinds.COMPUTE_LOG.name).exists() \
+            and read_jsonl(out / kinds.COMPUTE_LOG.name).of_kind(kinds.RUN_SUMMARY):
+        return 0
+    return returncode
 
 
 def run_mpi(ranks: int, *args: str, timeout_s: float = 120.0, env: dict | None = None) -> subprocess.CompletedProcess:
